@@ -1,0 +1,17 @@
+"""Ground truth: everything that describes and runs a shaderball render in Blender Cycles.
+
+Layers (example 2 of DESIGN.md):
+
+- plain data, importable anywhere, never imports ``bpy``:
+  ``specs`` (frozen render specs), ``sun`` (sun sampling and the sun lamp's physics),
+  ``materials`` (uniform / procedural / SVBRDF-file sources into validated maps),
+  ``exr`` (multilayer EXR I/O), ``tonemap``, ``contact_sheet``;
+- ``render_jobs.blender``: the only code that imports ``bpy``, and only inside a Blender
+  worker process (``render_jobs.worker`` starts one; the farm's Ray actors are others).
+
+Importing ``render_jobs`` (or ``farm``, ``storage``, ``trainer``) never loads Blender.
+"""
+
+from render_jobs.errors import MaterialError, RenderError
+
+__all__ = ["MaterialError", "RenderError"]

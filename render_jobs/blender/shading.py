@@ -1,0 +1,143 @@
+"""The Cook-Torrance SVBRDF node graph, its screen-space AOVs, and texture swapping.
+
+Material = Lambert (Diffuse BSDF, roughness 0) + GGX microfacet specular (Glossy BSDF, GGX,
+no Fresnel term: the specular map is the reflectance), added. Four image textures on the UVs,
+scaled by ``texture_tiling`` (twice as many repeats around as from pole to pole):
+
+- diffuse (sRGB) → Diffuse colour; specular (sRGB) → Glossy colour;
+- roughness (Non-Color) → Glossy roughness (Blender's r; alpha = r**2);
+- normal (Non-Color, tangent space, OpenGL) → Normal Map node → both BSDFs' normals.
+
+Each texture's value also goes to a shader AOV (``diffuse``, ``specular``, ``roughness``,
+``normal``), plus ``mask`` = 1; Cycles writes AOVs at the camera ray's first hit, filtered like
+the render, so they are the maps UV-mapped on the ball and rasterised, anti-aliased.
+
+Under persistent data Cycles ignores pixel edits to an existing image, so
+:meth:`SvbrdfMaterial.set_maps` creates fresh images and removes the previous ones (which also
+keeps memory flat over long runs).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from render_jobs.blender.bpy_guard import bpy
+from render_jobs.materials.maps import MaterialMaps
+
+AOVS = {
+    "diffuse": "COLOR",
+    "specular": "COLOR",
+    "roughness": "VALUE",
+    "normal": "COLOR",
+    "mask": "VALUE",
+}
+_COLOUR_SPACE = {
+    "diffuse": "sRGB",
+    "specular": "sRGB",
+    "roughness": "Non-Color",
+    "normal": "Non-Color",
+}
+
+
+def register_aovs(view_layer) -> None:
+    """Declare the screen-space AOV passes on ``view_layer``."""
+    for name, kind in AOVS.items():
+        aov = view_layer.aovs.add()
+        aov.name = name
+        aov.type = kind
+
+
+def _aov(nodes, links, name: str, socket=None, value: float | None = None):
+    node = nodes.new("ShaderNodeOutputAOV")
+    node.aov_name = name
+    if socket is not None:
+        links.new(socket, node.inputs["Color" if AOVS[name] == "COLOR" else "Value"])
+    if value is not None:
+        node.inputs["Value"].default_value = value
+    return node
+
+
+class SvbrdfMaterial:
+    """The ball's material: one node graph, textures swapped per material."""
+
+    def __init__(self, texture_tiling: float):
+        self.material = bpy.data.materials.new("svbrdf")
+        self.material.use_nodes = True
+        nt = self.material.node_tree
+        nodes, links = nt.nodes, nt.links
+        nodes.clear()
+        uv = nodes.new("ShaderNodeUVMap")
+        uv.uv_map = "UVMap"
+        mapping = nodes.new("ShaderNodeMapping")
+        mapping.inputs["Scale"].default_value = (2 * texture_tiling, texture_tiling, 1.0)
+        links.new(uv.outputs["UV"], mapping.inputs["Vector"])
+        self.textures = {}
+        for name in _COLOUR_SPACE:
+            tex = nodes.new("ShaderNodeTexImage")
+            tex.interpolation = "Linear"
+            tex.extension = "REPEAT"
+            links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
+            self.textures[name] = tex
+        diffuse = nodes.new("ShaderNodeBsdfDiffuse")
+        diffuse.inputs["Roughness"].default_value = 0.0
+        glossy = nodes.new("ShaderNodeBsdfGlossy")
+        glossy.distribution = "GGX"
+        normal_map = nodes.new("ShaderNodeNormalMap")
+        normal_map.space = "TANGENT"
+        normal_map.uv_map = "UVMap"
+        add = nodes.new("ShaderNodeAddShader")
+        out = nodes.new("ShaderNodeOutputMaterial")
+        t = self.textures
+        links.new(t["diffuse"].outputs["Color"], diffuse.inputs["Color"])
+        links.new(t["specular"].outputs["Color"], glossy.inputs["Color"])
+        links.new(t["roughness"].outputs["Color"], glossy.inputs["Roughness"])
+        links.new(t["normal"].outputs["Color"], normal_map.inputs["Color"])
+        links.new(normal_map.outputs["Normal"], diffuse.inputs["Normal"])
+        links.new(normal_map.outputs["Normal"], glossy.inputs["Normal"])
+        links.new(diffuse.outputs[0], add.inputs[0])
+        links.new(glossy.outputs[0], add.inputs[1])
+        links.new(add.outputs[0], out.inputs["Surface"])
+        for name in _COLOUR_SPACE:
+            _aov(nodes, links, name, socket=t[name].outputs["Color"])
+        _aov(nodes, links, "mask", value=1.0)
+        self._serial = 0
+
+    def set_maps(self, maps: MaterialMaps) -> None:
+        """Upload ``maps`` as fresh images and drop the previous ones."""
+        self._serial += 1
+        for name, space in _COLOUR_SPACE.items():
+            arr = getattr(maps, name)
+            h, w, c = arr.shape
+            rgba = np.ones((h, w, 4), np.float32)
+            rgba[..., :3] = arr if c == 3 else arr[..., :1]
+            img = bpy.data.images.new(f"{name}.{self._serial}", w, h, alpha=False)
+            img.colorspace_settings.name = space
+            # Blender stores images bottom row first; maps are in file order (top row first)
+            img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
+            img.update()
+            old = self.textures[name].image
+            self.textures[name].image = img
+            if old is not None:
+                bpy.data.images.remove(old)
+
+
+def neutral_material(name: str, grey: float, gloss: float = 0.0, roughness: float = 0.5):
+    """A fixed grey diffuse (+ optional glossy) material for the pedestal and ground."""
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    nodes.clear()
+    diffuse = nodes.new("ShaderNodeBsdfDiffuse")
+    diffuse.inputs["Color"].default_value = (grey, grey, grey, 1.0)
+    out = nodes.new("ShaderNodeOutputMaterial")
+    if gloss > 0:
+        glossy = nodes.new("ShaderNodeBsdfGlossy")
+        glossy.inputs["Color"].default_value = (gloss, gloss, gloss, 1.0)
+        glossy.inputs["Roughness"].default_value = roughness
+        add = nodes.new("ShaderNodeAddShader")
+        links.new(diffuse.outputs[0], add.inputs[0])
+        links.new(glossy.outputs[0], add.inputs[1])
+        links.new(add.outputs[0], out.inputs["Surface"])
+    else:
+        links.new(diffuse.outputs[0], out.inputs["Surface"])
+    return mat

@@ -1,0 +1,9 @@
+"""Domain errors of the render job. Messages are one line and name the culprit."""
+
+
+class MaterialError(ValueError):
+    """A material source is unusable: the message names the file (or source) and the problem."""
+
+
+class RenderError(RuntimeError):
+    """Blender failed to render, or its worker process died."""

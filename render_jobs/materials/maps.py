@@ -1,0 +1,72 @@
+"""The four Cook-Torrance texture maps of one material, as the renderer consumes them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from render_jobs.errors import MaterialError
+
+MAP_CHANNELS = {"diffuse": 3, "specular": 3, "roughness": 1, "normal": 3}
+
+
+@dataclass(frozen=True)
+class MaterialMaps:
+    """Texture maps, each ``(H, W, C) float32`` in [0, 1], all the same H x W, in image-file
+    order (row 0 is the top of the texture, v = 1; column 0 is u = 0).
+
+    - ``diffuse`` (C=3), ``specular`` (C=3): sRGB-encoded albedo / specular colour, as stored
+      in 8-bit PNG maps (Blender decodes sRGB when it samples them);
+    - ``roughness`` (C=1): GGX roughness r, linear (alpha = r**2);
+    - ``normal`` (C=3): tangent-space normal encoded as (n + 1) / 2, linear, OpenGL (+Y up).
+    """
+
+    diffuse: np.ndarray
+    specular: np.ndarray
+    roughness: np.ndarray
+    normal: np.ndarray
+    source_id: str = ""
+
+    def __post_init__(self) -> None:
+        shape = None
+        for name, channels in MAP_CHANNELS.items():
+            arr = getattr(self, name)
+            where = self.source_id or "material"
+            if arr.ndim != 3 or arr.shape[2] != channels:
+                raise MaterialError(
+                    f"{where}: {name} map must have shape (H, W, {channels}), got {arr.shape}"
+                )
+            if arr.dtype != np.float32:
+                raise MaterialError(f"{where}: {name} map must be float32, got {arr.dtype}")
+            if shape is None:
+                shape = arr.shape[:2]
+            elif arr.shape[:2] != shape:
+                raise MaterialError(
+                    f"{where}: {name} map is {arr.shape[1]}x{arr.shape[0]}, "
+                    f"others are {shape[1]}x{shape[0]}"
+                )
+            if not np.all(np.isfinite(arr)):
+                raise MaterialError(f"{where}: {name} map holds NaN or Inf values")
+            if arr.min() < 0.0 or arr.max() > 1.0:
+                raise MaterialError(
+                    f"{where}: {name} map values must lie in [0, 1], "
+                    f"got [{arr.min():.3g}, {arr.max():.3g}]"
+                )
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(height, width) in texels."""
+        return self.diffuse.shape[0], self.diffuse.shape[1]
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB decode, elementwise, float32."""
+    x = np.asarray(x, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB encode, elementwise, float32 (negatives clamp to 0)."""
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, None)
+    return np.where(x <= 0.0031308, x * 12.92, 1.055 * x ** (1 / 2.4) - 0.055).astype(np.float32)

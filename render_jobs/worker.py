@@ -1,0 +1,164 @@
+"""A Blender worker process: a :class:`ShaderballRenderer` in a spawned child process.
+
+The parent never imports ``bpy``. The child builds the scene once, then renders requests
+until closed, and leaves with ``os._exit`` (bpy deadlocks at normal interpreter exit).
+Blender's stdout chatter goes to ``log_path`` (or /dev/null). A request that raises in the
+child comes back as :class:`RenderError` or :class:`MaterialError` with the child's message;
+a child that dies (segfault, OOM kill) raises :class:`RenderError` naming its exit code, and
+the next request starts a fresh child.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing as mp
+import os
+import sys
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+
+from render_jobs.errors import MaterialError, RenderError
+from render_jobs.materials.maps import MaterialMaps
+from render_jobs.results import MaterialRender
+from render_jobs.specs import RenderSettings, Sun
+
+READY_TIMEOUT_S = 300.0
+
+
+def _serve(conn, settings: dict, log_path: str | None) -> None:  # runs in the child
+    os.environ["SHADERBALL_BLENDER_WORKER"] = "1"
+    log = os.open(log_path or os.devnull, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(log, 1)
+    code = 0
+    try:
+        from render_jobs.blender.renderer import ShaderballRenderer
+
+        renderer = ShaderballRenderer(RenderSettings.from_dict(settings))
+        conn.send(("ready", {"geometry_hash": renderer.geometry_hash, "pid": os.getpid()}))
+        while True:
+            request = conn.recv()
+            if request is None:
+                break
+            maps, suns, seeds = request
+            try:
+
+                def progress(done: int) -> None:
+                    conn.send(("progress", done))
+
+                conn.send(("ok", renderer.render_material(maps, suns, seeds, progress)))
+            except MaterialError as exc:
+                conn.send(("material", str(exc)))
+            except Exception as exc:  # noqa: BLE001 - reported to the parent, which raises
+                traceback.print_exc(file=sys.stderr)
+                conn.send(("error", f"{type(exc).__name__}: {exc}"))
+    except (EOFError, BrokenPipeError, KeyboardInterrupt):
+        code = 1
+    except Exception as exc:  # noqa: BLE001 - start-up failure, reported to the parent
+        traceback.print_exc(file=sys.stderr)
+        with contextlib.suppress(BrokenPipeError, OSError):
+            conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        code = 1
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+
+
+class RenderProcess:
+    """Renders in a child Blender process; use as a context manager.
+
+    >>> with RenderProcess(RenderSettings(resolution=64, samples=8)) as worker:  # doctest: +SKIP
+    ...     result = worker.render_material(maps, suns, seeds)
+    """
+
+    def __init__(self, settings: RenderSettings, log_path: str | Path | None = None):
+        self.settings = settings
+        self.log_path = str(log_path) if log_path else None
+        self._proc = None
+        self._conn = None
+        self.info: dict = {}
+
+    def start(self) -> RenderProcess:
+        ctx = mp.get_context("spawn")
+        parent, child = ctx.Pipe()
+        self._proc = ctx.Process(
+            target=_serve, args=(child, self.settings.to_dict(), self.log_path), daemon=True
+        )
+        self._proc.start()
+        child.close()
+        self._conn = parent
+        kind, payload = self._receive(READY_TIMEOUT_S)
+        if kind != "ready":
+            self.close()
+            raise RenderError(f"Blender worker failed to start: {payload}")
+        self.info = payload
+        return self
+
+    def _receive(self, timeout: float | None):
+        assert self._conn is not None and self._proc is not None
+        if not self._conn.poll(timeout):
+            self.close()
+            raise RenderError(f"Blender worker sent nothing for {timeout:.0f} s")
+        try:
+            return self._conn.recv()
+        except (EOFError, ConnectionResetError):
+            self._proc.join(timeout=5)
+            code = self._proc.exitcode
+            self._proc = self._conn = None
+            raise RenderError(f"Blender worker died (exit code {code})") from None
+
+    @property
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc is not None else None
+
+    def render_material(
+        self,
+        maps: MaterialMaps,
+        suns: list[Sun],
+        seeds: list[int],
+        timeout: float | None = None,
+        on_progress: Callable[[int], None] | None = None,
+    ) -> MaterialRender:
+        """Render one material under ``suns`` (blocking).
+
+        ``timeout``: seconds allowed per sun (None = no limit); past it the child is killed
+        and :class:`RenderError` raised. ``on_progress(k)`` is called after each sun.
+        """
+        if not self.alive:
+            self.start()
+        assert self._conn is not None
+        self._conn.send((maps, list(suns), list(seeds)))
+        kind, payload = self._receive(timeout)
+        while kind == "progress":
+            if on_progress is not None:
+                on_progress(payload)
+            kind, payload = self._receive(timeout)
+        if kind == "ok":
+            return payload
+        if kind == "material":
+            raise MaterialError(payload)
+        raise RenderError(payload)
+
+    def close(self) -> None:
+        """Ask the child to exit; kill it if it does not within 10 s."""
+        if self._conn is not None:
+            with contextlib.suppress(BrokenPipeError, OSError):
+                self._conn.send(None)
+            self._conn.close()
+        if self._proc is not None:
+            self._proc.join(timeout=10)
+            if self._proc.is_alive():
+                self._proc.kill()
+                self._proc.join()
+        self._proc = self._conn = None
+
+    def __enter__(self) -> RenderProcess:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
