@@ -18,8 +18,11 @@ if os.environ.get(WORKER_ENV) != "1":
         f"(set {WORKER_ENV}=1, or use render_jobs.worker.RenderProcess)"
     )
 
+# isort: off
+import bpy  # noqa: E402  (first: bmesh and mathutils exist only once bpy is loaded)
 import bmesh  # noqa: E402
-import bpy  # noqa: E402
 import mathutils  # noqa: E402
+
+# isort: on
 
 __all__ = ["bpy", "bmesh", "mathutils"]

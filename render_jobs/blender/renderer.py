@@ -28,6 +28,7 @@ from render_jobs.blender.shading import SvbrdfMaterial, neutral_material, regist
 from render_jobs.blender.sky import SkyAndSun
 from render_jobs.errors import RenderError
 from render_jobs.exr import read_layers
+from render_jobs.geometry import MATERIAL_OBJECTS
 from render_jobs.materials.maps import MaterialMaps
 from render_jobs.results import MaterialRender, ScreenMaps, SunRender
 from render_jobs.specs import RenderSettings, Sun
@@ -110,7 +111,7 @@ class ShaderballRenderer:
         objects = shaderball.build_geometry(scene)
         camera = shaderball.build_camera(scene)
         self.material = SvbrdfMaterial(settings.texture_tiling)
-        for name in shaderball.MATERIAL_OBJECTS:
+        for name in MATERIAL_OBJECTS:
             objects[name].data.materials.append(self.material.material)
         objects["pedestal"].data.materials.append(
             neutral_material("pedestal", 0.06, gloss=0.25, roughness=0.35)
@@ -118,7 +119,7 @@ class ShaderballRenderer:
         objects["ground"].data.materials.append(neutral_material("ground", 0.35))
         register_aovs(scene.view_layers[0])
         self.sky = SkyAndSun(scene)
-        self.geometry_hash = shaderball.geometry_hash(objects, camera)
+        self.geometry_hash = shaderball.mesh_hash(objects, camera)
         self._clock = _PathTracingClock()
         bpy.app.handlers.render_stats.append(self._clock)
         self._materials_done = 0
@@ -152,7 +153,7 @@ class ShaderballRenderer:
     def set_material(self, maps: MaterialMaps) -> float:
         """Swap in ``maps``; returns the seconds it took."""
         t0 = time.perf_counter()
-        self.material.set_maps(maps)
+        self.material.set_maps(maps, self.scratch)
         self._has_maps = True
         self._materials_done += 1
         if self._materials_done % PURGE_EVERY == 0:

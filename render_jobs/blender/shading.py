@@ -12,14 +12,22 @@ Each texture's value also goes to a shader AOV (``diffuse``, ``specular``, ``rou
 ``normal``), plus ``mask`` = 1; Cycles writes AOVs at the camera ray's first hit, filtered like
 the render, so they are the maps UV-mapped on the ball and rasterised, anti-aliased.
 
-Under persistent data Cycles ignores pixel edits to an existing image, so
-:meth:`SvbrdfMaterial.set_maps` creates fresh images and removes the previous ones (which also
-keeps memory flat over long runs).
+Texture swapping under persistent data (measured on bpy 4.5): Cycles ignores pixel edits to an
+existing image (``pixels.foreach_set`` + ``update``/``update_tag``/``pack``), and replacing
+images by fresh ones is worse: a new image allocated where a removed one lived is served with
+the removed one's pixels (specular rendered with last material's diffuse). So textures are
+files: each material's maps are written as 8-bit PNGs under names never used before, and the
+four image datablocks are pointed at them and reloaded; Cycles keys file textures by path.
+8-bit is what the paper's maps are (PNG) and what the screen maps then show.
 """
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
+from PIL import Image
 
 from render_jobs.blender.bpy_guard import bpy
 from render_jobs.materials.maps import MaterialMaps
@@ -101,24 +109,30 @@ class SvbrdfMaterial:
             _aov(nodes, links, name, socket=t[name].outputs["Color"])
         _aov(nodes, links, "mask", value=1.0)
         self._serial = 0
+        self._files: list[Path] = []
 
-    def set_maps(self, maps: MaterialMaps) -> None:
-        """Upload ``maps`` as fresh images and drop the previous ones."""
+    def set_maps(self, maps: MaterialMaps, folder: Path) -> None:
+        """Write ``maps`` as 8-bit PNGs under new names in ``folder`` and point the textures
+        at them; the previous material's files are deleted (Cycles read them at its sync)."""
         self._serial += 1
+        stale, self._files = self._files, []
         for name, space in _COLOUR_SPACE.items():
             arr = getattr(maps, name)
-            h, w, c = arr.shape
-            rgba = np.ones((h, w, 4), np.float32)
-            rgba[..., :3] = arr if c == 3 else arr[..., :1]
-            img = bpy.data.images.new(f"{name}.{self._serial}", w, h, alpha=False)
-            img.colorspace_settings.name = space
-            # Blender stores images bottom row first; maps are in file order (top row first)
-            img.pixels.foreach_set(np.ascontiguousarray(rgba[::-1]).ravel())
-            img.update()
-            old = self.textures[name].image
-            self.textures[name].image = img
-            if old is not None:
-                bpy.data.images.remove(old)
+            path = folder / f"map-{os.getpid()}-{self._serial}-{name}.png"
+            pixels = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+            Image.fromarray(pixels[..., 0] if arr.shape[2] == 1 else pixels).save(
+                path, compress_level=1
+            )
+            self._files.append(path)
+            tex = self.textures[name]
+            if tex.image is None:
+                tex.image = bpy.data.images.load(str(path))
+            else:
+                tex.image.filepath = str(path)
+                tex.image.reload()
+            tex.image.colorspace_settings.name = space
+        for path in stale:
+            path.unlink(missing_ok=True)
 
 
 def neutral_material(name: str, grey: float, gloss: float = 0.0, roughness: float = 0.5):

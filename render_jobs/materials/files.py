@@ -167,23 +167,37 @@ def load_svbrdf(path: Path) -> MaterialMaps:
     return load_panel_png(path)
 
 
+def looks_like_map_folder(folder: Path) -> bool:
+    """True when the image names in ``folder`` name at least two different maps."""
+    stems = [
+        p.stem.lower()
+        for p in folder.iterdir()
+        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+    ]
+    kinds = {
+        name for name, tokens in MAP_NAME_TOKENS.items() for t in tokens for s in stems if t in s
+    }
+    return len(kinds) >= 2
+
+
 def scan_svbrdf_dir(folder: Path) -> list[Path]:
-    """The materials in ``folder``: its 5-panel PNGs and its per-map sub-folders, sorted."""
+    """The materials under ``folder``, sorted.
+
+    A per-map folder (``looks_like_map_folder``) is one material; otherwise every ``.png`` in
+    it is a 5-panel material and every per-map sub-folder is one material. A file is itself.
+    """
     if not folder.exists():
         raise MaterialError(f"{folder}: no such directory")
     if not folder.is_dir():
         return [folder]
+    if looks_like_map_folder(folder):
+        return [folder]
     entries = []
     for p in sorted(folder.iterdir()):
-        panel_png = p.is_file() and p.suffix.lower() == ".png"
-        if panel_png or (
-            p.is_dir() and any(q.suffix.lower() in IMAGE_SUFFIXES for q in p.iterdir())
+        if (p.is_file() and p.suffix.lower() == ".png") or (
+            p.is_dir() and looks_like_map_folder(p)
         ):
             entries.append(p)
-    if not entries and any(
-        p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES for p in folder.iterdir()
-    ):
-        return [folder]  # the folder itself holds one material's per-map files
     if not entries:
         raise MaterialError(
             f"{folder}: no materials found (expected 5-panel PNGs or folders of per-map images)"

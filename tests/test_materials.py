@@ -1,0 +1,225 @@
+"""Material sources: uniform, procedural, SVBRDF files, and every bad-input case."""
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from render_jobs.errors import MaterialError
+from render_jobs.materials import load_maps, parse_source, specs_from_sources
+from render_jobs.materials.procedural import PATTERNS, procedural_maps
+from render_jobs.materials.uniform import sample_uniform, uniform_maps
+
+
+def save(path, arr, mode=None):
+    Image.fromarray(arr, mode=mode).save(path)
+    return path
+
+
+def panel_png(path, size=16, panels=5, channels=3):
+    rng = np.random.default_rng(0)
+    shape = (size, size * panels) + ((channels,) if channels > 1 else ())
+    arr = rng.integers(0, 256, size=shape, dtype=np.uint8)
+    if channels >= 3:  # make the roughness panel (4th) grey
+        arr[:, 3 * size : 4 * size, 1] = arr[:, 3 * size : 4 * size, 0]
+        arr[:, 3 * size : 4 * size, 2] = arr[:, 3 * size : 4 * size, 0]
+    return save(path, arr)
+
+
+def map_folder(folder, size=16, **override):
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    files = {
+        "wood_basecolor.png": rng.integers(0, 256, (size, size, 3), dtype=np.uint8),
+        "wood_specular.png": rng.integers(0, 256, (size, size, 3), dtype=np.uint8),
+        "wood_roughness.png": rng.integers(0, 256, (size, size), dtype=np.uint8),
+        "wood_normal.png": rng.integers(0, 256, (size, size, 3), dtype=np.uint8),
+    }
+    files.update(override)
+    for name, arr in files.items():
+        if arr is not None:
+            save(folder / name, arr)
+    return folder
+
+
+# ---- uniform -------------------------------------------------------------------------------
+
+
+def test_uniform_maps_are_constant_and_in_range():
+    for seed in range(20):
+        v = sample_uniform(np.random.default_rng(seed))
+        m = uniform_maps(v)
+        for name in ("diffuse", "specular", "roughness", "normal"):
+            arr = getattr(m, name)
+            assert np.ptp(arr.reshape(-1, arr.shape[2]), axis=0).max() == 0
+        assert 0.05 <= v.roughness <= 1.0
+        assert 0.0 <= v.normal_tilt_deg <= 15.0
+        n = m.normal[0, 0] * 2 - 1
+        assert abs(np.linalg.norm(n) - 1) < 1e-5 and n[2] >= np.cos(np.radians(15)) - 1e-6
+
+
+# ---- procedural ----------------------------------------------------------------------------
+
+
+def test_procedural_is_seeded_and_varied():
+    a, b = procedural_maps(3, 64), procedural_maps(3, 64)
+    for name in ("diffuse", "specular", "roughness", "normal"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    c = procedural_maps(4, 64)
+    assert not np.array_equal(a.diffuse, c.diffuse)
+    kinds = {procedural_maps(s, 32).source_id.rsplit(":", 1)[1] for s in range(40)}
+    assert kinds == set(PATTERNS)
+
+
+def test_procedural_any_resolution_is_the_same_material():
+    small, large = procedural_maps(11, 64), procedural_maps(11, 256)
+    assert small.diffuse.shape == (64, 64, 3) and large.roughness.shape == (256, 256, 1)
+    down = large.diffuse.reshape(64, 4, 64, 4, 3).mean(axis=(1, 3))
+    assert np.corrcoef(down.ravel(), small.diffuse.ravel())[0, 1] > 0.9
+
+
+def test_procedural_tiles_without_seams():
+    for seed in range(8):
+        m = procedural_maps(seed, 128)
+        for arr in (m.diffuse, m.roughness, m.normal):
+            seam = np.abs(arr[:, 0] - arr[:, -1]).mean() + np.abs(arr[0] - arr[-1]).mean()
+            inner = np.abs(arr[:, 64] - arr[:, 63]).mean() + np.abs(arr[64] - arr[63]).mean()
+            assert seam <= 3 * inner + 1e-3, f"seed {seed}: a seam shows at the wrap"
+
+
+def test_procedural_normals_are_unit_and_upward():
+    n = procedural_maps(2, 64).normal * 2 - 1
+    np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-5)
+    assert n[..., 2].min() > 0
+
+
+# ---- SVBRDF files --------------------------------------------------------------------------
+
+
+def test_panel_png_loads(tmp_path):
+    m = load_maps(specs_from_sources([f"svbrdf:{panel_png(tmp_path / 'a.png')}"], 0)[0])
+    assert m.diffuse.shape == (16, 16, 3) and m.roughness.shape == (16, 16, 1)
+    src = np.asarray(Image.open(tmp_path / "a.png"), dtype=np.float32) / 255
+    np.testing.assert_array_equal(m.normal, src[:, 16:32])  # panel 2 is the normal
+    np.testing.assert_array_equal(m.specular, src[:, 64:80])  # panel 5 is the specular
+
+
+def test_map_folder_loads(tmp_path):
+    m = load_maps(specs_from_sources([f"svbrdf:{map_folder(tmp_path / 'wood')}"], 0)[0])
+    assert m.normal.shape == (16, 16, 3) and m.source_id == "wood"
+
+
+def test_svbrdf_dir_lists_pngs_and_folders_in_order(tmp_path):
+    panel_png(tmp_path / "b.png")
+    panel_png(tmp_path / "a.png")
+    map_folder(tmp_path / "c_folder")
+    (tmp_path / "notes.txt").write_text("ignored")
+    specs = specs_from_sources([f"svbrdf:{tmp_path}", "uniform:2", "procedural:1"], 0)
+    assert [s.kind for s in specs] == ["svbrdf"] * 3 + ["uniform"] * 2 + ["procedural"]
+    assert [s.source_id for s in specs[:3]] == ["a.png", "b.png", "c_folder"]
+    again = specs_from_sources([f"svbrdf:{tmp_path}", "uniform:2", "procedural:1"], 0)
+    assert again == specs
+    assert specs_from_sources(["uniform:2"], 1) != specs_from_sources(["uniform:2"], 2)
+
+
+def _error(tmp_path, spec_text):
+    with pytest.raises(MaterialError) as info:
+        for spec in specs_from_sources([spec_text], 0):
+            load_maps(spec)
+    message = str(info.value)
+    assert "\n" not in message
+    return message
+
+
+def test_bad_input_wrong_panel_count(tmp_path):
+    p = panel_png(tmp_path / "four.png", panels=4)
+    msg = _error(tmp_path, f"svbrdf:{p}")
+    assert "four.png" in msg and "5 square panels" in msg and "4.00 panels" in msg
+
+
+def test_bad_input_not_an_image(tmp_path):
+    p = tmp_path / "broken.png"
+    p.write_bytes(b"this is not a png")
+    msg = _error(tmp_path, f"svbrdf:{p}")
+    assert "broken.png" in msg and "not a readable image" in msg
+
+
+def test_bad_input_truncated_png(tmp_path):
+    p = panel_png(tmp_path / "cut.png", size=64)
+    p.write_bytes(p.read_bytes()[:200])
+    assert "cut.png" in _error(tmp_path, f"svbrdf:{p}")
+
+
+def test_bad_input_16_bit(tmp_path):
+    arr = np.full((16, 80), 40000, dtype=np.uint16)
+    p = tmp_path / "deep.png"
+    Image.fromarray(arr).save(p)
+    msg = _error(tmp_path, f"svbrdf:{p}")
+    assert "deep.png" in msg and "16-bit" in msg
+
+
+def test_bad_input_wrong_channel_count_panel(tmp_path):
+    p = panel_png(tmp_path / "grey.png", channels=1)
+    msg = _error(tmp_path, f"svbrdf:{p}")
+    assert "grey.png" in msg and "channel" in msg
+
+
+def test_bad_input_missing_map(tmp_path):
+    folder = map_folder(tmp_path / "nometal", **{"wood_roughness.png": None})
+    msg = _error(tmp_path, f"svbrdf:{folder}")
+    assert "nometal" in msg and "no roughness map" in msg
+
+
+def test_bad_input_mismatched_sizes(tmp_path):
+    small = np.zeros((8, 8, 3), np.uint8)
+    folder = map_folder(tmp_path / "mixed", **{"wood_normal.png": small})
+    msg = _error(tmp_path, f"svbrdf:{folder}")
+    assert "wood_normal.png" in msg and "mismatched sizes" in msg and "8x8" in msg
+
+
+def test_bad_input_normal_with_one_channel(tmp_path):
+    grey = np.zeros((16, 16), np.uint8)
+    folder = map_folder(tmp_path / "flat", **{"wood_normal.png": grey})
+    msg = _error(tmp_path, f"svbrdf:{folder}")
+    assert "wood_normal.png" in msg and "3 channels" in msg
+
+
+def test_bad_input_coloured_roughness(tmp_path):
+    colour = np.random.default_rng(0).integers(0, 256, (16, 16, 3), dtype=np.uint8)
+    folder = map_folder(tmp_path / "orm", **{"wood_roughness.png": colour})
+    assert "not greyscale" in _error(tmp_path, f"svbrdf:{folder}")
+
+
+def test_bad_input_nan_values(tmp_path):
+    arr = np.full((16, 16), 0.5, np.float32)
+    arr[3, 4] = np.nan
+    folder = map_folder(tmp_path / "nan", **{"wood_roughness.png": None})
+    Image.fromarray(arr, mode="F").save(folder / "wood_roughness.tif")
+    msg = _error(tmp_path, f"svbrdf:{folder}")
+    assert "wood_roughness.tif" in msg and "NaN" in msg
+
+
+def test_bad_input_ambiguous_map(tmp_path):
+    folder = map_folder(tmp_path / "twice")
+    save(folder / "other_albedo.png", np.zeros((16, 16, 3), np.uint8))
+    assert "ambiguous diffuse map" in _error(tmp_path, f"svbrdf:{folder}")
+
+
+def test_bad_input_empty_or_missing_dir(tmp_path):
+    (tmp_path / "empty").mkdir()
+    assert "no materials found" in _error(tmp_path, f"svbrdf:{tmp_path / 'empty'}")
+    assert "no such directory" in _error(tmp_path, f"svbrdf:{tmp_path / 'nope'}")
+
+
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ("uniform", "expected"),
+        ("uniform:x", "integer"),
+        ("uniform:0", ">= 1"),
+        ("marble:3", "unknown kind"),
+        ("procedural:", "expected"),
+    ],
+)
+def test_bad_source_strings(text, needle):
+    with pytest.raises(MaterialError, match=needle):
+        parse_source(text)
