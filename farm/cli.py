@@ -80,15 +80,20 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
       farm preview -m uniform --suns 3 --resolution 128 --samples 32 -o out/quick
       farm preview -m textures/leather.png -o out/leather
     """
-    from render_jobs.preview import render_preview
+    from render_jobs.preview import prepare, render_preview
 
     settings = RenderSettings(
         resolution=resolution, samples=samples, threads=threads, device=device
     )
+    try:
+        spec, maps = prepare(material, seed)  # validate before anything renders
+    except MaterialError as exc:
+        raise click.ClickException(str(exc)) from None
     bar = tqdm(total=suns, desc="rendering", unit="frame", file=sys.stderr)
     try:
         result = render_preview(
-            material,
+            spec,
+            maps,
             out,
             settings,
             suns=suns,
@@ -96,9 +101,9 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
             on_progress=lambda k: bar.update(k - bar.n),
         )
     except (MaterialError, RenderError) as exc:
-        raise click.ClickException(str(exc)) from None
-    finally:
         bar.close()
+        raise click.ClickException(str(exc)) from None
+    bar.close()
     times = [r.seconds for r in result.result.renders]
     click.echo(f"material  {result.spec.source_id}")
     total = sum(times)

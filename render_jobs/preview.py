@@ -24,6 +24,7 @@ from PIL import Image
 from render_jobs.contact_sheet import contact_sheet, display_maps
 from render_jobs.errors import MaterialError
 from render_jobs.exr import write_exr, write_image_exr
+from render_jobs.materials.maps import MaterialMaps
 from render_jobs.materials.sources import load_maps, make_spec
 from render_jobs.results import MaterialRender
 from render_jobs.specs import MaterialSpec, RenderSettings, derive_seed
@@ -51,17 +52,22 @@ def resolve_material(material: str, seed: int) -> MaterialSpec:
     return make_spec("svbrdf", 0, path)
 
 
+def prepare(material: str, seed: int = 0) -> tuple[MaterialSpec, MaterialMaps]:
+    """Resolve and validate ``material`` (raises :class:`MaterialError`; renders nothing)."""
+    spec = resolve_material(material, seed)
+    return spec, load_maps(spec)
+
+
 def render_preview(
-    material: str,
+    spec: MaterialSpec,
+    maps: MaterialMaps,
     out: Path,
     settings: RenderSettings,
     suns: int = 5,
     seed: int = 0,
     on_progress: Callable[[int], None] | None = None,
 ) -> Preview:
-    """Render ``material`` under ``suns`` seeded suns into the folder ``out``."""
-    spec = resolve_material(material, seed)
-    maps = load_maps(spec)  # validates before anything renders
+    """Render validated ``maps`` under ``suns`` seeded suns into the folder ``out``."""
     sun_list = sample_suns(np.random.default_rng(derive_seed(seed, 0, -1)), suns)
     seeds = [derive_seed(seed, 0, k) for k in range(suns)]
     with RenderProcess(settings) as worker:

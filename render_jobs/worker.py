@@ -2,7 +2,9 @@
 
 The parent never imports ``bpy``. The child builds the scene once, then renders requests
 until closed, and leaves with ``os._exit`` (bpy deadlocks at normal interpreter exit).
-Blender's stdout chatter goes to ``log_path`` (or /dev/null). A request that raises in the
+Blender's stdout chatter goes to ``log_path`` (or /dev/null). The parent owns the child's
+scratch folder (in /dev/shm: EXRs and texture PNGs) and removes it when the child ends, even
+when it was killed. A request that raises in the
 child comes back as :class:`RenderError` or :class:`MaterialError` with the child's message;
 a child that dies (segfault, OOM kill) raises :class:`RenderError` naming its exit code, and
 the next request starts a fresh child.
@@ -13,7 +15,9 @@ from __future__ import annotations
 import contextlib
 import multiprocessing as mp
 import os
+import shutil
 import sys
+import tempfile
 import traceback
 from collections.abc import Callable
 from pathlib import Path
@@ -26,7 +30,7 @@ from render_jobs.specs import RenderSettings, Sun
 READY_TIMEOUT_S = 300.0
 
 
-def _serve(conn, settings: dict, log_path: str | None) -> None:  # runs in the child
+def _serve(conn, settings: dict, log_path: str | None, scratch: str) -> None:  # in the child
     os.environ["SHADERBALL_BLENDER_WORKER"] = "1"
     log = os.open(log_path or os.devnull, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(log, 1)
@@ -34,7 +38,7 @@ def _serve(conn, settings: dict, log_path: str | None) -> None:  # runs in the c
     try:
         from render_jobs.blender.renderer import ShaderballRenderer
 
-        renderer = ShaderballRenderer(RenderSettings.from_dict(settings))
+        renderer = ShaderballRenderer(RenderSettings.from_dict(settings), scratch)
         conn.send(("ready", {"geometry_hash": renderer.geometry_hash, "pid": os.getpid()}))
         while True:
             request = conn.recv()
@@ -77,13 +81,18 @@ class RenderProcess:
         self.log_path = str(log_path) if log_path else None
         self._proc = None
         self._conn = None
+        self._scratch: str | None = None
         self.info: dict = {}
 
     def start(self) -> RenderProcess:
         ctx = mp.get_context("spawn")
         parent, child = ctx.Pipe()
+        shm = "/dev/shm" if os.path.isdir("/dev/shm") else None
+        self._scratch = tempfile.mkdtemp(prefix="shaderball-worker-", dir=shm)
         self._proc = ctx.Process(
-            target=_serve, args=(child, self.settings.to_dict(), self.log_path), daemon=True
+            target=_serve,
+            args=(child, self.settings.to_dict(), self.log_path, self._scratch),
+            daemon=True,
         )
         self._proc.start()
         child.close()
@@ -106,11 +115,17 @@ class RenderProcess:
             self._proc.join(timeout=5)
             code = self._proc.exitcode
             self._proc = self._conn = None
+            self._remove_scratch()
             raise RenderError(f"Blender worker died (exit code {code})") from None
 
     @property
     def alive(self) -> bool:
         return self._proc is not None and self._proc.is_alive()
+
+    @property
+    def scratch(self) -> str | None:
+        """The child's scratch folder (removed when the child ends)."""
+        return self._scratch
 
     @property
     def pid(self) -> int | None:
@@ -156,6 +171,12 @@ class RenderProcess:
                 self._proc.kill()
                 self._proc.join()
         self._proc = self._conn = None
+        self._remove_scratch()
+
+    def _remove_scratch(self) -> None:
+        if self._scratch is not None:
+            shutil.rmtree(self._scratch, ignore_errors=True)
+            self._scratch = None
 
     def __enter__(self) -> RenderProcess:
         return self.start()

@@ -125,13 +125,19 @@ def test_renders_are_identical_across_processes(worker, grey_maps):
 def test_killed_worker_raises_and_restarts(grey_maps):
     w = RenderProcess(TINY).start()
     try:
+        render(w, grey_maps, [RIGHT])
+        scratch = w.scratch
+        assert os.listdir(scratch)  # the texture files live there
         os.kill(w.pid, signal.SIGKILL)
         with pytest.raises(RenderError, match="died"):
             render(w, grey_maps, [RIGHT])
+        assert not os.path.exists(scratch)  # the parent cleaned up after the dead child
         again = render(w, grey_maps, [RIGHT])  # a fresh child takes over
         assert np.isfinite(again.renders[0].radiance).all()
+        scratch = w.scratch
     finally:
         w.close()
+    assert not os.path.exists(scratch)
 
 
 def test_memory_stays_flat_over_50_materials():

@@ -3,7 +3,7 @@
 The scene (shaderball, camera, material graph, sky, lamp) is built once; per material only the
 four textures change, per sun only sky and lamp, and ``use_persistent_data`` keeps Cycles'
 BVH and kernels between renders. Cycles writes a multilayer EXR (Combined + AOVs) to a
-scratch directory (``/dev/shm`` when there is one), read back with ``OpenEXR``.
+scratch folder (the worker process puts it in ``/dev/shm``), read back with ``OpenEXR``.
 
 Memory: images of a finished material are removed as the next one arrives, and orphan data
 is purged every ``PURGE_EVERY`` materials; ``rss_bytes()`` lets the caller recycle the process
@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -96,11 +95,8 @@ def _configure_device(scene, settings: RenderSettings) -> None:
 class ShaderballRenderer:
     """One loaded shaderball scene that renders :class:`MaterialMaps` under :class:`Sun`\\ s."""
 
-    def __init__(self, settings: RenderSettings, scratch_dir: str | Path | None = None):
+    def __init__(self, settings: RenderSettings, scratch_dir: str | Path):
         self.settings = settings
-        if scratch_dir is None:
-            base = "/dev/shm" if os.path.isdir("/dev/shm") else None
-            scratch_dir = tempfile.mkdtemp(prefix="shaderball-", dir=base)
         self.scratch = Path(scratch_dir)
         self.scratch.mkdir(parents=True, exist_ok=True)
         with _quiet_stdout():

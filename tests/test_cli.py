@@ -1,0 +1,140 @@
+"""The command lines: help everywhere, `farm preview` end to end, and its bad-input paths."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+import pytest
+from PIL import Image
+
+from farm.cli import main as farm_main
+from render_jobs.exr import read_layers
+from storage.cli import main as shards_main
+from trainer.cli import main as trainer_main
+
+BIN = Path(sys.executable).parent
+
+
+def walk(group: click.Group, prefix: str):
+    yield prefix, group
+    for name, cmd in group.commands.items():
+        if isinstance(cmd, click.Group):
+            yield from walk(cmd, f"{prefix} {name}")
+        else:
+            yield f"{prefix} {name}", cmd
+
+
+@pytest.mark.parametrize(
+    "group,name", [(farm_main, "farm"), (shards_main, "shards"), (trainer_main, "trainer")]
+)
+def test_every_command_has_help(group, name):
+    for path, cmd in walk(group, name):
+        assert cmd.help and len(cmd.help.strip()) > 20, f"{path} has no help"
+        if not isinstance(cmd, click.Group):
+            assert "Example" in cmd.help, f"{path}'s help shows no example"
+            for param in cmd.params:
+                if isinstance(param, click.Option):
+                    assert param.help, f"{path} {param.opts[0]} has no help"
+
+
+def run(*args, cwd=None):
+    return subprocess.run(
+        [str(BIN / args[0]), *args[1:]], capture_output=True, text=True, cwd=cwd, timeout=300
+    )
+
+
+@pytest.mark.slow
+def test_farm_preview_writes_maps_renders_and_a_contact_sheet(tmp_path):
+    out = tmp_path / "preview"
+    r = run(
+        "farm",
+        "preview",
+        "-m",
+        "procedural",
+        "--suns",
+        "2",
+        "--resolution",
+        "48",
+        "--samples",
+        "4",
+        "--seed",
+        "3",
+        "--threads",
+        "2",
+        "-o",
+        str(out),
+    )
+    assert r.returncode == 0, r.stderr
+    assert "contact_sheet.png" in r.stdout
+    names = {p.name for p in out.iterdir()}
+    for n in (
+        "maps.exr",
+        "contact_sheet.png",
+        "preview.json",
+        "sun_0.exr",
+        "sun_1.png",
+        "map_diffuse.png",
+        "map_normal.png",
+        "map_mask.png",
+    ):
+        assert n in names
+    layers = read_layers(out / "maps.exr")
+    assert layers["diffuse"].shape == (3, 48, 48) and layers["mask"].shape == (1, 48, 48)
+    assert read_layers(out / "sun_1.exr")[""].shape == (3, 48, 48)
+    meta = json.loads((out / "preview.json").read_text())
+    assert meta["material"]["kind"] == "procedural" and len(meta["renders"]) == 2
+    assert meta["settings"]["samples"] == 4 and len(meta["geometry_hash"]) == 64
+    sheet = Image.open(out / "contact_sheet.png")
+    assert sheet.width == 5 * 48 and sheet.height > 2 * 48
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temp left
+
+
+@pytest.mark.parametrize(
+    "material,needle",
+    [
+        ("nope.png", "nope.png: no such file or folder"),
+        ("bad.png", "bad.png: not a readable image"),
+        ("wide.png", "wide.png: expected 5 square panels"),
+    ],
+)
+def test_farm_preview_bad_material_is_one_line_and_writes_nothing(tmp_path, material, needle):
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    Image.fromarray(np.zeros((8, 24, 3), np.uint8)).save(tmp_path / "wide.png")
+    r = run("farm", "preview", "-m", material, "-o", "out", cwd=tmp_path)
+    assert r.returncode == 1
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: ") and needle in lines[0], r.stderr
+    assert "Traceback" not in r.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_option_values_are_refused(tmp_path):
+    r = run("farm", "preview", "-m", "uniform", "--resolution", "2", "-o", str(tmp_path / "o"))
+    assert r.returncode == 2 and "--resolution" in r.stderr
+
+
+def test_no_process_but_a_blender_worker_imports_bpy():
+    code = (
+        "import sys\n"
+        "import farm, farm.cli, storage, storage.cli, trainer, trainer.cli\n"
+        "import render_jobs, render_jobs.materials, render_jobs.preview, render_jobs.worker\n"
+        "import render_jobs.geometry, render_jobs.sun, render_jobs.exr\n"
+        "assert 'bpy' not in sys.modules, 'bpy was imported'\n"
+        "try:\n"
+        "    import render_jobs.blender.renderer\n"
+        "except ImportError as e:\n"
+        "    assert 'Blender worker process' in str(e)\n"
+        "else:\n"
+        "    raise SystemExit('render_jobs.blender imported outside a worker')\n"
+        "assert 'bpy' not in sys.modules\n"
+        "print('clean')\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "SHADERBALL_BLENDER_WORKER"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert r.returncode == 0 and r.stdout.strip() == "clean", r.stderr
