@@ -1,11 +1,261 @@
-"""``shards``: inspect shard stores. Its commands arrive with the store (issue #3)."""
+"""``shards``: inspect shard stores (thin over ``storage``; errors are one line)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+import tempfile
+from pathlib import Path
 
 import click
+from PIL import Image
+from tqdm import tqdm
+
+from storage.errors import StoreError
+
+
+def _open(url: str):
+    from storage.reader import ShardStore
+
+    try:
+        return ShardStore(url)
+    except StoreError as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+def _sample(store, index: int):
+    try:
+        return store.sample(index)
+    except StoreError as exc:
+        raise click.ClickException(str(exc)) from None
+    except Exception as exc:  # noqa: BLE001 - corrupt bytes surface as decode errors
+        raise click.ClickException(
+            f"{store.url}: sample {index} is unreadable ({type(exc).__name__}: {exc})"
+        ) from None
+
+
+def _human(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if abs(n) < 1024 or unit == "TB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return str(n)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
-    """Inspect shaderball shard stores (ls, info, verify, show, export: not built yet)."""
+    """Inspect shaderball shard stores (local folders or s3:// URLs)."""
+
+
+@main.command("ls")
+@click.argument("store")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of a table.")
+def ls_cmd(store, as_json):
+    """List the shards of STORE: samples, bytes, and committed/pending/empty state.
+
+    \b
+    Example:
+      shards ls out/dataset.zarr
+    """
+    from storage.inspect import list_shards
+
+    rows = list_shards(_open(store))
+    if as_json:
+        click.echo(json.dumps(rows, indent=1))
+        return
+    click.echo(f"{'shard':>6} {'samples':>8} {'bytes':>10}  state")
+    for r in rows:
+        click.echo(f"{r['shard']:>6} {r['samples']:>8} {_human(r['bytes']):>10}  {r['state']}")
+
+
+@main.command()
+@click.argument("store")
+@click.option("--json", "as_json", is_flag=True, help="Print JSON instead of text.")
+def info(store, as_json):
+    """Schema, settings, counts per material kind, compression, sun and turbidity histograms.
+
+    \b
+    Example:
+      shards info out/dataset.zarr
+    """
+    from storage.inspect import store_info, text_histogram
+
+    data = store_info(_open(store))
+    if as_json:
+        click.echo(json.dumps(data, indent=1))
+        return
+    lay, b = data["layout"], data["bytes"]
+    ratio = f"{b['compression_ratio']:.2f}x" if b["compression_ratio"] else "n/a"
+    lines = [
+        f"store        {data['url']}",
+        f"schema       v{data['schema_version']} (created {data['created']})",
+        f"layout       {lay['num_materials']} materials x {lay['suns_per_material']} suns, "
+        f"{lay['resolution']}px, {lay['shard_size']} samples/shard",
+        f"shards       {data['shards']['committed']}/{data['shards']['total']} committed",
+        f"samples      {data['samples']['committed']}/{data['samples']['total']} committed",
+        "materials    "
+        + (", ".join(f"{k} {v}" for k, v in data["materials_by_kind"].items()) or "none"),
+        f"bytes        {_human(b['stored'])} stored, {_human(b['raw'])} raw ({ratio}), "
+        f"{_human(b['disk'])} on disk",
+        "settings     " + json.dumps(data["settings"], sort_keys=True),
+        "software     " + ", ".join(f"{k} {v}" for k, v in data["software"].items()),
+        "sun elevation (degrees):",
+        text_histogram(data["sun_elevation_deg"]),
+        "turbidity:",
+        text_histogram(data["turbidity"], fmt="{:>4.1f}-{:<4.1f}"),
+    ]
+    click.echo("\n".join(lines))
+
+
+@main.command()
+@click.argument("store")
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+def verify(store, as_json):
+    """Check checksums, commit records against data, NaN/Inf, value ranges and shapes.
+
+    Exits 1 listing every bad shard and why; 0 when all committed shards are sound.
+
+    \b
+    Example:
+      shards verify out/dataset.zarr
+    """
+    from storage.verify import verify as run_verify
+
+    s = _open(store)
+    bar = tqdm(
+        total=s.layout.num_shards, desc="verifying", unit="shard", file=sys.stderr, disable=as_json
+    )
+    report = run_verify(s, progress=lambda _: bar.update(1))
+    bar.close()
+    if as_json:
+        click.echo(
+            json.dumps(
+                {
+                    "ok": report.ok,
+                    "checked": report.checked,
+                    "empty": report.empty,
+                    "store_problems": report.store_problems,
+                    "problems": {str(k): v for k, v in report.problems.items()},
+                },
+                indent=1,
+            )
+        )
+    else:
+        for p in report.store_problems:
+            click.echo(f"store: {p}")
+        for shard, reasons in sorted(report.problems.items()):
+            for reason in reasons:
+                click.echo(f"shard {shard}: {reason}")
+        state = "OK" if report.ok else f"{len(report.problems)} bad shard(s)"
+        click.echo(
+            f"{state}: {report.checked} committed shard(s) checked, {report.empty} not written yet"
+        )
+    if not report.ok:
+        sys.exit(1)
+
+
+def _parse_range(text: str, total: int) -> range:
+    try:
+        if ":" in text:
+            a, b = text.split(":", 1)
+            r = range(int(a or 0), int(b) if b else total)
+        else:
+            r = range(int(text), int(text) + 1)
+    except ValueError:
+        raise click.BadParameter(f"{text!r} is not START:STOP or an index") from None
+    if r.start < 0 or r.stop > total or r.start >= r.stop:
+        raise click.BadParameter(f"{text!r} is outside the store's 0:{total}")
+    return r
+
+
+@main.command()
+@click.argument("store")
+@click.option("--sample", "-s", "index", required=True, type=int, help="Sample index.")
+@click.option("--out", "-o", required=True, type=click.Path(path_type=Path), help="PNG to write.")
+def show(store, index, out):
+    """Write a labelled contact sheet of one sample: maps, mask, tonemapped render, light.
+
+    \b
+    Example:
+      shards show out/dataset.zarr --sample 12 -o sample12.png
+    """
+    from render_jobs.contact_sheet import contact_sheet
+    from render_jobs.results import ScreenMaps
+
+    s = _sample(_open(store), index)
+    title = f"sample {s.index}  material {s.material_index} ({s.kind}: {s.source_id})"
+    sheet = contact_sheet(ScreenMaps(**s.maps), [(s.render, s.sun.label())], title)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(out)
+    click.echo(f"wrote {out}")
+
+
+@main.command()
+@click.argument("store")
+@click.argument("directory", type=click.Path(path_type=Path))
+@click.option("--samples", default="0:10", show_default=True, help="START:STOP or one index.")
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(["png", "exr"]),
+    default="png",
+    show_default=True,
+    help="png: tonemapped render + maps; exr: linear float.",
+)
+def export(store, directory, samples, fmt):
+    """Export samples as image files (one render and one set of maps per sample).
+
+    \b
+    Examples:
+      shards export out/dataset.zarr --samples 0:10 --format png exported/
+      shards export s3://bucket/set.zarr --samples 5 --format exr one/
+    """
+    from render_jobs.contact_sheet import display_maps
+    from render_jobs.exr import write_exr, write_image_exr
+    from render_jobs.results import ScreenMaps
+    from render_jobs.tonemap import to_uint8, tonemap
+
+    s = _open(store)
+    wanted = _parse_range(samples, s.layout.num_samples)
+    items = [_sample(s, i) for i in wanted]  # read (and fail) before writing anything
+    directory.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".export.", dir=directory))
+    try:
+        for x in items:
+            stem = f"sample_{x.index:06d}"
+            if fmt == "exr":
+                write_image_exr(tmp / f"{stem}_render.exr", x.render)
+                write_exr(
+                    tmp / f"{stem}_maps.exr",
+                    {
+                        f"{n}.{c}": a[i]
+                        for n, a in x.maps.items()
+                        for i, c in enumerate("RGB"[: a.shape[0]] if a.shape[0] > 1 else "Y")
+                    },
+                )
+            else:
+                Image.fromarray(to_uint8(tonemap(x.render))).save(tmp / f"{stem}_render.png")
+                for name, img in display_maps(ScreenMaps(**x.maps)).items():
+                    Image.fromarray(img).save(tmp / f"{stem}_{name}.png")
+            (tmp / f"{stem}.json").write_text(
+                json.dumps(
+                    {
+                        "sample": x.index,
+                        "material": x.material_index,
+                        "kind": x.kind,
+                        "source_id": x.source_id,
+                        "sun": x.sun.to_dict(),
+                        "seed": x.seed,
+                    }
+                )
+                + "\n"
+            )
+        for f in sorted(tmp.iterdir()):
+            f.replace(directory / f.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    click.echo(f"wrote {len(items)} sample(s) to {directory}")
 
 
 if __name__ == "__main__":

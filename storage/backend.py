@@ -1,0 +1,124 @@
+"""Where a store lives: a local folder or an object-store URL (``s3://...`` via fsspec).
+
+Besides the zarr store itself, a backend gives the few raw operations the commit protocol
+needs: an atomic put (local: temp file + fsync + ``os.replace`` + directory fsync; object
+stores: one PUT, which is atomic), listing, sizes, and fsync of files zarr wrote.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import zarr
+from zarr.storage import FsspecStore, LocalStore
+
+
+def is_remote(url: str) -> bool:
+    return "://" in str(url) and not str(url).startswith("file://")
+
+
+class Backend:
+    """Raw access under a store's root; keys are '/'-separated paths relative to it."""
+
+    def __init__(self, url: str | Path, storage_options: dict | None = None):
+        self.url = str(url)
+        self.storage_options = storage_options or {}
+        if is_remote(self.url):
+            import fsspec
+
+            self.fs, self.root = fsspec.core.url_to_fs(self.url, **self.storage_options)
+            self.local = False
+        else:
+            self.root = str(Path(self.url.removeprefix("file://")).absolute())
+            self.fs = None
+            self.local = True
+
+    def zarr_store(self, read_only: bool = False):
+        if self.local:
+            return LocalStore(self.root, read_only=read_only)
+        return FsspecStore.from_url(
+            self.url, storage_options=self.storage_options, read_only=read_only
+        )
+
+    def open_group(self, mode: str = "r"):
+        return zarr.open_group(self.zarr_store(read_only=mode == "r"), mode=mode, zarr_format=3)
+
+    def path(self, key: str) -> str:
+        return f"{self.root}/{key}"
+
+    def get(self, key: str) -> bytes | None:
+        try:
+            if self.local:
+                return Path(self.path(key)).read_bytes()
+            return self.fs.cat_file(self.path(key))
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+            return None
+
+    def size(self, key: str) -> int | None:
+        try:
+            if self.local:
+                return os.path.getsize(self.path(key))
+            return int(self.fs.size(self.path(key)))
+        except (FileNotFoundError, NotADirectoryError):
+            return None
+
+    def listdir(self, key: str) -> list[str]:
+        try:
+            if self.local:
+                return sorted(os.listdir(self.path(key)))
+            return sorted(p.rsplit("/", 1)[-1] for p in self.fs.ls(self.path(key), detail=False))
+        except (FileNotFoundError, NotADirectoryError):
+            return []
+
+    def put_atomic(self, key: str, data: bytes) -> None:
+        """Readers see the old object or the whole new one, never a part."""
+        if not self.local:
+            self.fs.pipe_file(self.path(key), data)
+            return
+        target = Path(self.path(key))
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, target)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        _fsync_dir(target.parent)
+
+    def delete(self, key: str) -> None:
+        if self.local:
+            Path(self.path(key)).unlink(missing_ok=True)
+            _fsync_dir(Path(self.path(key)).parent)
+        elif self.fs.exists(self.path(key)):
+            self.fs.rm_file(self.path(key))
+
+    def make_durable(self, keys: list[str]) -> None:
+        """fsync files zarr wrote (object stores are durable once the PUT returns)."""
+        if not self.local:
+            return
+        dirs = set()
+        for key in keys:
+            p = Path(self.path(key))
+            if p.exists():
+                fd = os.open(p, os.O_RDONLY)
+                try:
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
+                dirs.add(p.parent)
+        for d in dirs:
+            _fsync_dir(d)
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

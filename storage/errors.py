@@ -1,0 +1,9 @@
+"""Domain errors of the shard store (messages are one line and name the culprit)."""
+
+
+class StoreError(ValueError):
+    """A store is missing, malformed, of another schema, or asked for what it lacks."""
+
+
+class ShardCommittedError(StoreError):
+    """A write to a shard that is already committed (pass ``overwrite=True`` to replace it)."""

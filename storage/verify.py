@@ -1,0 +1,109 @@
+"""``shards verify``: every check a store's data can fail, shard by shard."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from storage.reader import ARRAYS, ShardStore
+from storage.schema import MAPS_CHANNELS, PER_SAMPLE
+
+
+@dataclass
+class Report:
+    checked: int = 0
+    empty: int = 0
+    problems: dict[int, list[str]] = field(default_factory=dict)  # shard -> reasons
+    store_problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems and not self.store_problems
+
+    def add(self, shard: int, reason: str) -> None:
+        self.problems.setdefault(shard, []).append(reason)
+
+
+def _check_arrays(store: ShardStore, report: Report) -> None:
+    lay, g = store.layout, store.group
+    r = lay.resolution
+    expected = {
+        "maps": (lay.num_materials, MAPS_CHANNELS, r, r),
+        "renders": (lay.num_samples, 3, r, r),
+        **{k: (lay.num_samples, *tail) for k, (tail, _) in PER_SAMPLE.items()},
+    }
+    for name, shape in expected.items():
+        try:
+            actual = g[name].shape
+        except KeyError:
+            report.store_problems.append(f"array {name} is missing")
+            continue
+        if tuple(actual) != shape:
+            report.store_problems.append(f"array {name} has shape {actual}, expected {shape}")
+
+
+def _check_shard(store: ShardStore, shard: int, rec: dict, report: Report) -> None:
+    lay = store.layout
+    samples = lay.shard_samples(shard)
+    if rec.get("shard") != shard or rec.get("samples") != [samples.start, samples.stop]:
+        report.add(shard, "commit record does not match the layout's sample range")
+    for key, size in rec.get("files", {}).items():
+        actual = store.backend.size(key)
+        if actual is None:
+            report.add(shard, f"{key} is missing")
+        elif actual != size:
+            report.add(shard, f"{key} is {actual} bytes, its commit record says {size}")
+    try:
+        p = store.read_shard(shard)
+    except Exception as exc:  # noqa: BLE001 - any decode failure is a finding, not a crash
+        report.add(shard, f"unreadable: {type(exc).__name__}: {exc}")
+        return
+    renders = p.renders.astype(np.float32)
+    if not np.all(np.isfinite(renders)):
+        report.add(shard, f"renders hold {int((~np.isfinite(renders)).sum())} NaN/Inf values")
+    elif renders.min() < 0:
+        report.add(shard, f"renders hold negative radiance (min {renders.min():.3g})")
+    want = np.repeat(np.asarray(lay.shard_materials(shard)), lay.suns_per_material)
+    if not np.array_equal(p.material_index, want):
+        report.add(shard, "material_index does not match the layout")
+    d = p.sun_direction
+    if not np.all(np.isfinite(d)) or np.abs(np.linalg.norm(d, axis=1) - 1).max() > 1e-3:
+        report.add(shard, "sun_direction holds non-unit vectors")
+    elif d[:, 2].min() <= 0:
+        report.add(shard, "sun_direction holds suns below the horizon")
+    t = p.turbidity
+    if not np.all(np.isfinite(t)) or t.min() < 1 or t.max() > 10:
+        report.add(shard, f"turbidity outside [1, 10] ([{t.min():.3g}, {t.max():.3g}])")
+    if p.seed.min() < 0:
+        report.add(shard, "negative seeds")
+    rs = p.render_seconds
+    if not np.all(np.isfinite(rs)) or rs.min() < 0:
+        report.add(shard, "render_seconds holds negative or non-finite values")
+    if len(rec.get("materials", [])) != len(lay.shard_materials(shard)):
+        report.add(shard, "commit record lists the wrong number of materials")
+
+
+def verify(store: ShardStore, progress=None) -> Report:
+    """Check ``store``; ``progress(shard)`` is called after each shard."""
+    report = Report()
+    _check_arrays(store, report)
+    if report.store_problems:
+        return report
+    commits = store.commits()
+    for shard in sorted(set(commits) - set(range(store.layout.num_shards))):
+        report.add(shard, "commit record for a shard outside the layout")
+    for shard in range(store.layout.num_shards):
+        if shard in commits:
+            report.checked += 1
+            _check_shard(store, shard, commits[shard], report)
+        elif store.shard_state(shard, commits) == "pending":
+            report.add(shard, "data without a commit record (an interrupted write?)")
+        else:
+            report.empty += 1
+        if progress is not None:
+            progress(shard)
+    return report
+
+
+__all__ = ["ARRAYS", "Report", "verify"]
