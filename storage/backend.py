@@ -68,6 +68,7 @@ class Backend:
         try:
             if self.local:
                 return sorted(os.listdir(self.path(key)))
+            self.fs.invalidate_cache(self.path(key))  # commits appear from other writers
             return sorted(p.rsplit("/", 1)[-1] for p in self.fs.ls(self.path(key), detail=False))
         except (FileNotFoundError, NotADirectoryError):
             return []

@@ -1,0 +1,314 @@
+"""The shard store: schema, commit protocol, concurrency, corruption, datasets, the CLI."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from storage.dataset import Dataset, split_by_material
+from storage.errors import ShardCommittedError, StoreError
+from storage.reader import ShardStore, commit_key
+from storage.schema import Layout, decode_maps, encode_maps
+from storage.writer import create_store, write_shard
+from tests.storage_helpers import synthetic_payload
+
+BIN = Path(sys.executable).parent
+LAYOUT = Layout(num_materials=7, suns_per_material=3, resolution=16, shard_size=6)
+
+
+def shards(*args, cwd=None, env=None):
+    return subprocess.run(
+        [str(BIN / "shards"), *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        timeout=120,
+    )
+
+
+def full_store(path, layout=LAYOUT, seed=0):
+    store = create_store(str(path), layout, {"samples": 8, "resolution": layout.resolution})
+    for shard in range(layout.num_shards):
+        write_shard(store, shard, synthetic_payload(layout, shard, seed))
+    return store
+
+
+# ---- layout and encoding (pure) ------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "materials,suns,shard_size", [(1, 1, 1), (7, 3, 6), (10, 5, 25), (11, 5, 50), (3, 2, 200)]
+)
+def test_layout_partitions_samples_and_materials(materials, suns, shard_size):
+    lay = Layout(materials, suns, 16, shard_size)
+    samples = [s for sh in range(lay.num_shards) for s in lay.shard_samples(sh)]
+    mats = [m for sh in range(lay.num_shards) for m in lay.shard_materials(sh)]
+    assert samples == list(range(lay.num_samples)) and mats == list(range(materials))
+    for sh in range(lay.num_shards):  # every sample's material lives in the same shard
+        assert {lay.material_of_sample(s) for s in lay.shard_samples(sh)} == set(
+            lay.shard_materials(sh)
+        )
+        assert all(lay.shard_of_sample(s) == sh for s in lay.shard_samples(sh))
+
+
+def test_shard_size_must_hold_whole_materials():
+    with pytest.raises(ValueError, match="multiple of the suns"):
+        Layout(4, 5, 16, 12)
+
+
+def test_map_encoding_round_trips_within_8_bit_precision():
+    rng = np.random.default_rng(0)
+    maps = {
+        "diffuse": rng.random((3, 8, 8)),
+        "specular": rng.random((3, 8, 8)) ** 3,
+        "roughness": rng.random((1, 8, 8)),
+        "normal": rng.random((3, 8, 8)),
+        "mask": rng.random((1, 8, 8)),
+    }
+    back = decode_maps(encode_maps(maps))
+    for name in ("roughness", "normal", "mask"):
+        np.testing.assert_allclose(back[name], maps[name], atol=0.5 / 255 + 1e-6)
+    # colours are stored sRGB: dark values keep their relative precision
+    dark = maps["specular"] < 0.01
+    rel = np.abs(back["specular"] - maps["specular"])[~dark] / maps["specular"][~dark]
+    assert rel.max() < 0.08
+
+
+# ---- commit protocol -----------------------------------------------------------------------
+
+
+def test_round_trip_of_every_sample(tmp_path):
+    store = full_store(tmp_path / "s.zarr")
+    again = ShardStore(str(tmp_path / "s.zarr"))
+    assert again.committed_shards() == list(range(LAYOUT.num_shards))
+    for shard in range(LAYOUT.num_shards):
+        p = synthetic_payload(LAYOUT, shard)
+        for j, i in enumerate(LAYOUT.shard_samples(shard)):
+            x = again.sample(i)
+            np.testing.assert_array_equal(x.render, p.renders[j].astype(np.float32))
+            m = LAYOUT.material_of_sample(i) - LAYOUT.shard_materials(shard).start
+            expect = decode_maps(p.maps[m])
+            for name in expect:
+                np.testing.assert_array_equal(x.maps[name], expect[name])
+            assert x.seed == i and x.material_index == LAYOUT.material_of_sample(i)
+            assert x.source_id == f"m{x.material_index}"
+    assert store.materials().keys() == set(range(7))
+
+
+def test_uncommitted_shard_is_invisible_and_rewritable(tmp_path):
+    """A writer killed after writing the bytes, before the commit record: nothing shows."""
+    path = tmp_path / "s.zarr"
+    create_store(str(path), LAYOUT, {})
+    code = (
+        "import os, storage.backend as b\n"
+        "from storage.reader import ShardStore\n"
+        "from storage.writer import write_shard\n"
+        "from tests.storage_helpers import synthetic_payload\n"
+        f"s = ShardStore({str(path)!r})\n"
+        "b.Backend.put_atomic = lambda *a, **k: os._exit(9)  # die at the commit\n"
+        "write_shard(s, 1, synthetic_payload(s.layout, 1))\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).parent.parent)
+    assert r.returncode == 9
+    store = ShardStore(str(path))
+    assert store.committed_shards() == [] and store.shard_state(1) == "pending"
+    with pytest.raises(StoreError, match="not committed"):
+        store.sample(LAYOUT.shard_samples(1).start)
+    assert Dataset([store]).refs == []
+    write_shard(store, 1, synthetic_payload(LAYOUT, 1))  # re-writable
+    assert store.committed_shards() == [1]
+
+
+def test_committed_shard_is_not_rewritten_unless_asked(tmp_path):
+    store = full_store(tmp_path / "s.zarr")
+    with pytest.raises(ShardCommittedError, match="shard 2 is already committed"):
+        write_shard(store, 2, synthetic_payload(LAYOUT, 2, seed=5))
+    write_shard(store, 2, synthetic_payload(LAYOUT, 2, seed=5), overwrite=True)
+    np.testing.assert_array_equal(
+        store.sample(12).render, synthetic_payload(LAYOUT, 2, 5).renders[0].astype(np.float32)
+    )
+
+
+def test_bad_payload_is_refused_before_writing(tmp_path):
+    store = create_store(str(tmp_path / "s.zarr"), LAYOUT, {})
+    p = synthetic_payload(LAYOUT, 0)
+    p.renders = p.renders[:, :, :8]
+    with pytest.raises(StoreError, match="renders has shape"):
+        write_shard(store, 0, p)
+    p = synthetic_payload(LAYOUT, 0)
+    p.renders[0, 0, 0, 0] = np.nan
+    with pytest.raises(StoreError, match="NaN"):
+        write_shard(store, 0, p)
+    assert store.shard_state(0) == "empty"
+
+
+def test_existing_store_with_other_settings_is_refused(tmp_path):
+    full_store(tmp_path / "s.zarr")
+    with pytest.raises(StoreError, match="already exists"):
+        create_store(str(tmp_path / "s.zarr"), LAYOUT, {})
+    with pytest.raises(StoreError, match=r"settings.samples=8, not 16"):
+        create_store(str(tmp_path / "s.zarr"), LAYOUT, {"samples": 16}, exist_ok=True)
+    other = Layout(7, 3, 32, 6)
+    with pytest.raises(StoreError, match=r"layout.resolution=16, not 32"):
+        create_store(str(tmp_path / "s.zarr"), other, {}, exist_ok=True)
+    same = create_store(str(tmp_path / "s.zarr"), LAYOUT, {"samples": 8}, exist_ok=True)
+    assert len(same.committed_shards()) == LAYOUT.num_shards
+
+
+def _write_shards(path: str, shards_to_write: list[int]) -> None:
+    store = ShardStore(path)
+    for shard in shards_to_write:
+        write_shard(store, shard, synthetic_payload(store.layout, shard))
+
+
+def test_concurrent_writers_lose_nothing(tmp_path):
+    layout = Layout(num_materials=40, suns_per_material=2, resolution=16, shard_size=4)
+    path = str(tmp_path / "s.zarr")
+    create_store(path, layout, {})
+    ctx = mp.get_context("spawn")
+    jobs = [list(range(w, layout.num_shards, 4)) for w in range(4)]
+    procs = [ctx.Process(target=_write_shards, args=(path, j)) for j in jobs]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(60)
+        assert p.exitcode == 0
+    store = ShardStore(path)
+    assert store.committed_shards() == list(range(layout.num_shards))
+    for shard in range(layout.num_shards):
+        got, want = store.read_shard(shard), synthetic_payload(layout, shard)
+        np.testing.assert_array_equal(got.renders, want.renders)
+        np.testing.assert_array_equal(got.maps, want.maps)
+        np.testing.assert_array_equal(got.seed, want.seed)
+    assert shards("verify", path).returncode == 0
+
+
+# ---- verify and corruption -----------------------------------------------------------------
+
+
+def shard_file(path, array, shard):
+    return Path(path) / array / "c" / str(shard) / "0" / "0" / "0"
+
+
+def test_verify_passes_a_sound_store(tmp_path):
+    full_store(tmp_path / "s.zarr")
+    r = shards("verify", tmp_path / "s.zarr")
+    assert r.returncode == 0 and "OK: 4 committed shard(s) checked" in r.stdout
+
+
+def test_verify_finds_a_single_flipped_byte(tmp_path):
+    full_store(tmp_path / "s.zarr")
+    f = shard_file(tmp_path / "s.zarr", "renders", 2)
+    data = bytearray(f.read_bytes())
+    data[len(data) // 3] ^= 0x01
+    f.write_bytes(bytes(data))
+    r = shards("verify", tmp_path / "s.zarr")
+    assert r.returncode == 1
+    assert "shard 2: unreadable" in r.stdout and "checksum" in r.stdout
+    assert "shard 1" not in r.stdout and "1 bad shard(s)" in r.stdout
+
+
+def test_verify_finds_truncation_missing_commit_and_bad_values(tmp_path):
+    path = tmp_path / "s.zarr"
+    full_store(path)
+    f = shard_file(path, "maps", 0)
+    f.write_bytes(f.read_bytes()[:100])  # truncated
+    os.remove(path / commit_key(1))  # commit record lost: data without a commit
+    rec = json.loads((path / commit_key(3)).read_text())
+    store = ShardStore(str(path))
+    p = synthetic_payload(LAYOUT, 3)
+    p.turbidity[:] = 42.0  # out of range, written behind the writer's back
+    store.backend.open_group("r+")["turbidity"][18:21] = p.turbidity
+    rec["files"] = {k: store.backend.size(k) for k in store.shard_keys(3)}
+    (path / commit_key(3)).write_text(json.dumps(rec))
+    r = shards("verify", path, "--json")
+    assert r.returncode == 1
+    problems = json.loads(r.stdout)["problems"]
+    assert set(problems) == {"0", "1", "3"}
+    assert any("commit record says" in x for x in problems["0"])
+    assert any("without a commit record" in x for x in problems["1"])
+    assert any("turbidity outside" in x for x in problems["3"])
+
+
+# ---- datasets ------------------------------------------------------------------------------
+
+
+def test_stores_read_as_one_dataset_and_split_by_material(tmp_path):
+    a, b = full_store(tmp_path / "a.zarr"), full_store(tmp_path / "b.zarr", seed=1)
+    ds = Dataset.open([a.url, b.url])
+    assert len(ds) == 2 * LAYOUT.num_samples
+    np.testing.assert_array_equal(ds[LAYOUT.num_samples].render, b.sample(0).render)
+    train, test = split_by_material(ds, seed=0, holdout=4)
+    assert len(test) == 4 * 3 and len(train) + len(test) == len(ds)
+    held = {ds.material_of(i) for i in test}
+    assert len(held) == 4 and held.isdisjoint({ds.material_of(i) for i in train})
+    again = split_by_material(Dataset.open([a.url, b.url]), seed=0, holdout=4)
+    np.testing.assert_array_equal(again[1], test)
+    assert not np.array_equal(split_by_material(ds, seed=1, holdout=4)[1], test)
+    _, frac = split_by_material(ds, seed=0, fraction=0.5)
+    assert len(frac) == 7 * 3
+    with pytest.raises(ValueError):
+        split_by_material(ds, seed=0, holdout=99)
+
+
+# ---- CLI -----------------------------------------------------------------------------------
+
+
+def test_ls_info_show_export(tmp_path):
+    path = tmp_path / "s.zarr"
+    full_store(path)
+    r = shards("ls", path, "--json")
+    rows = json.loads(r.stdout)
+    assert [x["state"] for x in rows] == ["committed"] * 4 and rows[3]["samples"] == 3
+    info = json.loads(shards("info", path, "--json").stdout)
+    assert info["samples"]["committed"] == 21
+    assert info["materials_by_kind"] == {"procedural": 3, "uniform": 4}
+    assert sum(h["count"] for h in info["turbidity"]) == 21
+    text = shards("info", path).stdout
+    assert "sun elevation" in text and "turbidity" in text
+    assert f"{info['bytes']['compression_ratio']:.2f}x" in text
+    r = shards("show", path, "--sample", "5", "-o", tmp_path / "s5.png")
+    assert r.returncode == 0 and (tmp_path / "s5.png").stat().st_size > 0
+    r = shards("export", path, tmp_path / "png", "--samples", "2:5")
+    assert r.returncode == 0
+    assert len(list((tmp_path / "png").glob("*_render.png"))) == 3
+    r = shards("export", path, tmp_path / "exr", "--samples", "4", "--format", "exr")
+    assert sorted(p.name for p in (tmp_path / "exr").iterdir()) == [
+        "sample_000004.json",
+        "sample_000004_maps.exr",
+        "sample_000004_render.exr",
+    ]
+
+
+def test_cli_bad_input_is_one_line(tmp_path):
+    path = tmp_path / "s.zarr"
+    full_store(path)
+    (tmp_path / "plain").mkdir()
+    meta = json.loads((path / "zarr.json").read_text())
+    meta["attributes"]["shaderball"]["schema_version"] = 99
+    (tmp_path / "v99.zarr").mkdir()
+    (tmp_path / "v99.zarr" / "zarr.json").write_text(json.dumps(meta))
+    os.remove(path / commit_key(2))
+    cases = [
+        (["info", tmp_path / "plain"], "not a shard store"),
+        (["ls", tmp_path / "v99.zarr"], "unknown schema version 99"),
+        (["show", path, "--sample", "999", "-o", tmp_path / "x.png"], "out of range"),
+        (["show", path, "--sample", "13", "-o", tmp_path / "x.png"], "not committed"),
+        (["export", path, tmp_path / "e", "--samples", "12:14"], "not committed"),
+    ]
+    for args, needle in cases:
+        r = shards(*args)
+        assert r.returncode == 1, (args, r.stderr)
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr, args
+    assert not (tmp_path / "e").exists() or not list((tmp_path / "e").iterdir())
+    r = shards("export", path, tmp_path / "e", "--samples", "9:2")
+    assert r.returncode == 2 and "outside" in r.stderr
