@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test lint bench-render clean
+.PHONY: demo test lint bench-render bench-storage clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,5 +25,17 @@ lint: $(BIN)/.installed
 bench-render: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.render
 
+# MDS (mosaicml-streaming) needs torchvision, so the storage benchmark has its own environment:
+# torch 2.14.1 + torchvision 0.29.1 (about 6 GB), kept apart from the project's.
+.venv-bench/bin/.installed: pyproject.toml
+	$(PYTHON) -m venv .venv-bench
+	.venv-bench/bin/pip install --quiet --upgrade pip
+	.venv-bench/bin/pip install --quiet -e '.[dev]' torch==2.14.1 torchvision==0.29.1 \
+		mosaicml-streaming webdataset
+	touch $@
+
+bench-storage: .venv-bench/bin/.installed
+	.venv-bench/bin/python -m benchmarks.storage
+
 clean:
-	rm -rf $(VENV) out .pytest_cache .ruff_cache
+	rm -rf $(VENV) .venv-bench out .pytest_cache .ruff_cache

@@ -1,6 +1,9 @@
 """Reading a store: random access by sample, iteration by committed shard.
 
 Only committed shards are visible: a sample whose shard has no commit record is refused.
+Random access reads chunks directly (``storage.chunks``), caching per-shard indexes, the
+small per-sample arrays of each shard, and the last few materials' maps (5 suns share them);
+whole-shard reads (``read_shard``, used by ``shards verify``) go through zarr itself.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import numpy as np
 
 from render_jobs.specs import Sun
 from storage.backend import Backend
+from storage.chunks import ChunkReader
 from storage.errors import StoreError
 from storage.schema import ATTRS_KEY, COMMITS, PER_SAMPLE, SCHEMA_VERSION, Layout, decode_maps
 
@@ -42,6 +46,10 @@ class Sample:
 class ShardStore:
     """An opened store (local path or ``s3://`` URL)."""
 
+    #: bytes of packed material maps kept in memory (about 54 materials at 400²): a material's
+    #: suns share its maps, and shuffled reads come back to it
+    maps_cache_bytes = 96 << 20
+
     def __init__(self, url: str, storage_options: dict | None = None):
         self.url = str(url)
         self.backend = Backend(url, storage_options)
@@ -65,6 +73,10 @@ class ShardStore:
         self.layout = Layout(**attrs["layout"])
         self.settings: dict = attrs.get("settings", {})
         self._group = None
+        self._known: dict[int, dict] = {}  # commit records seen, by shard
+        self._meta: dict[int, dict[str, np.ndarray]] = {}
+        self._readers: dict[str, ChunkReader] = {}
+        self._maps_cache: dict[int, np.ndarray] = {}
 
     # ---- metadata -------------------------------------------------------------------------
 
@@ -136,29 +148,70 @@ class ShardStore:
 
     def _require_committed(self, sample: int) -> tuple[int, dict]:
         shard = self.layout.shard_of_sample(sample)
-        rec = self.commit_record(shard)
+        rec = self._known.get(shard)
+        if rec is None:  # commits only ever appear: look again only on a miss
+            rec = self.commit_record(shard)
+            if rec is not None:
+                self._known[shard] = rec
         if rec is None:
             raise StoreError(f"{self.url}: sample {sample} is in shard {shard}, not committed")
         return shard, rec
 
+    def _shard_meta(self, shard: int) -> dict[str, np.ndarray]:
+        """The small per-sample arrays of a committed shard (read once, then cached)."""
+        meta = self._meta.get(shard)
+        if meta is None:
+            s = self.layout.shard_samples(shard)
+            meta = {name: self.group[name][s.start : s.stop] for name in PER_SAMPLE}
+            self._meta[shard] = meta
+            if len(self._meta) > 512:
+                self._meta.pop(next(iter(self._meta)))
+        return meta
+
+    def _chunks(self, name: str):
+        reader = self._readers.get(name)
+        if reader is None:
+            reader = self._readers[name] = ChunkReader(self.backend, name)
+        return reader
+
+    def render(self, index: int) -> np.ndarray:
+        """Sample ``index``'s render: ``(3, H, W) float16`` linear HDR (no copy, read-only)."""
+        shard, _ = self._require_committed(index)
+        return self._chunks("renders").chunk(shard, index - shard * self.layout.shard_size)[0]
+
+    def packed_maps(self, material: int) -> np.ndarray:
+        """Material ``material``'s maps as stored: ``(11, H, W) uint8`` (read-only)."""
+        cached = self._maps_cache.get(material)
+        if cached is not None:
+            return cached
+        shard = material // self.layout.materials_per_shard
+        self._require_committed(shard * self.layout.shard_size)
+        k = material - shard * self.layout.materials_per_shard
+        packed = self._chunks("maps").chunk(shard, k)[0]
+        self._maps_cache[material] = packed
+        while len(self._maps_cache) * packed.nbytes > self.maps_cache_bytes:
+            self._maps_cache.pop(next(iter(self._maps_cache)))
+        return packed
+
     def sample(self, index: int) -> Sample:
         """Sample ``index`` with its material's maps and its light."""
         try:
-            _, rec = self._require_committed(index)
+            shard, rec = self._require_committed(index)
         except IndexError as exc:
             raise StoreError(f"{self.url}: {exc}") from None
-        g = self.group
         material = self.layout.material_of_sample(index)
         info = next(m for m in rec["materials"] if m["index"] == material)
-        d = g["sun_direction"][index]
+        meta = self._shard_meta(shard)
+        j = index - shard * self.layout.shard_size
+        d = meta["sun_direction"][j].astype(np.float64)
         return Sample(
             index=index,
-            render=g["renders"][index].astype(np.float32),
-            maps=decode_maps(g["maps"][material]),
+            render=self.render(index).astype(np.float32),
+            maps=decode_maps(self.packed_maps(material)),
             material_index=material,
-            sun=Sun(tuple(float(c) for c in d / np.linalg.norm(d)), float(g["turbidity"][index])),
-            seed=int(g["seed"][index]),
-            render_seconds=float(g["render_seconds"][index]),
+            sun=Sun(tuple(float(c) for c in d / np.linalg.norm(d)), float(meta["turbidity"][j])),
+            seed=int(meta["seed"][j]),
+            render_seconds=float(meta["render_seconds"][j]),
             kind=info["kind"],
             source_id=info["source_id"],
         )

@@ -170,6 +170,9 @@ def write_shard(
                 f"{store.url}: shard {shard} is already committed (pass overwrite to replace it)"
             )
         backend.delete(commit_key(shard))  # invisible before its bytes change
+        store._known.pop(shard, None)
+        store._meta.pop(shard, None)
+        store._maps_cache.clear()
     group = backend.open_group(mode="r+")
     samples, materials = store.layout.shard_samples(shard), store.layout.shard_materials(shard)
     group["maps"][materials.start : materials.stop] = payload.maps

@@ -312,3 +312,21 @@ def test_cli_bad_input_is_one_line(tmp_path):
     assert not (tmp_path / "e").exists() or not list((tmp_path / "e").iterdir())
     r = shards("export", path, tmp_path / "e", "--samples", "9:2")
     assert r.returncode == 2 and "outside" in r.stderr
+
+
+def test_fast_reads_match_zarr_and_catch_corruption(tmp_path):
+    path = tmp_path / "s.zarr"
+    store = full_store(path)
+    for shard in range(LAYOUT.num_shards):  # direct chunk reads == zarr's own decode
+        whole = store.read_shard(shard)
+        for j, i in enumerate(LAYOUT.shard_samples(shard)):
+            np.testing.assert_array_equal(store.render(i), whole.renders[j])
+    f = shard_file(path, "renders", 1)
+    data = bytearray(f.read_bytes())
+    data[40] ^= 0x10  # inside the first chunk of shard 1 (sample 6)
+    f.write_bytes(bytes(data))
+    with pytest.raises(StoreError, match="checksum"):
+        ShardStore(str(path)).sample(6)
+    r = shards("show", path, "--sample", "6", "-o", tmp_path / "x.png")
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert "checksum" in r.stderr and not (tmp_path / "x.png").exists()
