@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -109,6 +110,215 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
     total = sum(times)
     click.echo(f"frames    {len(times)} in {total:.1f} s ({total / len(times):.2f} s each)")
     click.echo(f"wrote     {result.out}/contact_sheet.png (and EXR/PNG per map and sun)")
+
+
+@main.command()
+@click.option(
+    "--materials",
+    "-m",
+    "sources",
+    multiple=True,
+    required=True,
+    metavar="uniform:N|procedural:N|svbrdf:DIR",
+    help="Material source (repeatable): N random uniform or procedural materials, or "
+    "every SVBRDF in DIR.",
+)
+@click.option("--out", "-o", required=True, help="Store to write (folder or s3:// URL).")
+@click.option(
+    "--suns",
+    default=5,
+    show_default=True,
+    type=click.IntRange(1, 64),
+    help="Random suns per material.",
+)
+@click.option(
+    "--resolution",
+    default=400,
+    show_default=True,
+    type=click.IntRange(16, 8192),
+    help="Image side in pixels.",
+)
+@click.option(
+    "--samples",
+    default=150,
+    show_default=True,
+    type=click.IntRange(1),
+    help="Cycles samples per pixel.",
+)
+@click.option(
+    "--seed",
+    default=0,
+    show_default=True,
+    type=click.IntRange(0),
+    help="Dataset seed: materials, suns and Cycles seeds follow from it.",
+)
+@click.option(
+    "--shard-size",
+    default=25,
+    show_default=True,
+    type=click.IntRange(1),
+    help="Samples per shard (a multiple of --suns).",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(1),
+    default=None,
+    help="Blender workers [default: cluster CPUs / --cpus-per-worker].",
+)
+@click.option(
+    "--cpus-per-worker",
+    default=1,
+    show_default=True,
+    type=click.IntRange(1),
+    help="CPUs (and Cycles threads) per worker.",
+)
+@click.option(
+    "--gpus-per-worker",
+    default=0,
+    show_default=True,
+    type=click.IntRange(0, 1),
+    help="1: each worker gets one GPU and renders with OptiX.",
+)
+@click.option(
+    "--address",
+    default=None,
+    help="Ray cluster to join (else RAY_ADDRESS, else an embedded local Ray).",
+)
+@click.option(
+    "--max-attempts",
+    default=3,
+    show_default=True,
+    type=click.IntRange(1),
+    help="Tries per material before it is recorded as failed.",
+)
+@click.option(
+    "--task-timeout",
+    default=600.0,
+    show_default=True,
+    type=click.FloatRange(1),
+    help="Seconds allowed per sun before the render counts as failed.",
+)
+@click.option(
+    "--recycle-after",
+    default=500,
+    show_default=True,
+    type=click.IntRange(1),
+    help="Restart a worker's Blender after this many renders.",
+)
+@click.option(
+    "--rss-limit-mb",
+    default=4096,
+    show_default=True,
+    type=click.IntRange(64),
+    help="Restart a worker's Blender above this resident memory.",
+)
+def submit(
+    sources,
+    out,
+    suns,
+    resolution,
+    samples,
+    seed,
+    shard_size,
+    workers,
+    cpus_per_worker,
+    gpus_per_worker,
+    address,
+    max_attempts,
+    task_timeout,
+    recycle_after,
+    rss_limit_mb,
+):
+    """Render a dataset on Ray workers into a shard store; resumes an interrupted job.
+
+    Plans every material x --suns suns (seeded by --seed), validates every material first,
+    then renders on long-lived Blender workers and commits shards as they complete. Running
+    the same command again resumes: committed shards are skipped. A different dataset setting
+    for an existing store is refused.
+
+    \b
+    Examples:
+      farm submit -m uniform:20 -m procedural:20 --resolution 128 --samples 32 -o out/small.zarr
+      farm submit -m svbrdf:data/deschaintre -o s3://bucket/set.zarr --address ray://head:10001
+    """
+    from farm.driver import FarmError
+    from farm.driver import submit as run
+    from farm.plan import JobConfig
+
+    try:
+        cfg = JobConfig(
+            sources=tuple(sources),
+            out=out,
+            suns=suns,
+            resolution=resolution,
+            samples=samples,
+            seed=seed,
+            shard_size=shard_size,
+            workers=workers,
+            cpus_per_worker=cpus_per_worker,
+            gpus_per_worker=gpus_per_worker,
+            address=address,
+            max_attempts=max_attempts,
+            task_timeout_s=task_timeout,
+            recycle_after=recycle_after,
+            rss_limit_mb=rss_limit_mb,
+        )
+        if shard_size % suns:
+            raise FarmError(f"--shard-size {shard_size} must be a multiple of --suns {suns}")
+        summary = run(cfg, echo=click.echo)
+    except (FarmError, MaterialError) as exc:
+        raise click.ClickException(str(exc)) from None
+    rate = summary.frames_rendered / summary.wall_s if summary.wall_s else 0.0
+    click.echo(
+        f"frames    {summary.frames_rendered} rendered, {summary.frames_skipped} already "
+        f"there, {summary.frames_total} in the dataset"
+    )
+    click.echo(
+        f"time      {summary.wall_s:.1f} s ({rate:.2f} frames/s; start-up "
+        f"{summary.startup_s:.1f} s)"
+    )
+    click.echo(f"store     {summary.store}   (inspect: shards info {summary.store})")
+    if not summary.ok:
+        for m, err in sorted(summary.failed_materials.items()):
+            click.echo(f"FAILED    material {m}: {err}", err=True)
+        click.echo(
+            f"{len(summary.failed_materials)} material(s) failed; shards "
+            f"{summary.failed_shards} are not committed. Run the same command to retry.",
+            err=True,
+        )
+        sys.exit(1)
+
+
+@main.command()
+@click.argument("store")
+@click.option("--json", "as_json", is_flag=True, help="Print the job state as JSON.")
+@click.option("--watch", is_flag=True, help="Refresh every 2 s until the job ends.")
+def status(store, as_json, watch):
+    """Show a farm job's progress, failures and workers, from the state kept with its store.
+
+    \b
+    Examples:
+      farm status out/small.zarr
+      farm status out/small.zarr --watch
+    """
+    import time
+
+    from farm.state import load_state
+    from farm.status import format_status
+
+    while True:
+        state = load_state(store)
+        if state is None:
+            raise click.ClickException(f"{store}: no farm job state (was it made by farm submit?)")
+        if as_json:
+            click.echo(json.dumps(state, indent=1))
+        else:
+            if watch:
+                click.clear()
+            click.echo(format_status(state))
+        if not watch or state["status"] != "running":
+            return
+        time.sleep(2)
 
 
 if __name__ == "__main__":

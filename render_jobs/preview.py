@@ -18,7 +18,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from PIL import Image
 
 from render_jobs.contact_sheet import contact_sheet, display_maps
@@ -28,7 +27,7 @@ from render_jobs.materials.maps import MaterialMaps
 from render_jobs.materials.sources import load_maps, make_spec
 from render_jobs.results import MaterialRender
 from render_jobs.specs import MaterialSpec, RenderSettings, derive_seed
-from render_jobs.sun import sample_suns
+from render_jobs.sun import suns_for_material
 from render_jobs.tonemap import to_uint8, tonemap
 from render_jobs.worker import RenderProcess
 
@@ -68,7 +67,7 @@ def render_preview(
     on_progress: Callable[[int], None] | None = None,
 ) -> Preview:
     """Render validated ``maps`` under ``suns`` seeded suns into the folder ``out``."""
-    sun_list = sample_suns(np.random.default_rng(derive_seed(seed, 0, -1)), suns)
+    sun_list = suns_for_material(seed, 0, suns)
     seeds = [derive_seed(seed, 0, k) for k in range(suns)]
     with RenderProcess(settings) as worker:
         result = worker.render_material(maps, sun_list, seeds, on_progress=on_progress)

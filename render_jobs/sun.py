@@ -102,6 +102,25 @@ def sample_suns(
     return suns
 
 
+SUN_STREAM = 0x5A11  # tags the sun draws' seed stream, apart from the material's own seed
+
+
+def suns_for_material(
+    dataset_seed: int,
+    material_index: int,
+    k: int = DEFAULT_SUNS,
+    min_elevation_deg: float = DEFAULT_MIN_ELEVATION_DEG,
+    turbidity_range: tuple[float, float] = DEFAULT_TURBIDITY_RANGE,
+) -> list[Sun]:
+    """The ``k`` suns of material ``material_index`` in a dataset seeded ``dataset_seed``.
+
+    Drawn from their own seed stream (not the material generator's), so the same triple gives
+    the same suns on every machine, whatever else is drawn.
+    """
+    seq = np.random.SeedSequence([dataset_seed, material_index, SUN_STREAM])
+    return sample_suns(np.random.default_rng(seq), k, min_elevation_deg, turbidity_range)
+
+
 def sun_from_angles(elevation_deg: float, azimuth_deg: float, turbidity: float) -> Sun:
     """A sun from elevation and azimuth (degrees, azimuth from +X towards +Y)."""
     el, az = math.radians(elevation_deg), math.radians(azimuth_deg)

@@ -57,3 +57,14 @@ def test_hazy_sun_is_dimmer():
     clear, hazy = sun_lamp(sun_from_angles(45, 0, 2)), sun_lamp(sun_from_angles(45, 0, 9))
     assert hazy[0] < clear[0]
     assert max(clear[1]) == pytest.approx(1.0)
+
+
+def test_material_suns_are_their_own_stream():
+    from render_jobs.specs import derive_seed
+    from render_jobs.sun import suns_for_material
+
+    a = suns_for_material(0, 3)
+    assert a == suns_for_material(0, 3) and a != suns_for_material(0, 4)
+    assert a != suns_for_material(1, 3)
+    # not the draws of the material's own seed (which seeds its generator)
+    assert a != sample_suns(np.random.default_rng(derive_seed(0, 3)), 5)

@@ -1,0 +1,334 @@
+"""The farm driver: plan, start Ray workers, hand out tasks, retry, commit shards, report.
+
+Failure handling is the driver's own, not Ray's task retries, because it needs what Ray's
+retries do not give: a retry on *another* worker, exponential backoff, the error of every
+attempt kept for the report, and per-worker failure counts. A task that raises (Blender error,
+unreadable texture, per-sun timeout in the worker) or whose worker dies (SIGKILL, node lost)
+is retried up to ``max_attempts`` times with backoff ``backoff_s * 2**(attempt-1)``, on a worker
+that has not failed it where one exists; then it is recorded as failed and its shard is left
+uncommitted (a resubmit renders it again). A worker that fails ``blocklist_after`` tasks is
+blocklisted (killed) and replaced; a dead worker is replaced. A task running longer than
+``task_timeout_s`` per sun plus a minute has its worker killed (counted as a failure).
+
+Backpressure: each worker holds one task; results wait in the driver only until their shard is
+complete and written, and tasks are handed out in shard order, so driver memory is bounded by
+the workers, not the job. Resume: committed shards are skipped.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from farm.plan import JobConfig, layout_for, material_specs, task_for
+from farm.state import JobState, WorkerStats, now
+from farm.worker import RenderWorker
+from render_jobs.errors import MaterialError
+from render_jobs.materials import load_maps
+from render_jobs.specs import RenderSettings
+from storage.writer import ShardPayload, create_store, write_shard
+
+STATE_EVERY_S = 2.0
+
+
+class FarmError(RuntimeError):
+    """The job could not start (bad input, incompatible store, no Ray)."""
+
+
+@dataclass
+class Summary:
+    store: str
+    frames_total: int
+    frames_rendered: int
+    frames_skipped: int
+    failed_materials: dict[int, str]
+    failed_shards: list[int]
+    wall_s: float
+    dashboard: str | None
+    startup_s: float
+
+    @property
+    def ok(self) -> bool:
+        return not self.failed_materials
+
+
+def validate(cfg: JobConfig, progress: bool = True):
+    """Specs of every material, with every file-based one loaded and checked (nothing starts
+    on bad input)."""
+    specs = material_specs(cfg)
+    files = [s for s in specs if s.kind == "svbrdf"]
+    for spec in tqdm(
+        files,
+        desc="validating",
+        unit="material",
+        disable=not progress or not files,
+        file=sys.stderr,
+    ):
+        load_maps(spec)
+    return specs
+
+
+def connect(address: str | None) -> str | None:
+    """Join the Ray cluster at ``address`` (or ``RAY_ADDRESS``), else start an embedded one.
+    Returns the dashboard URL."""
+    import ray
+
+    address = address or os.environ.get("RAY_ADDRESS") or None
+    if address:
+        ctx = ray.init(address=address, log_to_driver=False)
+    else:
+        ctx = ray.init(num_cpus=os.cpu_count(), include_dashboard=True, log_to_driver=False)
+    url = getattr(ctx, "dashboard_url", None)
+    return f"http://{url}" if url and not url.startswith("http") else url
+
+
+class _Pool:
+    """The live Ray actors, by worker id."""
+
+    def __init__(self, cfg: JobConfig, state: JobState):
+        import ray
+
+        self.ray, self.cfg, self.state = ray, cfg, state
+        settings = RenderSettings(
+            resolution=cfg.resolution,
+            samples=cfg.samples,
+            threads=cfg.cpus_per_worker,
+            device="OPTIX" if cfg.gpus_per_worker else "CPU",
+            texture_tiling=cfg.texture_tiling,
+        ).to_dict()
+        self.settings = settings
+        self.cls = ray.remote(RenderWorker).options(
+            num_cpus=cfg.cpus_per_worker,
+            num_gpus=cfg.gpus_per_worker,
+            max_restarts=0,
+            max_concurrency=1,
+        )
+        self.actors: dict[str, object] = {}
+        self.count = 0
+
+    def start(self) -> str:
+        wid = f"w{self.count}"
+        self.count += 1
+        self.actors[wid] = self.cls.remote(
+            wid, self.settings, self.cfg.recycle_after, self.cfg.rss_limit_mb
+        )
+        self.state.workers[wid] = WorkerStats(worker=wid, status="idle", last_seen=now())
+        return wid
+
+    def remove(self, wid: str, status: str) -> None:
+        actor = self.actors.pop(wid, None)
+        if actor is not None:
+            self.ray.kill(actor, no_restart=True)
+        self.state.workers[wid].status = status
+        self.state.workers[wid].current = None
+
+
+def _payload(
+    layout, shard: int, results: dict[int, dict], tasks: dict[int, object], specs
+) -> ShardPayload:
+    mats = list(layout.shard_materials(shard))
+    k = layout.suns_per_material
+    return ShardPayload(
+        maps=np.stack([results[m]["maps"] for m in mats]),
+        renders=np.concatenate([results[m]["renders"] for m in mats]),
+        material_index=np.repeat(np.asarray(mats, np.int32), k),
+        sun_direction=np.array([s.direction for m in mats for s in tasks[m].suns], np.float32),
+        turbidity=np.array([s.turbidity for m in mats for s in tasks[m].suns], np.float32),
+        seed=np.array([x for m in mats for x in tasks[m].seeds], np.int64),
+        render_seconds=np.array([x for m in mats for x in results[m]["seconds"]], np.float32),
+        materials=[
+            {"kind": specs[m].kind, "source_id": specs[m].source_id, "spec": specs[m].to_dict()}
+            for m in mats
+        ],
+    )
+
+
+def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
+    """Run (or resume) the job ``cfg`` to the end; see the module docstring."""
+    t_start = time.perf_counter()
+    try:
+        specs = validate(cfg, progress)
+    except MaterialError as exc:
+        raise FarmError(str(exc)) from None
+    layout = layout_for(cfg, len(specs))
+    from storage.errors import StoreError
+
+    try:
+        store = create_store(cfg.out, layout, cfg.dataset_settings(), exist_ok=True)
+    except StoreError as exc:
+        raise FarmError(f"{exc} (use another --out, or the original settings to resume)") from None
+    committed = set(store.committed_shards())
+    todo = [s for s in range(layout.num_shards) if s not in committed]
+    state = JobState(
+        store=cfg.out,
+        settings=cfg.dataset_settings(),
+        frames_total=layout.num_samples,
+        shards_total=layout.num_shards,
+        shards_committed=len(committed),
+    )
+    state.frames_skipped = sum(len(layout.shard_samples(s)) for s in committed)
+    if committed:
+        echo(f"resuming: {len(committed)} of {layout.num_shards} shards already committed")
+    if not todo:  # keep the finished job's state as it is
+        return Summary(cfg.out, layout.num_samples, 0, state.frames_skipped, {}, [], 0.0, None, 0.0)
+
+    import ray
+    from ray.exceptions import RayActorError, RayTaskError
+
+    state.dashboard = connect(cfg.address)
+    echo(f"ray dashboard: {state.dashboard}")
+    workers = cfg.workers or max(
+        1, int(ray.cluster_resources().get("CPU", 1)) // cfg.cpus_per_worker
+    )
+    pool = _Pool(cfg, state)
+    for _ in range(workers):
+        pool.start()
+    startup = time.perf_counter() - t_start
+
+    tasks = {}
+    queue = collections.deque(m for s in todo for m in layout.shard_materials(s))
+    not_before: dict[int, float] = {}
+    attempts: collections.Counter[int] = collections.Counter()
+    failed_on: dict[int, set[str]] = collections.defaultdict(set)
+    errors: dict[int, list[dict]] = collections.defaultdict(list)
+    failed: dict[int, str] = {}
+    buffer: dict[int, dict[int, dict]] = collections.defaultdict(dict)
+    dead_shards: set[int] = set()
+    inflight: dict[object, tuple[str, int, float]] = {}
+    remaining = sum(len(layout.shard_samples(s)) for s in todo)
+    bar = tqdm(
+        total=remaining,
+        desc="frames",
+        unit="frame",
+        disable=not progress,
+        file=sys.stderr,
+        smoothing=0.1,
+    )
+    last_save = 0.0
+
+    def task(m: int):
+        if m not in tasks:
+            tasks[m] = task_for(cfg, m, specs[m])
+        return tasks[m]
+
+    def fail(m: int, wid: str, error: str) -> None:
+        attempts[m] += 1
+        failed_on[m].add(wid)
+        errors[m].append({"worker": wid, "error": error, "at": now()})
+        w = state.workers[wid]
+        w.failures += 1
+        final = attempts[m] >= cfg.max_attempts
+        state.failures[str(m)] = {"attempts": attempts[m], "errors": errors[m][-5:], "final": final}
+        if final:
+            failed[m] = error
+            shard = m // layout.materials_per_shard
+            dead_shards.add(shard)
+            buffer.pop(shard, None)
+            state.shards_failed = sorted(dead_shards)
+        else:
+            not_before[m] = now() + cfg.backoff_s * 2 ** (attempts[m] - 1)
+            queue.append(m)
+        if w.failures >= cfg.blocklist_after and wid in pool.actors:
+            pool.remove(wid, "blocklisted")
+            pool.start()
+        bar.set_postfix(failures=sum(attempts.values()), refresh=False)
+
+    def done(m: int, wid: str, res: dict) -> None:
+        w = state.workers[wid]
+        w.frames += len(res["seconds"])
+        w.materials += 1
+        w.frame_seconds += float(sum(res["seconds"]))
+        w.recycled += int(res["recycled"])
+        w.host, w.pid = res["host"], res["pid"]
+        shard = m // layout.materials_per_shard
+        if m not in failed:
+            state.failures.pop(str(m), None)  # an earlier failure was retried successfully
+        if shard in dead_shards:
+            return
+        buffer[shard][m] = res
+        if len(buffer[shard]) == len(layout.shard_materials(shard)):
+            write_shard(store, shard, _payload(layout, shard, buffer.pop(shard), tasks, specs))
+            state.shards_committed += 1
+            frames = len(layout.shard_samples(shard))
+            state.frames_done += frames
+            bar.update(frames)
+
+    try:
+        while queue or inflight:
+            t = now()
+            idle = [w for w in pool.actors if state.workers[w].status == "idle"]
+            for wid in idle:
+                pick = None
+                for m in queue:
+                    if not_before.get(m, 0) > t:
+                        continue
+                    alive_untried = [w for w in pool.actors if w not in failed_on[m]]
+                    if wid not in failed_on[m] or not alive_untried:
+                        pick = m
+                        break
+                if pick is None:
+                    continue
+                queue.remove(pick)
+                ref = pool.actors[wid].render.remote(task(pick).to_dict(), cfg.task_timeout_s)
+                inflight[ref] = (wid, pick, t)
+                state.workers[wid].status, state.workers[wid].current = "busy", pick
+            ready, _ = (
+                ray.wait(list(inflight), num_returns=1, timeout=0.25) if inflight else ([], [])
+            )
+            if not inflight:
+                time.sleep(0.05)
+            for ref in ready:
+                wid, m, started = inflight.pop(ref)
+                w = state.workers[wid]
+                w.last_seen, w.current = now(), None
+                try:
+                    res = ray.get(ref)
+                except RayActorError as exc:
+                    if wid in pool.actors:  # died under us: replace it
+                        pool.remove(wid, "dead")
+                        pool.start()
+                    fail(m, wid, f"worker died: {type(exc).__name__}")
+                    continue
+                except RayTaskError as exc:
+                    cause = exc.cause if getattr(exc, "cause", None) else exc
+                    if w.status == "busy":
+                        w.status = "idle"
+                    fail(m, wid, f"{type(cause).__name__}: {str(cause).splitlines()[0]}")
+                    continue
+                w.status = "idle"
+                done(m, wid, res)
+            for wid, m, started in list(inflight.values()):
+                if now() - started > cfg.task_timeout_s * cfg.suns + 60 and wid in pool.actors:
+                    pool.remove(wid, "dead")  # its ref now fails with RayActorError
+                    pool.start()
+                    errors[m].append({"worker": wid, "error": "task timeout", "at": now()})
+            if now() - last_save > STATE_EVERY_S:
+                state.save(store.backend)
+                last_save = now()
+        state.status = "failed" if failed else "done"
+    except BaseException:
+        state.status = "interrupted"
+        raise
+    finally:
+        bar.close()
+        for wid in list(pool.actors):
+            pool.remove(wid, "stopped")
+        state.save(store.backend)
+        ray.shutdown()
+    return Summary(
+        store=cfg.out,
+        frames_total=layout.num_samples,
+        frames_rendered=state.frames_done,
+        frames_skipped=state.frames_skipped,
+        failed_materials=failed,
+        failed_shards=sorted(dead_shards),
+        wall_s=time.perf_counter() - t_start,
+        dashboard=state.dashboard,
+        startup_s=startup,
+    )

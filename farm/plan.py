@@ -1,0 +1,86 @@
+"""Planning a job: materials x suns → shard-aligned render tasks, seeded (no Ray, no bpy).
+
+A task is one material with all its suns (``render_jobs.specs.RenderJob``); the shards of the
+store hold whole materials, so a shard is complete when its materials' tasks are. The same
+sources, settings and seed always give the same tasks, suns and Cycles seeds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from render_jobs.geometry import geometry_hash, shaderball
+from render_jobs.materials import specs_from_sources
+from render_jobs.materials.procedural import DEFAULT_MAP_RESOLUTION
+from render_jobs.specs import CAMERA, MaterialSpec, RenderJob, derive_seed
+from render_jobs.sun import (
+    DEFAULT_MIN_ELEVATION_DEG,
+    DEFAULT_SUNS,
+    DEFAULT_TURBIDITY_RANGE,
+    suns_for_material,
+)
+from storage.schema import Layout
+
+
+@dataclass(frozen=True)
+class JobConfig:
+    """What defines a dataset (stored with it; a resubmit must match) plus how to run it."""
+
+    sources: tuple[str, ...]
+    out: str
+    suns: int = DEFAULT_SUNS
+    resolution: int = 400
+    samples: int = 150
+    seed: int = 0
+    shard_size: int = 25
+    min_elevation_deg: float = DEFAULT_MIN_ELEVATION_DEG
+    turbidity_range: tuple[float, float] = DEFAULT_TURBIDITY_RANGE
+    map_resolution: int = DEFAULT_MAP_RESOLUTION
+    texture_tiling: float = 2.0
+    # how to run (not part of the dataset's identity)
+    workers: int | None = None
+    cpus_per_worker: int = 1
+    gpus_per_worker: int = 0
+    address: str | None = None
+    max_attempts: int = 3
+    blocklist_after: int = 3
+    task_timeout_s: float = 600.0
+    backoff_s: float = 1.0
+    recycle_after: int = 500
+    rss_limit_mb: int = 4096
+    extra: dict = field(default_factory=dict)
+
+    def dataset_settings(self) -> dict:
+        """The settings that define the dataset: stored in the store, checked on resubmit."""
+        return {
+            "sources": list(self.sources),
+            "suns": self.suns,
+            "resolution": self.resolution,
+            "samples": self.samples,
+            "seed": self.seed,
+            "min_elevation_deg": self.min_elevation_deg,
+            "turbidity_range": list(self.turbidity_range),
+            "map_resolution": self.map_resolution,
+            "texture_tiling": self.texture_tiling,
+            "camera": CAMERA.to_dict(),
+            "geometry_hash": geometry_hash(shaderball()),
+            "sky": "HOSEK_WILKIE",
+            "denoising": False,
+        }
+
+
+def material_specs(cfg: JobConfig) -> list[MaterialSpec]:
+    return specs_from_sources(list(cfg.sources), cfg.seed, cfg.map_resolution)
+
+
+def layout_for(cfg: JobConfig, num_materials: int) -> Layout:
+    return Layout(num_materials, cfg.suns, cfg.resolution, cfg.shard_size)
+
+
+def task_for(cfg: JobConfig, index: int, spec: MaterialSpec) -> RenderJob:
+    """Material ``index`` with its suns and per-sun Cycles seeds."""
+    suns = suns_for_material(
+        cfg.seed, index, cfg.suns, cfg.min_elevation_deg, tuple(cfg.turbidity_range)
+    )
+    seeds = tuple(derive_seed(cfg.seed, index, k) for k in range(cfg.suns))
+    return RenderJob(material_index=index, material=spec, suns=tuple(suns), seeds=seeds)

@@ -1,0 +1,81 @@
+"""The job's state, persisted with the store for people and dashboards.
+
+``<store>/farm/job.json`` is rewritten atomically (temp + rename locally, one PUT on S3) every
+couple of seconds by the driver and at the end, so ``farm status`` (and the dashboard) can show
+a job while it runs and after it ends, without the driver. Shard commits stay the truth about
+data: the state is a report, ``shards`` reads the store itself.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from dataclasses import asdict, dataclass, field
+
+from storage.backend import Backend
+
+STATE_KEY = "farm/job.json"
+
+
+def now() -> float:
+    return time.time()
+
+
+@dataclass
+class WorkerStats:
+    worker: str
+    status: str = "starting"  # starting | idle | busy | dead | blocklisted | stopped
+    host: str = ""
+    pid: int = 0
+    frames: int = 0
+    materials: int = 0
+    frame_seconds: float = 0.0  # sum, for the mean
+    failures: int = 0
+    recycled: int = 0
+    last_seen: float = 0.0
+    current: int | None = None  # material being rendered
+
+    @property
+    def mean_frame_s(self) -> float:
+        return self.frame_seconds / self.frames if self.frames else 0.0
+
+
+@dataclass
+class JobState:
+    store: str
+    settings: dict
+    frames_total: int
+    shards_total: int
+    status: str = "running"  # running | done | failed | interrupted
+    driver: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
+    started: float = field(default_factory=now)
+    updated: float = field(default_factory=now)
+    frames_done: int = 0
+    frames_skipped: int = 0  # already committed when the job (re)started
+    shards_committed: int = 0
+    shards_failed: list[int] = field(default_factory=list)
+    failures: dict[str, dict] = field(default_factory=dict)  # material -> {attempts, errors, final}
+    workers: dict[str, WorkerStats] = field(default_factory=dict)
+    dashboard: str | None = None
+
+    def to_json(self) -> bytes:
+        data = asdict(self)
+        for w in data["workers"].values():
+            w["mean_frame_s"] = w["frame_seconds"] / w["frames"] if w["frames"] else 0.0
+        elapsed = max(self.updated - self.started, 1e-9)
+        rate = self.frames_done / elapsed
+        data["frames_per_s"] = rate
+        remaining = self.frames_total - self.frames_skipped - self.frames_done
+        data["eta_s"] = remaining / rate if rate > 0 else None
+        return json.dumps(data, indent=1).encode()
+
+    def save(self, backend: Backend) -> None:
+        self.updated = now()
+        backend.put_atomic(STATE_KEY, self.to_json())
+
+
+def load_state(url: str, storage_options: dict | None = None) -> dict | None:
+    raw = Backend(url, storage_options).get(STATE_KEY)
+    return json.loads(raw) if raw is not None else None

@@ -1,0 +1,44 @@
+"""Formatting a job state (``farm/job.json``) for people."""
+
+from __future__ import annotations
+
+import time
+
+
+def _ago(t: float) -> str:
+    s = max(0, time.time() - t)
+    return f"{s:.0f} s ago" if s < 120 else f"{s / 60:.0f} min ago"
+
+
+def format_status(st: dict) -> str:
+    done = st["frames_done"] + st["frames_skipped"]
+    total = st["frames_total"]
+    eta = f"{st['eta_s']:.0f} s" if st.get("eta_s") else "-"
+    lines = [
+        f"job       {st['status']}  (driver {st['driver']}, updated {_ago(st['updated'])})",
+        f"store     {st['store']}",
+        f"frames    {done}/{total} ({100 * done / total:.1f}%), {st['frames_per_s']:.2f} frames/s,"
+        f" ETA {eta}",
+        f"shards    {st['shards_committed']}/{st['shards_total']} committed"
+        + (f", failed: {st['shards_failed']}" if st["shards_failed"] else ""),
+        f"dashboard {st.get('dashboard') or '-'}",
+    ]
+    if st["failures"]:
+        lines.append("failures")
+        for m, f in sorted(st["failures"].items(), key=lambda kv: int(kv[0])):
+            last = f["errors"][-1] if f["errors"] else {"worker": "-", "error": "-"}
+            tag = "FAILED" if f["final"] else "retrying"
+            lines.append(
+                f"  material {m:>6}  {tag:<8} attempts {f['attempts']}  "
+                f"last on {last['worker']}: {last['error']}"
+            )
+    lines.append(
+        f"{'worker':<8}{'status':<12}{'frames':>7}{'s/frame':>9}{'fails':>6}"
+        f"{'recycled':>9}  last seen"
+    )
+    for w in st["workers"].values():
+        lines.append(
+            f"{w['worker']:<8}{w['status']:<12}{w['frames']:>7}{w['mean_frame_s']:>9.2f}"
+            f"{w['failures']:>6}{w['recycled']:>9}  {_ago(w['last_seen'])}"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,101 @@
+"""The farm's Ray worker: one kept-loaded Blender scene, material after material.
+
+``RenderWorker`` is a plain class that the driver wraps with ``ray.remote``. It never imports
+``bpy`` itself: it drives a ``render_jobs.worker.RenderProcess`` child, so it can recycle
+Blender (after ``recycle_after`` renders or above ``rss_limit_mb`` resident, BlenderProc's
+memory growth) and kill a hung render (per-sun ``timeout``) without losing the actor. With
+GPUs, Ray sets ``CUDA_VISIBLE_DEVICES`` to the actor's one GPU, so each Blender sees only its
+own (``device`` OPTIX or CUDA).
+
+Fault injection for tests: ``SHADERBALL_FARM_FAULTS`` holds JSON with ``fail_materials``
+(raise every time), ``flaky_materials`` (raise on a worker's first try of them),
+``hang_materials`` (sleep past any timeout), ``bad_workers`` (worker ids whose every task
+raises), ``slow_s`` (sleep before each task). Unset, it does nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+
+import numpy as np
+
+from render_jobs.errors import RenderError
+from render_jobs.materials import load_maps
+from render_jobs.specs import RenderJob, RenderSettings
+from render_jobs.worker import RenderProcess
+from storage.schema import encode_maps
+
+FAULTS_ENV = "SHADERBALL_FARM_FAULTS"
+
+
+class RenderWorker:
+    """Renders :class:`RenderJob`\\ s; returns packed, store-ready results."""
+
+    def __init__(self, worker_id: str, settings: dict, recycle_after: int, rss_limit_mb: int):
+        self.worker_id = worker_id
+        self.settings = RenderSettings.from_dict(settings)
+        self.recycle_after = recycle_after
+        self.rss_limit = rss_limit_mb << 20
+        self.process = RenderProcess(self.settings)
+        self.renders_since_start = 0
+        self.recycled = 0
+        self.faults = json.loads(os.environ.get(FAULTS_ENV, "{}") or "{}")
+        self.tried: set[int] = set()
+
+    def info(self) -> dict:
+        return {
+            "worker": self.worker_id,
+            "pid": os.getpid(),
+            "host": socket.gethostname(),
+            "blender_pid": self.process.pid,
+        }
+
+    def _inject(self, index: int) -> None:
+        f = self.faults
+        if not f:
+            return
+        time.sleep(float(f.get("slow_s", 0)))
+        if self.worker_id in f.get("bad_workers", []):
+            raise RenderError(f"injected fault: worker {self.worker_id} is bad")
+        if index in f.get("fail_materials", []):
+            raise RenderError(f"injected fault: material {index} always fails")
+        if index in f.get("flaky_materials", []) and index not in self.tried:
+            self.tried.add(index)
+            raise RenderError(f"injected fault: material {index} fails once")
+        if index in f.get("hang_materials", []):
+            time.sleep(3600)
+
+    def render(self, job: dict, timeout_s: float) -> dict:
+        """Render one material under all its suns (``job``: ``RenderJob.to_dict()``)."""
+        task = RenderJob.from_dict(job)
+        self._inject(task.material_index)
+        maps = load_maps(task.material)
+        t0 = time.perf_counter()
+        result = self.process.render_material(
+            maps, list(task.suns), list(task.seeds), timeout=timeout_s
+        )
+        wall = time.perf_counter() - t0
+        self.renders_since_start += len(task.suns)
+        recycled = False
+        if self.renders_since_start >= self.recycle_after or result.rss_bytes > self.rss_limit:
+            self.process.close()  # the next task starts a fresh Blender
+            self.renders_since_start = 0
+            self.recycled += 1
+            recycled = True
+        return {
+            "material_index": task.material_index,
+            "maps": encode_maps(result.maps.as_dict()),
+            "renders": np.stack([r.radiance for r in result.renders]).astype(np.float16),
+            "seconds": [r.seconds for r in result.renders],
+            "wall_s": wall,
+            "rss_mb": result.rss_bytes / 2**20,
+            "recycled": recycled,
+            "geometry_hash": result.geometry_hash,
+            **self.info(),
+        }
+
+    def close(self) -> None:
+        self.process.close()
