@@ -8,7 +8,7 @@ is retried up to ``max_attempts`` times with backoff ``backoff_s * 2**(attempt-1
 that has not failed it where one exists; then it is recorded as failed and its shard is left
 uncommitted (a resubmit renders it again). A worker that fails ``blocklist_after`` tasks is
 blocklisted (killed) and replaced; a dead worker is replaced. A task running longer than
-``task_timeout_s`` per sun plus a minute has its worker killed (counted as a failure).
+``task_timeout_s x (suns + 1)`` has its worker killed (a failure, reported as a timeout).
 
 Backpressure: each worker holds one task; results wait in the driver only until their shard is
 complete and written, and tasks are handed out in shard order, so driver memory is bounded by
@@ -74,6 +74,20 @@ def validate(cfg: JobConfig, progress: bool = True):
     return specs
 
 
+def _is_loopback(address: str | None) -> bool:
+    if not address:
+        return True  # the embedded Ray
+    host = address.split("://")[-1].rsplit(":", 1)[0]
+    return host in ("localhost", "::1") or host.startswith("127.")
+
+
+def _keep_ray_on_loopback(address: str | None) -> None:
+    """For the embedded Ray and clusters on 127.0.0.1: Ray on Linux rewrites a loopback
+    address to the machine's outward IP unless this is set before ``ray`` is imported."""
+    if _is_loopback(address or os.environ.get("RAY_ADDRESS")) and "ray" not in sys.modules:
+        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+
+
 def connect(address: str | None) -> str | None:
     """Join the Ray cluster at ``address`` (or ``RAY_ADDRESS``), else start an embedded one.
     Returns the dashboard URL."""
@@ -81,9 +95,16 @@ def connect(address: str | None) -> str | None:
 
     address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
-        ctx = ray.init(address=address, log_to_driver=False)
+        extra = {"_node_ip_address": "127.0.0.1"} if _is_loopback(address) else {}
+        ctx = ray.init(address=address, log_to_driver=False, **extra)
     else:
-        ctx = ray.init(num_cpus=os.cpu_count(), include_dashboard=True, log_to_driver=False)
+        ctx = ray.init(  # embedded: everything on the loopback interface
+            num_cpus=os.cpu_count(),
+            include_dashboard=True,
+            log_to_driver=False,
+            _node_ip_address="127.0.0.1",
+            dashboard_host="127.0.0.1",
+        )
     url = getattr(ctx, "dashboard_url", None)
     return f"http://{url}" if url and not url.startswith("http") else url
 
@@ -110,16 +131,33 @@ class _Pool:
             max_concurrency=1,
         )
         self.actors: dict[str, object] = {}
+        self.starting: dict[object, str] = {}  # readiness ref -> worker id
+        self.start_failures: list[str] = []
         self.count = 0
 
     def start(self) -> str:
+        """Create a worker; it gets tasks once Ray has placed it and it answers (``ready``)."""
         wid = f"w{self.count}"
         self.count += 1
-        self.actors[wid] = self.cls.remote(
-            wid, self.settings, self.cfg.recycle_after, self.cfg.rss_limit_mb
-        )
-        self.state.workers[wid] = WorkerStats(worker=wid, status="idle", last_seen=now())
+        actor = self.cls.remote(wid, self.settings, self.cfg.recycle_after, self.cfg.rss_limit_mb)
+        self.actors[wid] = actor
+        self.starting[actor.info.remote()] = wid
+        self.state.workers[wid] = WorkerStats(worker=wid, status="starting", last_seen=now())
         return wid
+
+    def ready(self, ref) -> None:
+        """A worker answered: it is placed and alive."""
+        wid = self.starting.pop(ref)
+        w = self.state.workers[wid]
+        try:
+            info = self.ray.get(ref)
+        except Exception as exc:  # noqa: BLE001 - any start-up failure: the worker is gone
+            self.actors.pop(wid, None)
+            w.status, w.current = "dead", None
+            self.start_failures.append(f"{wid}: {type(exc).__name__}: {exc}".splitlines()[0])
+            return
+        if wid in self.actors:
+            w.status, w.host, w.pid, w.last_seen = "idle", info["host"], info["pid"], now()
 
     def remove(self, wid: str, status: str) -> None:
         actor = self.actors.pop(wid, None)
@@ -152,6 +190,7 @@ def _payload(
 def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     """Run (or resume) the job ``cfg`` to the end; see the module docstring."""
     t_start = time.perf_counter()
+    _keep_ray_on_loopback(cfg.address)
     try:
         specs = validate(cfg, progress)
     except MaterialError as exc:
@@ -201,6 +240,10 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     buffer: dict[int, dict[int, dict]] = collections.defaultdict(dict)
     dead_shards: set[int] = set()
     inflight: dict[object, tuple[str, int, float]] = {}
+    timed_out: set[object] = set()
+    # the worker enforces the timeout per sun; this guards against a worker stuck elsewhere
+    guard = cfg.task_timeout_s * (cfg.suns + 1)
+    last_live = now()
     remaining = sum(len(layout.shard_samples(s)) for s in todo)
     bar = tqdm(
         total=remaining,
@@ -247,8 +290,8 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
         w.recycled += int(res["recycled"])
         w.host, w.pid = res["host"], res["pid"]
         shard = m // layout.materials_per_shard
-        if m not in failed:
-            state.failures.pop(str(m), None)  # an earlier failure was retried successfully
+        if str(m) in state.failures:  # an earlier failure was retried successfully
+            state.failures[str(m)]["recovered"] = True
         if shard in dead_shards:
             return
         buffer[shard][m] = res
@@ -278,12 +321,23 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
                 ref = pool.actors[wid].render.remote(task(pick).to_dict(), cfg.task_timeout_s)
                 inflight[ref] = (wid, pick, t)
                 state.workers[wid].status, state.workers[wid].current = "busy", pick
-            ready, _ = (
-                ray.wait(list(inflight), num_returns=1, timeout=0.25) if inflight else ([], [])
-            )
-            if not inflight:
+            waiting = list(inflight) + list(pool.starting)
+            ready, _ = ray.wait(waiting, num_returns=1, timeout=0.25) if waiting else ([], [])
+            if not waiting:
                 time.sleep(0.05)
+            live = [w for w in pool.actors if state.workers[w].status in ("idle", "busy")]
+            if live or inflight:
+                last_live = now()
+            elif now() - last_live > cfg.placement_timeout_s:
+                why = "; ".join(pool.start_failures[-3:]) or (
+                    f"Ray could not place a worker needing {cfg.cpus_per_worker} CPU(s) and "
+                    f"{cfg.gpus_per_worker} GPU(s)"
+                )
+                raise FarmError(f"no live worker for {cfg.placement_timeout_s:.0f} s: {why}")
             for ref in ready:
+                if ref in pool.starting:
+                    pool.ready(ref)
+                    continue
                 wid, m, started = inflight.pop(ref)
                 w = state.workers[wid]
                 w.last_seen, w.current = now(), None
@@ -293,7 +347,11 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
                     if wid in pool.actors:  # died under us: replace it
                         pool.remove(wid, "dead")
                         pool.start()
-                    fail(m, wid, f"worker died: {type(exc).__name__}")
+                    if ref in timed_out:
+                        timed_out.discard(ref)
+                        fail(m, wid, f"timed out after {now() - started:.0f} s (worker killed)")
+                    else:
+                        fail(m, wid, f"worker died: {type(exc).__name__}")
                     continue
                 except RayTaskError as exc:
                     cause = exc.cause if getattr(exc, "cause", None) else exc
@@ -303,11 +361,11 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
                     continue
                 w.status = "idle"
                 done(m, wid, res)
-            for wid, m, started in list(inflight.values()):
-                if now() - started > cfg.task_timeout_s * cfg.suns + 60 and wid in pool.actors:
+            for ref, (wid, _m, started) in list(inflight.items()):
+                if now() - started > guard and wid in pool.actors:
+                    timed_out.add(ref)
                     pool.remove(wid, "dead")  # its ref now fails with RayActorError
                     pool.start()
-                    errors[m].append({"worker": wid, "error": "task timeout", "at": now()})
             if now() - last_save > STATE_EVERY_S:
                 state.save(store.backend)
                 last_save = now()

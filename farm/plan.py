@@ -48,6 +48,7 @@ class JobConfig:
     backoff_s: float = 1.0
     recycle_after: int = 500
     rss_limit_mb: int = 4096
+    placement_timeout_s: float = 300.0
     extra: dict = field(default_factory=dict)
 
     def dataset_settings(self) -> dict:

@@ -27,7 +27,7 @@ def format_status(st: dict) -> str:
         lines.append("failures")
         for m, f in sorted(st["failures"].items(), key=lambda kv: int(kv[0])):
             last = f["errors"][-1] if f["errors"] else {"worker": "-", "error": "-"}
-            tag = "FAILED" if f["final"] else "retrying"
+            tag = "FAILED" if f["final"] else "recovered" if f.get("recovered") else "retrying"
             lines.append(
                 f"  material {m:>6}  {tag:<8} attempts {f['attempts']}  "
                 f"last on {last['worker']}: {last['error']}"

@@ -1,0 +1,256 @@
+"""The farm on a real local Ray: end to end, resume, and the faults long Blender jobs meet."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+
+from farm.plan import JobConfig, material_specs, task_for
+from render_jobs.specs import derive_seed
+from storage.reader import ShardStore
+
+pytestmark = pytest.mark.slow
+BIN = Path(sys.executable).parent
+TINY = ["--suns", "2", "--shard-size", "4", "--resolution", "32", "--samples", "2"]
+
+
+def farm(*args, faults=None, wait=True, timeout=300):
+    env = {**os.environ, "RAY_AUTH_MODE": "disabled"}
+    if faults is not None:
+        env["SHADERBALL_FARM_FAULTS"] = json.dumps(faults)
+    cmd = [str(BIN / "farm"), *map(str, args)]
+    if not wait:
+        return subprocess.Popen(
+            cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+def assert_exactly_once(path, materials: int, suns: int = 2, seed: int = 0):
+    """Every sample present, once, with the seed its (material, sun) must have."""
+    store = ShardStore(str(path))
+    assert store.committed_shards() == list(range(store.layout.num_shards))
+    seeds = store.group["seed"][:]
+    want = [derive_seed(seed, m, k) for m in range(materials) for k in range(suns)]
+    np.testing.assert_array_equal(seeds, want)
+    r = subprocess.run([str(BIN / "shards"), "verify", str(path)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout
+
+
+def job(path) -> dict:
+    return json.loads((Path(path) / "farm" / "job.json").read_text())
+
+
+def test_plan_is_deterministic():
+    cfg = JobConfig(sources=("uniform:3", "procedural:2"), out="x", suns=3, seed=7)
+    a = [task_for(cfg, i, s) for i, s in enumerate(material_specs(cfg))]
+    b = [task_for(cfg, i, s) for i, s in enumerate(material_specs(cfg))]
+    assert a == b and len(a) == 5 and all(len(t.suns) == 3 for t in a)
+    assert len({t.seeds for t in a}) == 5
+    other = JobConfig(sources=("uniform:3", "procedural:2"), out="x", suns=3, seed=8)
+    assert task_for(other, 0, material_specs(other)[0]) != a[0]
+
+
+def test_submit_resume_and_refusal(tmp_path):
+    out = tmp_path / "set.zarr"
+    r = farm(
+        "submit", "-m", "uniform:3", "-m", "procedural:2", *TINY, "--recycle-after", "2", "-o", out
+    )
+    assert r.returncode == 0, r.stderr
+    assert "10 rendered" in r.stdout and "ray dashboard: http" in r.stdout
+    assert f"shards info {out}" in r.stdout
+    assert_exactly_once(out, 5)
+    state = job(out)
+    assert state["status"] == "done" and state["frames_done"] == 10
+    assert sum(w["frames"] for w in state["workers"].values()) == 10
+    assert sum(w["recycled"] for w in state["workers"].values()) >= 2  # --recycle-after 2
+    status = farm("status", out)
+    assert status.returncode == 0 and "10/10" in status.stdout and "w0" in status.stdout
+    again = farm("submit", "-m", "uniform:3", "-m", "procedural:2", *TINY, "-o", out)
+    assert again.returncode == 0 and "0 rendered, 10 already there" in again.stdout
+    other = farm("submit", "-m", "uniform:3", "-m", "procedural:2", *TINY[:-1], "8", "-o", out)
+    assert other.returncode == 1
+    assert other.stderr.strip().splitlines()[-1].startswith("Error: ")
+    assert "settings.samples=2, not 8" in other.stderr
+
+
+def test_bad_material_stops_before_anything_starts(tmp_path):
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "broken.png").write_bytes(b"nope")
+    r = farm(
+        "submit",
+        "-m",
+        "uniform:2",
+        "-m",
+        f"svbrdf:{tmp_path / 'm'}",
+        *TINY,
+        "-o",
+        tmp_path / "set.zarr",
+    )
+    assert r.returncode == 1 and "broken.png: not a readable image" in r.stderr
+    assert "Traceback" not in r.stderr and not (tmp_path / "set.zarr").exists()
+    r = farm(
+        "submit", "-m", "uniform:2", "--suns", "3", "--shard-size", "4", "-o", tmp_path / "x.zarr"
+    )
+    assert r.returncode == 1 and "multiple of --suns" in r.stderr
+
+
+def _children(name: str) -> list[psutil.Process]:
+    out = []
+    for p in psutil.process_iter(["cmdline"]):
+        cmd = " ".join(p.info["cmdline"] or [])
+        if name in cmd:
+            out.append(p)
+    return out
+
+
+def _blender_children() -> list[psutil.Process]:
+    return [
+        c
+        for a in _children("ray::RenderWorker")
+        for c in a.children()
+        if "spawn_main" in " ".join(c.cmdline())
+    ]
+
+
+def test_killed_blender_and_killed_worker_lose_nothing(tmp_path):
+    out = tmp_path / "set.zarr"
+    proc = farm("submit", "-m", "uniform:8", *TINY, "-o", out, faults={"slow_s": 1.0}, wait=False)
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and not _blender_children():
+            time.sleep(0.3)
+        victims = _blender_children()
+        assert victims, "no Blender worker process showed up"
+        victims[0].send_signal(signal.SIGKILL)  # Blender dies mid-job
+        time.sleep(2.5)
+        actors = _children("ray::RenderWorker")
+        assert actors
+        actors[0].send_signal(signal.SIGKILL)  # and then a whole Ray worker
+        stdout, stderr = proc.communicate(timeout=240)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, stderr
+    assert_exactly_once(out, 8)
+    state = job(out)
+    assert any(w["status"] == "dead" for w in state["workers"].values())
+    recovered = [f for f in state["failures"].values() if f.get("recovered")]
+    assert recovered and not any(f["final"] for f in state["failures"].values())
+
+
+def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
+    out = tmp_path / "set.zarr"
+    r = farm(
+        "submit",
+        "-m",
+        "uniform:4",
+        *TINY,
+        "--workers",
+        "2",
+        "-o",
+        out,
+        faults={"fail_materials": [1]},
+    )
+    assert r.returncode == 1
+    assert "material 1: RenderError: injected fault" in r.stderr
+    assert "shards [0] are not committed" in r.stderr
+    store = ShardStore(str(out))
+    assert store.committed_shards() == [1]  # the rest of the job completed
+    f = job(out)["failures"]["1"]
+    assert f["final"] and f["attempts"] == 3
+    assert {e["worker"] for e in f["errors"]} >= {"w0", "w1"}  # retried on another worker
+    assert job(out)["status"] == "failed"
+
+
+def test_bad_worker_is_blocklisted_and_replaced(tmp_path):
+    out = tmp_path / "set.zarr"
+    r = farm(
+        "submit",
+        "-m",
+        "uniform:6",
+        *TINY,
+        "--workers",
+        "2",
+        "-o",
+        out,
+        faults={"bad_workers": ["w0"]},
+    )
+    assert r.returncode == 0, r.stderr
+    assert_exactly_once(out, 6)
+    workers = job(out)["workers"]
+    assert workers["w0"]["status"] == "blocklisted" and workers["w0"]["failures"] == 3
+    assert "w2" in workers and workers["w2"]["frames"] > 0
+
+
+def test_task_timeout_counts_as_failure(tmp_path):
+    out = tmp_path / "set.zarr"
+    r = farm(
+        "submit",
+        "-m",
+        "uniform:2",
+        *TINY,
+        "--workers",
+        "2",
+        "--task-timeout",
+        "2",
+        "--max-attempts",
+        "2",
+        "-o",
+        out,
+        faults={"hang_materials": [0]},
+    )
+    assert r.returncode == 1
+    f = job(out)["failures"]["0"]
+    assert f["final"] and all("timed out" in e["error"] for e in f["errors"])
+
+
+def test_node_removed_mid_job(tmp_path, monkeypatch):
+    """A two-node Ray cluster on this machine; the node running workers goes away."""
+    from ray.cluster_utils import Cluster
+
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps({"slow_s": 1.0}))
+    loopback = {"node_ip_address": "127.0.0.1"}
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, **loopback})
+    node = cluster.add_node(num_cpus=1, **loopback)
+    out = tmp_path / "set.zarr"
+    try:
+        cluster.wait_for_nodes()
+        proc = farm(
+            "submit",
+            "-m",
+            "uniform:8",
+            *TINY,
+            "--workers",
+            "2",
+            "--address",
+            cluster.address,
+            "-o",
+            out,
+            faults={"slow_s": 1.0},
+            wait=False,
+        )
+        try:
+            deadline = time.time() + 120
+            while time.time() < deadline:
+                if (out / "commits").exists() and list((out / "commits").iterdir()):
+                    break
+                time.sleep(0.3)
+            cluster.remove_node(node)  # a machine of the farm disappears
+            stdout, stderr = proc.communicate(timeout=240)
+        finally:
+            proc.kill()
+        assert proc.returncode == 0, stderr
+        assert_exactly_once(out, 8)
+        assert any(w["status"] == "dead" for w in job(out)["workers"].values())
+    finally:
+        cluster.shutdown()
