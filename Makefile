@@ -11,9 +11,12 @@ $(BIN)/.installed: pyproject.toml
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $@
 
-# The main job on the embedded default: render one procedural material under 5 suns.
+# The main job on the embedded default (local Ray, local store): a small real farm job,
+# 4 uniform + 4 procedural materials x 5 suns at 128² / 32 spp, then what the store holds.
 demo: $(BIN)/.installed
-	$(BIN)/farm preview --material procedural --suns 5 --resolution 256 --samples 64 --out out/preview
+	$(BIN)/farm submit --materials uniform:4 --materials procedural:4 --resolution 128 \
+		--samples 32 --shard-size 10 --out out/demo.zarr
+	$(BIN)/shards info out/demo.zarr
 
 test: $(BIN)/.installed lint
 	$(BIN)/pytest -q

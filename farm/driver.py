@@ -280,7 +280,11 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
         if w.failures >= cfg.blocklist_after and wid in pool.actors:
             pool.remove(wid, "blocklisted")
             pool.start()
-        bar.set_postfix(failures=sum(attempts.values()), refresh=False)
+        bar.set_postfix(
+            shards=f"{state.shards_committed}/{layout.num_shards}",
+            failures=sum(attempts.values()),
+            refresh=False,
+        )
 
     def done(m: int, wid: str, res: dict) -> None:
         w = state.workers[wid]
@@ -289,6 +293,7 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
         w.frame_seconds += float(sum(res["seconds"]))
         w.recycled += int(res["recycled"])
         w.host, w.pid = res["host"], res["pid"]
+        bar.update(len(res["seconds"]))  # rendered; state.frames_done counts committed ones
         shard = m // layout.materials_per_shard
         if str(m) in state.failures:  # an earlier failure was retried successfully
             state.failures[str(m)]["recovered"] = True
@@ -298,9 +303,12 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
         if len(buffer[shard]) == len(layout.shard_materials(shard)):
             write_shard(store, shard, _payload(layout, shard, buffer.pop(shard), tasks, specs))
             state.shards_committed += 1
-            frames = len(layout.shard_samples(shard))
-            state.frames_done += frames
-            bar.update(frames)
+            state.frames_done += len(layout.shard_samples(shard))
+            bar.set_postfix(
+                shards=f"{state.shards_committed}/{layout.num_shards}",
+                failures=sum(attempts.values()),
+                refresh=False,
+            )
 
     try:
         while queue or inflight:

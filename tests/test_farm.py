@@ -254,3 +254,27 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
         assert any(w["status"] == "dead" for w in job(out)["workers"].values())
     finally:
         cluster.shutdown()
+
+
+def test_killed_driver_resumes_where_it_stopped(tmp_path):
+    out = tmp_path / "set.zarr"
+    args = ["submit", "-m", "uniform:10", *TINY, "--workers", "2", "-o", out]
+    proc = farm(*args, faults={"slow_s": 0.5}, wait=False)
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline:
+            if (out / "commits").exists() and len(list((out / "commits").iterdir())) >= 2:
+                break
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGKILL)  # the driver dies mid-job
+        proc.wait(30)
+    finally:
+        proc.kill()
+        subprocess.run([str(BIN / "ray"), "stop", "--force"], capture_output=True)
+    done_before = len(ShardStore(str(out)).committed_shards())
+    assert 2 <= done_before < 5
+    r = farm(*args)
+    assert r.returncode == 0, r.stderr
+    assert f"resuming: {done_before} of 5 shards already committed" in r.stdout
+    assert f"{20 - 4 * done_before} rendered, {4 * done_before} already there" in r.stdout
+    assert_exactly_once(out, 10)
