@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test lint bench-render bench-storage clean
+.PHONY: demo test lint bench-render bench-farm bench-storage clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -27,6 +27,9 @@ lint: $(BIN)/.installed
 
 bench-render: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.render
+
+bench-farm: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.farm
 
 # MDS (mosaicml-streaming) needs torchvision, so the storage benchmark has its own environment:
 # torch 2.14.1 + torchvision 0.29.1 (about 6 GB), kept apart from the project's.

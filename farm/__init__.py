@@ -1,6 +1,11 @@
-"""The render farm: plans materials x suns into render jobs and runs them on Blender workers.
+"""The render farm: plans materials x suns into render tasks and runs them on Blender workers.
 
-So far: ``farm preview`` (one material, rendered locally in a Blender worker process).
-The Ray farm (``farm submit``, ``farm status``, the dashboard) builds on it (issue #4).
-Importing ``farm`` never loads Blender.
+- ``farm.plan``: the seeded, shard-aligned plan (no Ray);
+- ``farm.worker``: the Ray actor around one kept-loaded Blender process;
+- ``farm.driver``: ``farm submit``: Ray (embedded or a cluster), retries, blocklisting,
+  timeouts, recycling, shard commits, resume;
+- ``farm.state`` / ``farm.status``: the job state kept with the store, ``farm status``;
+- ``farm.cli``: ``farm submit``, ``farm status``, ``farm preview``.
+
+Importing ``farm`` never loads Blender (nor Ray: the driver imports it when a job starts).
 """

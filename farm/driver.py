@@ -228,7 +228,7 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     pool = _Pool(cfg, state)
     for _ in range(workers):
         pool.start()
-    startup = time.perf_counter() - t_start
+    startup = None  # until the first workers answer: Ray start + Blender scene builds
 
     tasks = {}
     queue = collections.deque(m for s in todo for m in layout.shard_materials(s))
@@ -345,6 +345,10 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
             for ref in ready:
                 if ref in pool.starting:
                     pool.ready(ref)
+                    if startup is None and not any(
+                        w.startswith("w") and int(w[1:]) < workers for w in pool.starting.values()
+                    ):
+                        startup = time.perf_counter() - t_start
                     continue
                 wid, m, started = inflight.pop(ref)
                 w = state.workers[wid]
@@ -396,5 +400,5 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
         failed_shards=sorted(dead_shards),
         wall_s=time.perf_counter() - t_start,
         dashboard=state.dashboard,
-        startup_s=startup,
+        startup_s=startup if startup is not None else time.perf_counter() - t_start,
     )

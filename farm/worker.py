@@ -39,7 +39,7 @@ class RenderWorker:
         self.settings = RenderSettings.from_dict(settings)
         self.recycle_after = recycle_after
         self.rss_limit = rss_limit_mb << 20
-        self.process = RenderProcess(self.settings)
+        self.process = RenderProcess(self.settings).start()  # Blender loads with the actor
         self.renders_since_start = 0
         self.recycled = 0
         self.faults = json.loads(os.environ.get(FAULTS_ENV, "{}") or "{}")
