@@ -173,19 +173,10 @@ def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
 
 def test_bad_worker_is_blocklisted_and_replaced(tmp_path):
     out = tmp_path / "set.zarr"
-    r = farm(
-        "submit",
-        "-m",
-        "uniform:6",
-        *TINY,
-        "--workers",
-        "2",
-        "-o",
-        out,
-        faults={"bad_workers": ["w0"]},
-    )
+    faults = {"bad_workers": ["w0"], "slow_s": 0.5}  # work enough for the replacement
+    r = farm("submit", "-m", "uniform:12", *TINY, "--workers", "2", "-o", out, faults=faults)
     assert r.returncode == 0, r.stderr
-    assert_exactly_once(out, 6)
+    assert_exactly_once(out, 12)
     workers = job(out)["workers"]
     assert workers["w0"]["status"] == "blocklisted" and workers["w0"]["failures"] == 3
     assert "w2" in workers and workers["w2"]["frames"] > 0
