@@ -13,6 +13,43 @@ from render_jobs.errors import MaterialError, RenderError
 from render_jobs.specs import DEVICES, RenderSettings
 
 
+def render_options(command):
+    """--suns, --resolution, --samples, --seed: shared by the commands that render."""
+    options = [
+        click.option(
+            "--suns",
+            default=5,
+            show_default=True,
+            type=click.IntRange(1, 64),
+            help="Random suns (direction + turbidity) per material.",
+        ),
+        click.option(
+            "--resolution",
+            default=400,
+            show_default=True,
+            type=click.IntRange(16, 8192),
+            help="Image side in pixels.",
+        ),
+        click.option(
+            "--samples",
+            default=150,
+            show_default=True,
+            type=click.IntRange(1),
+            help="Cycles samples per pixel.",
+        ),
+        click.option(
+            "--seed",
+            default=0,
+            show_default=True,
+            type=click.IntRange(0),
+            help="Seed: materials, suns and Cycles seeds follow from it.",
+        ),
+    ]
+    for option in reversed(options):
+        command = option(command)
+    return command
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
     """shaderball render farm: ground-truth shaderball renders with Blender Cycles."""
@@ -27,34 +64,7 @@ def main() -> None:
     help="A random uniform or procedural material, a 5-panel SVBRDF PNG, or a per-map folder.",
 )
 @click.option("--out", "-o", required=True, type=click.Path(path_type=Path), help="Output folder.")
-@click.option(
-    "--suns",
-    default=5,
-    show_default=True,
-    type=click.IntRange(1, 64),
-    help="Random suns (direction + turbidity) to render.",
-)
-@click.option(
-    "--resolution",
-    default=400,
-    show_default=True,
-    type=click.IntRange(8, 8192),
-    help="Image side in pixels.",
-)
-@click.option(
-    "--samples",
-    default=150,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Cycles samples per pixel.",
-)
-@click.option(
-    "--seed",
-    default=0,
-    show_default=True,
-    type=click.IntRange(0),
-    help="Seed of the material draw, suns and Cycles.",
-)
+@render_options
 @click.option(
     "--threads",
     default=0,
@@ -124,34 +134,7 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
     "every SVBRDF in DIR.",
 )
 @click.option("--out", "-o", required=True, help="Store to write (folder or s3:// URL).")
-@click.option(
-    "--suns",
-    default=5,
-    show_default=True,
-    type=click.IntRange(1, 64),
-    help="Random suns per material.",
-)
-@click.option(
-    "--resolution",
-    default=400,
-    show_default=True,
-    type=click.IntRange(16, 8192),
-    help="Image side in pixels.",
-)
-@click.option(
-    "--samples",
-    default=150,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Cycles samples per pixel.",
-)
-@click.option(
-    "--seed",
-    default=0,
-    show_default=True,
-    type=click.IntRange(0),
-    help="Dataset seed: materials, suns and Cycles seeds follow from it.",
-)
+@render_options
 @click.option(
     "--shard-size",
     default=25,
