@@ -18,6 +18,7 @@ the workers, not the job. Resume: committed shards are skipped.
 from __future__ import annotations
 
 import collections
+import contextlib
 import os
 import sys
 import time
@@ -162,6 +163,9 @@ class _Pool:
     def remove(self, wid: str, status: str) -> None:
         actor = self.actors.pop(wid, None)
         if actor is not None:
+            if status == "stopped":  # the job is over: let it close its Blender first
+                with contextlib.suppress(Exception):  # dead or stuck: the kill ends it
+                    self.ray.get(actor.close.remote(), timeout=15)
             self.ray.kill(actor, no_restart=True)
         self.state.workers[wid].status = status
         self.state.workers[wid].current = None

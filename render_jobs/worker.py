@@ -28,6 +28,17 @@ from render_jobs.results import MaterialRender
 from render_jobs.specs import RenderSettings, Sun
 
 READY_TIMEOUT_S = 300.0
+SCRATCH_PREFIX = "shaderball-worker-"
+
+
+def sweep_stale_scratch(folder: str) -> None:
+    """Remove scratch folders whose owning process is gone (killed before it could clean)."""
+    for entry in os.scandir(folder):
+        if not entry.name.startswith(SCRATCH_PREFIX):
+            continue
+        pid = entry.name[len(SCRATCH_PREFIX) :].split("-", 1)[0]
+        if pid.isdigit() and not os.path.exists(f"/proc/{pid}"):
+            shutil.rmtree(entry.path, ignore_errors=True)
 
 
 def _serve(conn, settings: dict, log_path: str | None, scratch: str) -> None:  # in the child
@@ -88,7 +99,8 @@ class RenderProcess:
         ctx = mp.get_context("spawn")
         parent, child = ctx.Pipe()
         shm = "/dev/shm" if os.path.isdir("/dev/shm") else None
-        self._scratch = tempfile.mkdtemp(prefix="shaderball-worker-", dir=shm)
+        sweep_stale_scratch(shm or tempfile.gettempdir())
+        self._scratch = tempfile.mkdtemp(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-", dir=shm)
         self._proc = ctx.Process(
             target=_serve,
             args=(child, self.settings.to_dict(), self.log_path, self._scratch),

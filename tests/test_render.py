@@ -140,6 +140,18 @@ def test_killed_worker_raises_and_restarts(grey_maps):
     assert not os.path.exists(scratch)
 
 
+def test_stale_scratch_of_dead_processes_is_swept(tmp_path):
+    from render_jobs.worker import SCRATCH_PREFIX, sweep_stale_scratch
+
+    dead = 2**22 + 17  # above the largest pid_max Linux allows: never a live process
+    stale = tmp_path / f"{SCRATCH_PREFIX}{dead}-abc"
+    live = tmp_path / f"{SCRATCH_PREFIX}{os.getpid()}-abc"
+    stale.mkdir()
+    live.mkdir()
+    sweep_stale_scratch(str(tmp_path))
+    assert not stale.exists() and live.exists()
+
+
 def test_memory_stays_flat_over_50_materials():
     """RSS after 50 materials x 1 sun stays within 60 MB of RSS after the first 10."""
     settings = TINY.__class__(resolution=32, samples=1, threads=2)
