@@ -24,7 +24,6 @@ import sys
 import time
 from dataclasses import dataclass
 
-import numpy as np
 from tqdm import tqdm
 
 from farm.plan import JobConfig, layout_for, material_specs, task_for
@@ -33,7 +32,8 @@ from farm.worker import RenderWorker
 from render_jobs.errors import MaterialError
 from render_jobs.materials import load_maps
 from render_jobs.specs import RenderSettings
-from storage.writer import ShardPayload, create_store, write_shard
+from storage.convert import payload_from_packed
+from storage.writer import create_store, write_shard
 
 STATE_EVERY_S = 2.0
 
@@ -171,26 +171,6 @@ class _Pool:
         self.state.workers[wid].current = None
 
 
-def _payload(
-    layout, shard: int, results: dict[int, dict], tasks: dict[int, object], specs
-) -> ShardPayload:
-    mats = list(layout.shard_materials(shard))
-    k = layout.suns_per_material
-    return ShardPayload(
-        maps=np.stack([results[m]["maps"] for m in mats]),
-        renders=np.concatenate([results[m]["renders"] for m in mats]),
-        material_index=np.repeat(np.asarray(mats, np.int32), k),
-        sun_direction=np.array([s.direction for m in mats for s in tasks[m].suns], np.float32),
-        turbidity=np.array([s.turbidity for m in mats for s in tasks[m].suns], np.float32),
-        seed=np.array([x for m in mats for x in tasks[m].seeds], np.int64),
-        render_seconds=np.array([x for m in mats for x in results[m]["seconds"]], np.float32),
-        materials=[
-            {"kind": specs[m].kind, "source_id": specs[m].source_id, "spec": specs[m].to_dict()}
-            for m in mats
-        ],
-    )
-
-
 def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     """Run (or resume) the job ``cfg`` to the end; see the module docstring."""
     t_start = time.perf_counter()
@@ -200,17 +180,18 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     except MaterialError as exc:
         raise FarmError(str(exc)) from None
     layout = layout_for(cfg, len(specs))
+    settings = cfg.dataset_settings()
     from storage.errors import StoreError
 
     try:
-        store = create_store(cfg.out, layout, cfg.dataset_settings(), exist_ok=True)
+        store = create_store(cfg.out, layout, settings, exist_ok=True)
     except StoreError as exc:
         raise FarmError(f"{exc} (use another --out, or the original settings to resume)") from None
     committed = set(store.committed_shards())
     todo = [s for s in range(layout.num_shards) if s not in committed]
     state = JobState(
         store=cfg.out,
-        settings=cfg.dataset_settings(),
+        settings=settings,
         frames_total=layout.num_samples,
         shards_total=layout.num_shards,
         shards_committed=len(committed),
@@ -230,15 +211,13 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
         1, int(ray.cluster_resources().get("CPU", 1)) // cfg.cpus_per_worker
     )
     pool = _Pool(cfg, state)
-    for _ in range(workers):
-        pool.start()
+    first = {pool.start() for _ in range(workers)}
     startup = None  # until the first workers answer: Ray start + Blender scene builds
 
-    tasks = {}
     queue = collections.deque(m for s in todo for m in layout.shard_materials(s))
     not_before: dict[int, float] = {}
     attempts: collections.Counter[int] = collections.Counter()
-    failed_on: dict[int, set[str]] = collections.defaultdict(set)
+    failed_on: dict[int, set[str]] = {}
     errors: dict[int, list[dict]] = collections.defaultdict(list)
     failed: dict[int, str] = {}
     buffer: dict[int, dict[int, dict]] = collections.defaultdict(dict)
@@ -259,14 +238,9 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     )
     last_save = 0.0
 
-    def task(m: int):
-        if m not in tasks:
-            tasks[m] = task_for(cfg, m, specs[m])
-        return tasks[m]
-
     def fail(m: int, wid: str, error: str) -> None:
         attempts[m] += 1
-        failed_on[m].add(wid)
+        failed_on.setdefault(m, set()).add(wid)
         errors[m].append({"worker": wid, "error": error, "at": now()})
         w = state.workers[wid]
         w.failures += 1
@@ -305,7 +279,13 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
             return
         buffer[shard][m] = res
         if len(buffer[shard]) == len(layout.shard_materials(shard)):
-            write_shard(store, shard, _payload(layout, shard, buffer.pop(shard), tasks, specs))
+            results = buffer.pop(shard)
+            records = [
+                {"kind": specs[i].kind, "source_id": specs[i].source_id, "spec": specs[i].to_dict()}
+                for i in layout.shard_materials(shard)
+            ]
+            packed = [results[i] for i in layout.shard_materials(shard)]
+            write_shard(store, shard, payload_from_packed(layout, shard, packed, records))
             state.shards_committed += 1
             state.frames_done += len(layout.shard_samples(shard))
             bar.set_postfix(
@@ -323,14 +303,17 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
                 for m in queue:
                     if not_before.get(m, 0) > t:
                         continue
-                    alive_untried = [w for w in pool.actors if w not in failed_on[m]]
-                    if wid not in failed_on[m] or not alive_untried:
+                    tried = failed_on.get(m, ())
+                    # prefer a worker that has not failed m, unless every live one has
+                    if wid not in tried or all(w in tried for w in pool.actors):
                         pick = m
                         break
                 if pick is None:
                     continue
                 queue.remove(pick)
-                ref = pool.actors[wid].render.remote(task(pick).to_dict(), cfg.task_timeout_s)
+                ref = pool.actors[wid].render.remote(
+                    task_for(cfg, pick, specs[pick]).to_dict(), cfg.task_timeout_s
+                )
                 inflight[ref] = (wid, pick, t)
                 state.workers[wid].status, state.workers[wid].current = "busy", pick
             waiting = list(inflight) + list(pool.starting)
@@ -349,9 +332,7 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
             for ref in ready:
                 if ref in pool.starting:
                     pool.ready(ref)
-                    if startup is None and not any(
-                        w.startswith("w") and int(w[1:]) < workers for w in pool.starting.values()
-                    ):
+                    if startup is None and first.isdisjoint(pool.starting.values()):
                         startup = time.perf_counter() - t_start
                     continue
                 wid, m, started = inflight.pop(ref)

@@ -7,7 +7,7 @@ sources, settings and seed always give the same tasks, suns and Cycles seeds.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from render_jobs.geometry import geometry_hash, shaderball
 from render_jobs.materials import specs_from_sources
@@ -49,7 +49,6 @@ class JobConfig:
     recycle_after: int = 500
     rss_limit_mb: int = 4096
     placement_timeout_s: float = 300.0
-    extra: dict = field(default_factory=dict)
 
     def dataset_settings(self) -> dict:
         """The settings that define the dataset: stored in the store, checked on resubmit."""

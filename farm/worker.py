@@ -20,13 +20,11 @@ import os
 import socket
 import time
 
-import numpy as np
-
 from render_jobs.errors import RenderError
 from render_jobs.materials import load_maps
 from render_jobs.specs import RenderJob, RenderSettings
 from render_jobs.worker import RenderProcess
-from storage.schema import encode_maps
+from storage.convert import pack_material
 
 FAULTS_ENV = "SHADERBALL_FARM_FAULTS"
 
@@ -87,9 +85,7 @@ class RenderWorker:
             recycled = True
         return {
             "material_index": task.material_index,
-            "maps": encode_maps(result.maps.as_dict()),
-            "renders": np.stack([r.radiance for r in result.renders]).astype(np.float16),
-            "seconds": [r.seconds for r in result.renders],
+            **pack_material(result),
             "wall_s": wall,
             "rss_mb": result.rss_bytes / 2**20,
             "recycled": recycled,

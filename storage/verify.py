@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from storage.reader import ARRAYS, ShardStore
+from storage.reader import ShardStore
 from storage.schema import MAPS_CHANNELS, PER_SAMPLE
 
 
@@ -104,6 +104,3 @@ def verify(store: ShardStore, progress=None) -> Report:
         if progress is not None:
             progress(shard)
     return report
-
-
-__all__ = ["ARRAYS", "Report", "verify"]

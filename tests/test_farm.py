@@ -46,6 +46,16 @@ def assert_exactly_once(path, materials: int, suns: int = 2, seed: int = 0):
     assert r.returncode == 0, r.stdout
 
 
+def wait_for_commits(out: Path, count: int, timeout: float = 120) -> None:
+    """Poll until ``count`` shards of the store at ``out`` are committed (or time runs out)."""
+    deadline = time.time() + timeout
+    commits = out / "commits"
+    while time.time() < deadline:
+        if commits.exists() and len(list(commits.glob("*.json"))) >= count:
+            return
+        time.sleep(0.2)
+
+
 def job(path) -> dict:
     return json.loads((Path(path) / "farm" / "job.json").read_text())
 
@@ -231,11 +241,7 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
             wait=False,
         )
         try:
-            deadline = time.time() + 120
-            while time.time() < deadline:
-                if (out / "commits").exists() and list((out / "commits").iterdir()):
-                    break
-                time.sleep(0.3)
+            wait_for_commits(out, 1)
             cluster.remove_node(node)  # a machine of the farm disappears
             stdout, stderr = proc.communicate(timeout=240)
         finally:
@@ -252,11 +258,7 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
     args = ["submit", "-m", "uniform:10", *TINY, "--workers", "2", "-o", out]
     proc = farm(*args, faults={"slow_s": 0.5}, wait=False)
     try:
-        deadline = time.time() + 120
-        while time.time() < deadline:
-            if (out / "commits").exists() and len(list((out / "commits").iterdir())) >= 2:
-                break
-            time.sleep(0.2)
+        wait_for_commits(out, 2)
         proc.send_signal(signal.SIGKILL)  # the driver dies mid-job
         proc.wait(30)
     finally:
