@@ -1,6 +1,6 @@
 """Farm benchmark: standalone render loop vs ``farm submit`` with 1 and 2 workers, one run.
 
-    .venv/bin/python -m benchmarks.farm [--materials 8] [--resolution 128] [--samples 32]
+    .venv/bin/python -m benchmarks.farm [--materials 16] [--resolution 128] [--samples 32]
 
 Standalone: one Blender worker process (1 Cycles thread), no Ray, renders the same tasks.
 Farm: the real driver (embedded Ray, 1 CPU a worker) into a fresh store each time.
@@ -47,7 +47,7 @@ def farm(cfg: JobConfig) -> tuple[float, float, int]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--materials", type=int, default=8)
+    ap.add_argument("--materials", type=int, default=16)
     ap.add_argument("--resolution", type=int, default=128)
     ap.add_argument("--samples", type=int, default=32)
     args = ap.parse_args()

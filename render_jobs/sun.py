@@ -34,9 +34,9 @@ DEFAULT_TURBIDITY_RANGE = (2.0, 10.0)
 
 #: Blender Sun-lamp strength (W/m², irradiance at normal incidence) of a zenith sun at
 #: turbidity 2; it sets the direct-to-sky balance. Measured against Blender 4.5's Hosek-Wilkie
-#: sky (strength 1, ground albedo 0.3), horizontal irradiance, direct / sky: 7.9 at 80° and
+#: sky (strength 1, ground albedo 0.3), horizontal irradiance, direct / sky: 7.8 at 80° and
 #: T 2, 5.6 at 60° and T 3, 4.1 at 40° and T 3, 0.6 at 20° and T 6 (sky alone ≈ 0.24-0.27),
-#: the range of real clear to hazy skies.
+#: the range of real clear to hazy skies (``python -m benchmarks.sky``).
 SUN_ZENITH_IRRADIANCE = 2.0
 
 #: Angular diameter of the sun's disc, degrees (soft shadow edges).
