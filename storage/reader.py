@@ -193,6 +193,14 @@ class ShardStore:
             self._maps_cache.pop(next(iter(self._maps_cache)))
         return packed
 
+    def light(self, index: int) -> tuple[np.ndarray, float]:
+        """Sample ``index``'s sun: ``(3,) float32`` unit direction (z up) and turbidity."""
+        shard, _ = self._require_committed(index)
+        meta = self._shard_meta(shard)
+        j = index - shard * self.layout.shard_size
+        d = meta["sun_direction"][j].astype(np.float32)
+        return d / np.linalg.norm(d), float(meta["turbidity"][j])
+
     def sample(self, index: int) -> Sample:
         """Sample ``index`` with its material's maps and its light."""
         try:

@@ -39,3 +39,14 @@ def grey_maps():
 def inside(mask: np.ndarray, threshold: float = 0.99) -> np.ndarray:
     """Pixels fully covered by the material: ``(H, W) bool``."""
     return mask[0] > threshold
+
+
+@pytest.fixture(scope="session")
+def tiny_store(worker, tmp_path_factory):
+    """A real rendered store for the trainer: 4 uniform + 4 procedural materials x 3 suns at
+    64² (24 samples, shards of 2 materials)."""
+    from tests.storage_helpers import rendered_store
+
+    path = tmp_path_factory.mktemp("trainer") / "tiny.zarr"
+    store, _ = rendered_store(worker, str(path), ["uniform:4", "procedural:4"], 3, 6)
+    return store

@@ -31,3 +31,32 @@ def synthetic_payload(layout: Layout, shard: int, seed: int = 0) -> ShardPayload
             for i in m
         ],
     )
+
+
+def rendered_store(worker, path: str, sources: list[str], suns: int, shard_size: int):
+    """A store of real renders by the session's Blender ``worker``, written shard by shard as
+    the farm does; returns ``(store, results)`` (results: one ``MaterialRender`` a material)."""
+    from render_jobs.materials import load_maps, specs_from_sources
+    from render_jobs.specs import derive_seed
+    from render_jobs.sun import sample_suns
+    from storage.convert import payload_from_renders
+    from storage.writer import create_store, write_shard
+
+    specs = specs_from_sources(sources, dataset_seed=0)
+    layout = Layout(len(specs), suns, worker.settings.resolution, shard_size)
+    settings = {"render": worker.settings.to_dict(), "geometry_hash": worker.info["geometry_hash"]}
+    store = create_store(path, layout, settings)
+    results = []
+    for i, spec in enumerate(specs):
+        drawn = sample_suns(np.random.default_rng(derive_seed(0, i)), suns)
+        seeds = [derive_seed(0, i, k) for k in range(suns)]
+        results.append(worker.render_material(load_maps(spec), drawn, seeds))
+    for shard in range(layout.num_shards):
+        mats = layout.shard_materials(shard)
+        records = [
+            {"kind": specs[i].kind, "source_id": specs[i].source_id, "spec": specs[i].to_dict()}
+            for i in mats
+        ]
+        payload = payload_from_renders(layout, shard, [results[i] for i in mats], records)
+        write_shard(store, shard, payload)
+    return store, results

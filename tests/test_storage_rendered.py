@@ -5,40 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from render_jobs.materials import load_maps, specs_from_sources
-from render_jobs.specs import derive_seed
-from render_jobs.sun import sample_suns
-from storage.convert import payload_from_renders
-from storage.schema import Layout
-from storage.writer import create_store, write_shard
-from tests.conftest import TINY
+from render_jobs.materials import specs_from_sources
+from tests.storage_helpers import rendered_store
 
 pytestmark = pytest.mark.slow
 
 
 def test_rendered_store_round_trip(worker, tmp_path):
-    specs = specs_from_sources(["uniform:2", "procedural:2"], dataset_seed=0)
-    layout = Layout(num_materials=4, suns_per_material=2, resolution=TINY.resolution, shard_size=4)
-    store = create_store(
-        str(tmp_path / "r.zarr"),
-        layout,
-        {"render": TINY.to_dict(), "geometry_hash": worker.info["geometry_hash"]},
-    )
-    results = []
-    for i, spec in enumerate(specs):
-        suns = sample_suns(np.random.default_rng(derive_seed(0, i)), 2)
-        results.append(
-            worker.render_material(load_maps(spec), suns, [derive_seed(0, i, k) for k in range(2)])
-        )
-    for shard in range(layout.num_shards):
-        mats = layout.shard_materials(shard)
-        records = [
-            {"kind": specs[i].kind, "source_id": specs[i].source_id, "spec": specs[i].to_dict()}
-            for i in mats
-        ]
-        write_shard(
-            store, shard, payload_from_renders(layout, shard, [results[i] for i in mats], records)
-        )
+    sources = ["uniform:2", "procedural:2"]
+    specs = specs_from_sources(sources, dataset_seed=0)
+    store, results = rendered_store(worker, str(tmp_path / "r.zarr"), sources, 2, 4)
+    layout = store.layout
     for i in range(layout.num_samples):
         x = store.sample(i)
         res = results[layout.material_of_sample(i)]

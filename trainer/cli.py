@@ -1,11 +1,198 @@
-"""``trainer``: train, evaluate and run the neural renderer. Commands arrive with issue #5."""
+"""``trainer``: train, launch, evaluate and run the neural renderer (thin over the library)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shlex
+import subprocess
+import sys
+from pathlib import Path
 
 import click
+
+from trainer import config as train_config
+
+
+def _fail(exc: Exception):
+    raise click.ClickException(str(exc)) from None
+
+
+def _make_config(kwargs: dict):
+    try:
+        return train_config.TrainConfig(**kwargs)
+    except ValueError as exc:
+        _fail(exc)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
-    """Train and run the neural material renderer (launch, train, eval, render: not built yet)."""
+    """Train and run the neural material renderer on shard stores made by ``farm submit``.
+
+    \b
+      trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
+      trainer eval --checkpoint runs/demo
+      trainer render --checkpoint runs/demo --store out/demo.zarr --sample 0 -o out.png
+    """
+
+
+@main.command()
+@train_config.options
+def train(**kwargs) -> None:
+    """Train on one process: the per-rank entry that ``trainer launch`` runs under torchrun.
+
+    Run it directly for a single CPU/GPU process, e.g.
+    ``trainer train --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo``.
+    """
+    from storage.errors import StoreError
+    from trainer.checkpoint import CheckpointError
+    from trainer.perceptual import MissingWeightsError
+    from trainer.train import RunError, TrainingDiverged, train
+
+    cfg = _make_config(kwargs)
+    if int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0")) > 0:
+        cfg.resume = True  # torchrun restarted the ranks: continue from the last checkpoint
+    try:
+        summary = train(cfg)
+    except (StoreError, CheckpointError, MissingWeightsError, RunError, TrainingDiverged) as exc:
+        _fail(exc)
+    if int(os.environ.get("RANK", "0")) == 0:
+        click.echo(
+            f"done: {summary['steps']} steps, {summary['images_per_second']} images/s, "
+            f"{summary['seconds']:.1f} s; checkpoint {summary['checkpoint']}\n"
+            f"evaluate: trainer eval --checkpoint {shlex.quote(cfg.out)}"
+        )
+
+
+@main.command(context_settings={"show_default": True})
+@click.option("--nodes", default=1, type=int, help="nodes in the job")
+@click.option(
+    "--nproc-per-node", type=int, default=None, help="ranks per node [all GPUs, or 1 on CPU]"
+)
+@click.option("--rdzv-endpoint", default=None, help="HOST:PORT of the c10d rendezvous (nodes > 1)")
+@click.option("--node-rank", type=int, default=None, help="this node's rank (0 hosts rendezvous)")
+@click.option("--max-restarts", default=0, type=int, help="torchrun restarts of failed ranks")
+@click.option("--dry-run", is_flag=True, help="print the torchrun command, do not run it")
+@train_config.options
+def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_run, **kwargs):
+    """Train with torchrun: DDP over every rank of every node.
+
+    With no launch options: one node, all its GPUs (or one CPU process). The smallest run:
+
+    \b
+      trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
+
+    Two nodes with 8 GPUs each (run the printed command on the other node):
+
+    \b
+      trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint node0:29400 \\
+          --node-rank 0 --store s3://bucket/ds.zarr --out /shared/runs/r1
+    """
+    from trainer.launch import LaunchConfig, other_node_commands, torchrun_argv
+
+    cfg = _make_config(kwargs)
+    try:
+        lc = LaunchConfig(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts)
+    except ValueError as exc:
+        _fail(exc)
+    argv = torchrun_argv(lc, cfg)
+    click.echo("torchrun: " + shlex.join(argv), err=True)
+    for line in other_node_commands(lc, cfg) if nodes > 1 else []:
+        click.echo(f"on another node: {line}", err=True)
+    if dry_run:
+        return
+    sys.exit(subprocess.run(argv).returncode)
+
+
+@main.command("eval")
+@click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
+@click.option("--store", "stores", multiple=True, help="the run's stores at another address")
+@click.option("--batch-size", default=8, show_default=True, type=int)
+@click.option("--grid", type=click.Path(path_type=Path), default=None, help="PNG grid path")
+@click.option("--grid-count", default=4, show_default=True, type=int, help="samples in the grid")
+@click.option(
+    "--device", default="auto", show_default=True, type=click.Choice(["auto", "cuda", "cpu"])
+)
+@click.option("--json", "as_json", is_flag=True, help="print the metrics as JSON")
+def eval_(ckpt, stores, batch_size, grid, grid_count, device, as_json):
+    """PSNR and SSIM on the held-out materials, overall and per kind, and a PNG grid
+    (ground truth | prediction | error x4) of a few samples.
+
+    \b
+      trainer eval --checkpoint runs/demo --grid runs/demo/eval.png
+    """
+    from storage.errors import StoreError
+    from trainer.checkpoint import CheckpointError
+    from trainer.evaluate import EvalError, evaluate
+
+    if grid is None and Path(ckpt).is_dir():
+        grid = Path(ckpt) / "eval.png"
+    try:
+        result = evaluate(ckpt, list(stores) or None, batch_size, grid, grid_count, device)
+    except (StoreError, CheckpointError, EvalError) as exc:
+        _fail(exc)
+    if as_json:
+        click.echo(json.dumps(result, indent=2))
+        return
+    o = result["overall"]
+    click.echo(f"step {result['checkpoint_step']}: {o['n']} held-out samples")
+    click.echo(f"{'kind':<12}{'n':>6}{'PSNR dB':>10}{'SSIM':>8}")
+    for kind, m in [("all", o), *result["by_kind"].items()]:
+        click.echo(f"{kind:<12}{m['n']:>6}{m['psnr']:>10.2f}{m['ssim']:>8.4f}")
+    if "grid" in result:
+        click.echo(f"grid: {result['grid']}")
+
+
+def _floats(text: str | None, n: int, name: str):
+    if text is None:
+        return None
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        msg = f"{text!r} is not {n} comma-separated numbers"
+        raise click.BadParameter(msg, param_hint=name) from None
+    if len(vals) != n:
+        raise click.BadParameter(f"{text!r} has {len(vals)} values, not {n}", param_hint=name)
+    return vals
+
+
+@main.command()
+@click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
+@click.option("--store", required=True, help="the store holding the material")
+@click.option("--sample", type=int, required=True, help="sample index in the store")
+@click.option("--sun", default=None, help="X,Y,Z sun direction (z up) [the sample's]")
+@click.option("--turbidity", type=float, default=None, help="sky turbidity [the sample's]")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="PNG")
+@click.option(
+    "--device", default="auto", show_default=True, type=click.Choice(["auto", "cuda", "cpu"])
+)
+def render(ckpt, store, sample, sun, turbidity, output, device):
+    """Render a stored material with the network, under its own sun or any other.
+
+    \b
+      trainer render --checkpoint runs/demo --store out/demo.zarr --sample 3 \\
+          --sun 0.3,0.2,0.9 --turbidity 3 -o ball.png
+    """
+    from PIL import Image
+
+    from render_jobs.tonemap import to_uint8
+    from storage.errors import StoreError
+    from storage.reader import ShardStore
+    from trainer.checkpoint import CheckpointError
+    from trainer.infer import Renderer
+
+    direction = _floats(sun, 3, "--sun")
+    try:
+        r = Renderer.from_checkpoint(ckpt, device)
+        s = ShardStore(store)
+        maps = s.packed_maps(s.layout.material_of_sample(sample))
+        d, t = s.light(sample)
+        img = r.render(maps, direction or d, t if turbidity is None else turbidity)
+    except (StoreError, CheckpointError, ValueError, IndexError) as exc:
+        _fail(exc)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(to_uint8(img)).save(output)
+    click.echo(f"wrote {output}")
 
 
 if __name__ == "__main__":

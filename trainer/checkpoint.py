@@ -1,0 +1,79 @@
+"""Checkpoints of a run: ``RUNDIR/checkpoints/step-NNNNNNNN.pt``, written atomically.
+
+A checkpoint is a plain dict loadable with ``torch.load(..., weights_only=True)``:
+``model`` and ``optimizer`` state dicts, ``step``, ``epoch`` and ``position`` (the loader
+state: the next global position in that epoch's order, see ``trainer.data``), ``config`` (the
+run's :class:`trainer.config.TrainConfig`), ``model_config``, ``tonemap`` and ``catalog`` (the
+stores, shards and held-out materials the run trains on). Written to a temporary file in the
+same folder, fsynced, then renamed into place; the newest ``keep`` are kept.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import torch
+
+PATTERN = re.compile(r"^step-(\d{8})\.pt$")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, unreadable or not one of ours."""
+
+
+def folder(run_dir: str | os.PathLike) -> Path:
+    return Path(run_dir) / "checkpoints"
+
+
+def listing(run_dir: str | os.PathLike) -> list[Path]:
+    """The run's checkpoints, oldest first."""
+    d = folder(run_dir)
+    if not d.is_dir():
+        return []
+    return sorted(p for p in d.iterdir() if PATTERN.match(p.name))
+
+
+def latest(run_dir: str | os.PathLike) -> Path | None:
+    found = listing(run_dir)
+    return found[-1] if found else None
+
+
+def save(run_dir: str | os.PathLike, state: dict, keep: int = 3) -> Path:
+    """Write ``state`` as the checkpoint of ``state["step"]``; drop all but the newest ``keep``."""
+    d = folder(run_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    path = d / f"step-{int(state['step']):08d}.pt"
+    tmp = d / f".{path.name}.{os.getpid()}.tmp"
+    with open(tmp, "wb") as f:
+        torch.save(state, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    for old in listing(run_dir)[:-keep] if keep > 0 else []:
+        old.unlink(missing_ok=True)
+    return path
+
+
+REQUIRED = ("model", "step", "epoch", "position", "config", "model_config", "tonemap", "catalog")
+
+
+def load(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
+    """A checkpoint (``path``: a file, or a run folder meaning its latest)."""
+    p = Path(path)
+    if p.is_dir():
+        found = latest(p)
+        if found is None:
+            raise CheckpointError(f"{p}: no checkpoints in {folder(p)}")
+        p = found
+    if not p.is_file():
+        raise CheckpointError(f"{p}: no such checkpoint")
+    try:
+        state = torch.load(p, map_location=map_location, weights_only=True)
+    except Exception as exc:  # torch raises several types for a bad file
+        raise CheckpointError(f"{p}: not a readable checkpoint ({exc})") from None
+    missing = [k for k in REQUIRED if not isinstance(state, dict) or k not in state]
+    if missing:
+        raise CheckpointError(f"{p}: not a shaderball checkpoint (no {missing[0]!r})")
+    return state

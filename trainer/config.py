@@ -1,0 +1,129 @@
+"""The training run's settings, one typed dataclass, and the CLI options made from it.
+
+Defaults follow the paper (batch 6, 30 epochs, Adam β 0.9/0.999, L1 + VGG16 relu3_3) and the
+authors' code (lr 1e-3; the paper prints 1e-2). ``trainer train`` and ``trainer launch``
+share these options; ``launch`` turns a config back into the exact ``trainer train``
+arguments (:func:`to_argv`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import MISSING, asdict, dataclass, field, fields
+
+import click
+
+LOSSES = ("l1+vgg", "l1")
+
+
+def _opt(default, help: str, **extra):
+    return field(default=default, metadata={"help": help, **extra})
+
+
+@dataclass
+class TrainConfig:
+    store: tuple[str, ...] = _opt((), "store to train on (path or s3://); repeat for several")
+    out: str = _opt("runs/latest", "run folder: checkpoints/, log.jsonl, tb/ (TensorBoard)")
+    epochs: int = _opt(30, "epochs over the training split")
+    batch_size: int = _opt(6, "images per step on each rank (the paper: 6)")
+    lr: float = _opt(1e-3, "Adam learning rate (the authors' code: 1e-3)")
+    beta1: float = _opt(0.9, "Adam β1")
+    beta2: float = _opt(0.999, "Adam β2")
+    clip: float = _opt(1.0, "clip the gradient norm to this (0: no clipping)")
+    loss: str = _opt("l1+vgg", "l1+vgg (the paper) or l1 (its ablation)", choices=LOSSES)
+    perceptual_weight: float = _opt(1.0, "weight of the VGG16 relu3_3 feature loss")
+    vgg_weights: str | None = _opt(
+        None, "torchvision VGG16 state dict (.pth); default: the torch hub cache"
+    )
+    width: int = _opt(64, "channels of the first U-Net level (the paper: 64)")
+    skips: bool = _opt(True, "skip connections (--no-skips: the paper's ablation)")
+    roughness_channels: int = _opt(
+        1, "1, or 3 to repeat roughness as the authors' 12-channel input"
+    )
+    exposure: float = _opt(1.0, "tonemap exposure in stops (stored in checkpoints)")
+    seed: int = _opt(0, "seed of the init, the held-out split and the shuffle")
+    holdout_fraction: float = _opt(0.02, "materials held out for eval (the paper: 1,000 of 50,000)")
+    shuffle_buffer: int = _opt(256, "samples shuffled together after the shard shuffle")
+    workers: int = _opt(2, "DataLoader worker processes per rank")
+    checkpoint_every: int = _opt(500, "steps between checkpoints (and at each epoch's end)")
+    keep: int = _opt(3, "checkpoints kept")
+    log_every: int = _opt(10, "steps between log lines and TensorBoard points")
+    max_steps: int | None = _opt(None, "stop (with a checkpoint) after this many steps in all")
+    resume: bool = _opt(False, "continue from the run folder's latest checkpoint")
+    device: str = _opt(
+        "auto", "auto (CUDA if present), cuda or cpu", choices=("auto", "cuda", "cpu")
+    )
+    log_samples: bool = _opt(False, "record each rank's sample ids in samples/rank-R.txt")
+
+    def __post_init__(self) -> None:
+        self.store = tuple(self.store)
+        checks = {
+            "epochs": self.epochs >= 1,
+            "batch_size": self.batch_size >= 1,
+            "lr": self.lr > 0,
+            "workers": self.workers >= 0,
+            "checkpoint_every": self.checkpoint_every >= 1,
+            "log_every": self.log_every >= 1,
+            "keep": self.keep >= 1,
+            "shuffle_buffer": self.shuffle_buffer >= 1,
+            "holdout_fraction": 0 <= self.holdout_fraction < 1,
+            "max_steps": self.max_steps is None or self.max_steps >= 1,
+            "loss": self.loss in LOSSES,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["store"] = list(self.store)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        known = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def options(command):
+    """Decorate a click command with one option per :class:`TrainConfig` field."""
+    for f in reversed(fields(TrainConfig)):
+        help_, choices = f.metadata["help"], f.metadata.get("choices")
+        default = f.default if f.default is not MISSING else None
+        if f.name == "store":
+            opt = click.option("--store", "store", multiple=True, help=help_)
+        elif f.type == "bool":
+            on = _flag(f.name)
+            off = "--no-" + f.name.replace("_", "-")
+            opt = click.option(
+                f"{on}/{off}", f.name, default=default, show_default=True, help=help_
+            )
+        else:
+            kind = {"int": int, "float": float, "int | None": int}.get(f.type, str)
+            if choices:
+                kind = click.Choice(choices)
+            opt = click.option(
+                _flag(f.name), f.name, type=kind, default=default, show_default=True, help=help_
+            )
+        command = opt(command)
+    return command
+
+
+def to_argv(cfg: TrainConfig) -> list[str]:
+    """The ``trainer train`` arguments that give back ``cfg`` (defaults left out)."""
+    argv: list[str] = []
+    for f in fields(TrainConfig):
+        value = getattr(cfg, f.name)
+        if f.name == "store":
+            for s in value:
+                argv += ["--store", s]
+        elif value == f.default:
+            continue
+        elif isinstance(value, bool):
+            argv.append(_flag(f.name) if value else "--no-" + f.name.replace("_", "-"))
+        else:
+            argv += [_flag(f.name), str(value)]
+    return argv

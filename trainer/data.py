@@ -1,0 +1,237 @@
+"""Streaming the shard stores into training: snapshot, shuffle, partition, batches.
+
+A :class:`Catalog` is a snapshot of one or more stores (local or ``s3://``): the committed
+shards of each and the held-out materials, fixed when a run starts and kept in its
+checkpoints, so a store that grows while training (a farm still running) changes neither the
+order of a resumed epoch nor the split. Held-out materials are never trained on.
+
+The order of an epoch and who reads what are pure functions of integers:
+
+- :func:`epoch_order`: the shards permuted by ``(seed, epoch)``, their samples concatenated,
+  then shuffled inside consecutive windows of ``buffer`` samples (a seekable shuffle buffer).
+- :func:`rank_batches`: from a global position ``start``, global step ``g`` takes the next
+  ``world * batch`` positions and rank ``r`` the ``r``-th ``batch`` of them; the last, partial
+  step is split as evenly as the ranks allow. No position is read twice or skipped, and
+  after ``k`` full steps exactly the first ``start + k * world * batch`` positions are read,
+  whatever the world size, so a resume (even with another GPU count) continues exactly.
+- :func:`worker_batches`: a rank's batch ``b`` is made by DataLoader worker ``b % workers``;
+  the DataLoader's round-robin then yields them in order, whatever the worker count.
+
+Ranks may end an epoch with one batch fewer; the training loop handles that with DDP's
+``join``. The loader state in a checkpoint is ``{"epoch", "position"}``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch.utils.data import IterableDataset, get_worker_info
+
+from storage.dataset import Dataset, split_by_material
+from storage.errors import StoreError
+from storage.reader import ShardStore
+
+# ---- pure partition functions ---------------------------------------------------------------
+
+
+def epoch_order(groups: list[np.ndarray], seed: int, epoch: int, buffer: int) -> np.ndarray:
+    """The epoch's sample ids: shards (``groups``, one id array each) in a seeded order, then
+    ids shuffled within windows of ``buffer``. ``(N,) int64``, a permutation of all ids."""
+    if buffer < 1:
+        raise ValueError(f"shuffle buffer must be at least 1, not {buffer}")
+    rng = np.random.default_rng([seed, epoch])
+    if not groups:
+        return np.zeros(0, np.int64)
+    order = np.concatenate([np.asarray(groups[i], np.int64) for i in rng.permutation(len(groups))])
+    for lo in range(0, len(order), buffer):
+        order[lo : lo + buffer] = rng.permutation(order[lo : lo + buffer])
+    return order
+
+
+def steps_left(n: int, world: int, batch: int, start: int = 0) -> int:
+    """Global steps from position ``start`` to the end of an epoch of ``n`` samples."""
+    return -(-max(n - start, 0) // (world * batch))
+
+
+def rank_batches(n: int, world: int, rank: int, batch: int, start: int = 0) -> list[range]:
+    """Rank ``rank``'s batches, as ranges of epoch positions, from position ``start`` on."""
+    if not 0 <= rank < world or batch < 1 or not 0 <= start <= n:
+        raise ValueError(f"bad partition n={n} world={world} rank={rank} batch={batch} {start=}")
+    out = []
+    step = world * batch
+    full = (n - start) // step
+    for g in range(full):
+        lo = start + g * step + rank * batch
+        out.append(range(lo, lo + batch))
+    rest = (n - start) - full * step
+    if rest:
+        base = start + full * step
+        per, extra = divmod(rest, world)  # the first `extra` ranks take one more
+        lo = base + rank * per + min(rank, extra)
+        size = per + (rank < extra)
+        if size:
+            out.append(range(lo, lo + size))
+    return out
+
+
+def worker_batches(num_batches: int, workers: int, worker: int) -> range:
+    """The rank's batch numbers that DataLoader worker ``worker`` of ``workers`` makes."""
+    return range(worker, num_batches, max(workers, 1))
+
+
+# ---- the snapshot ---------------------------------------------------------------------------
+
+
+@dataclass
+class Catalog:
+    """Stores, their committed shards and held-out materials, as of one moment."""
+
+    urls: list[str]
+    shards: list[list[int]]  # committed shards per store
+    heldout: list[list[int]]  # held-out material indices per store
+    resolution: int
+
+    @classmethod
+    def snapshot(
+        cls, urls: list[str], seed: int, holdout_fraction: float, storage_options: dict | None
+    ) -> Catalog:
+        """Open ``urls`` and draw the held-out materials: ``holdout_fraction`` of them (at
+        least one when there are two or more), by ``seed``."""
+        if not 0 <= holdout_fraction < 1:
+            raise ValueError(f"holdout fraction must be in [0, 1), not {holdout_fraction}")
+        stores = [ShardStore(u, storage_options) for u in urls]
+        for s in stores:
+            if not s.committed_shards():
+                raise StoreError(f"{s.url}: the store has no committed samples to train on")
+        ds = Dataset(stores)
+        num_materials = len({ds.material_of(i) for i in range(len(ds))})
+        count = round(holdout_fraction * num_materials)
+        if holdout_fraction > 0 and num_materials > 1:
+            count = max(count, 1)
+        _, test = split_by_material(ds, seed, holdout=min(count, num_materials - 1))
+        heldout: list[set[int]] = [set() for _ in urls]
+        for i in test:
+            store, material = ds.material_of(int(i))
+            heldout[store].add(material)
+        return cls(
+            urls=[s.url for s in stores],
+            shards=[s.committed_shards() for s in stores],
+            heldout=[sorted(h) for h in heldout],
+            resolution=stores[0].layout.resolution,
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "urls": list(self.urls),
+            "shards": [list(s) for s in self.shards],
+            "heldout": [list(h) for h in self.heldout],
+            "resolution": self.resolution,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Catalog:
+        return cls(**d)
+
+    def split(self, which: str, storage_options: dict | None = None) -> Split:
+        """The ``train`` or ``test`` (held-out) samples, grouped by shard."""
+        if which not in ("train", "test"):
+            raise ValueError(f"split must be train or test, not {which!r}")
+        refs, groups = [], []
+        for s, url in enumerate(self.urls):
+            layout = ShardStore(url, storage_options).layout
+            held = set(self.heldout[s])
+            for shard in self.shards[s]:
+                ids = [
+                    k
+                    for k in layout.shard_samples(shard)
+                    if (layout.material_of_sample(k) in held) == (which == "test")
+                ]
+                if ids:
+                    groups.append(np.arange(len(refs), len(refs) + len(ids)))
+                    refs += [(s, k) for k in ids]
+        return Split(self.urls, np.array(refs, np.int64).reshape(-1, 2), groups, storage_options)
+
+
+@dataclass
+class Split:
+    """Samples of a catalog: ``refs (N, 2) int64`` = (store, sample), ``groups`` = ids by shard."""
+
+    urls: list[str]
+    refs: np.ndarray
+    groups: list[np.ndarray]
+    storage_options: dict | None = None
+
+    def __len__(self) -> int:
+        return len(self.refs)
+
+
+class SampleReader:
+    """Reads samples of a split into batches; opens its stores on first use (per process)."""
+
+    def __init__(self, split: Split):
+        self.split = split
+        self._stores: list[ShardStore] | None = None
+
+    def __getstate__(self):
+        return {"split": self.split, "_stores": None}
+
+    @property
+    def stores(self) -> list[ShardStore]:
+        if self._stores is None:
+            self._stores = [ShardStore(u, self.split.storage_options) for u in self.split.urls]
+        return self._stores
+
+    def batch(self, ids: np.ndarray) -> dict[str, torch.Tensor]:
+        """Samples ``ids`` → ``maps (B, 11, H, W) uint8``, ``render (B, 3, H, W) float16``
+        (linear HDR), ``light (B, 4) float32``, ``id (B,) int64``."""
+        from trainer.targets import light_vector
+
+        maps, renders, lights = [], [], []
+        for i in ids:
+            s, k = self.split.refs[i]
+            store = self.stores[s]
+            renders.append(store.render(int(k)))
+            maps.append(store.packed_maps(store.layout.material_of_sample(int(k))))
+            lights.append(light_vector(*store.light(int(k))))
+        return {
+            "maps": torch.from_numpy(np.stack(maps)),
+            "render": torch.from_numpy(np.stack(renders)),
+            "light": torch.from_numpy(np.stack(lights)),
+            "id": torch.as_tensor(np.asarray(ids, np.int64)),
+        }
+
+
+class ShardStream(IterableDataset):
+    """One rank's batches of one epoch, from a position; use with ``batch_size=None``."""
+
+    def __init__(
+        self, split: Split, *, batch: int, seed: int, buffer: int, world: int = 1, rank: int = 0
+    ):
+        if len(split) == 0:
+            raise StoreError("no samples to stream (the split is empty)")
+        self.reader = SampleReader(split)
+        self.batch, self.seed, self.buffer, self.world, self.rank = batch, seed, buffer, world, rank
+        self.epoch, self.position = 0, 0
+
+    def set_position(self, epoch: int, position: int) -> None:
+        """Start the next iteration at global ``position`` of epoch ``epoch``."""
+        self.epoch, self.position = epoch, position
+
+    def steps(self) -> int:
+        """Global steps left in the epoch from the current position."""
+        return steps_left(len(self.reader.split), self.world, self.batch, self.position)
+
+    def batches(self) -> list[np.ndarray]:
+        """This rank's batches (sample ids) from the current position."""
+        order = epoch_order(self.reader.split.groups, self.seed, self.epoch, self.buffer)
+        ranges = rank_batches(len(order), self.world, self.rank, self.batch, self.position)
+        return [order[r.start : r.stop] for r in ranges]
+
+    def __iter__(self):
+        info = get_worker_info()
+        workers, worker = (info.num_workers, info.id) if info else (1, 0)
+        mine = self.batches()
+        for b in worker_batches(len(mine), workers, worker):
+            yield self.reader.batch(mine[b])

@@ -1,0 +1,66 @@
+"""Inference: a trained neural renderer as a Python API over arrays and stored samples.
+
+>>> r = Renderer.from_checkpoint("runs/demo")           # a run folder (latest) or a .pt file
+>>> img = r.render(maps, sun_direction=(0, 0.5, 1), turbidity=3)   # (3, H, W) float32 in [0, 1]
+
+``maps`` are stored maps, ``(11, H, W)`` or ``(N, 11, H, W) uint8`` (``storage.schema``); the
+image is in the checkpoint's tonemapped display space (``trainer.targets.Tonemap``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from trainer import checkpoint
+from trainer.model import ModelConfig, NeuralRenderer
+from trainer.targets import Tonemap, light_vector, model_inputs
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    return torch.device(name)
+
+
+class Renderer:
+    """A trained model in eval mode, with the tonemap it was trained against."""
+
+    def __init__(self, model: NeuralRenderer, tonemap: Tonemap, device: torch.device):
+        self.model = model.to(device).eval()
+        self.tonemap = tonemap
+        self.device = device
+
+    @classmethod
+    def from_checkpoint(cls, path, device: str = "auto") -> Renderer:
+        state = checkpoint.load(path)
+        model = NeuralRenderer(ModelConfig(**state["model_config"]))
+        model.load_state_dict(state["model"])
+        r = cls(model, Tonemap.from_dict(state["tonemap"]), pick_device(device))
+        r.state = state
+        return r
+
+    @property
+    def config(self) -> ModelConfig:
+        return self.model.config
+
+    @torch.inference_mode()
+    def render_batch(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+        """``maps (N, 11, H, W) uint8`` + ``light (N, 4)`` → ``(N, 3, H, W) float32`` in [0, 1]."""
+        x = model_inputs(maps.to(self.device), self.config.roughness_channels)
+        light = light.to(self.device, torch.float32)
+        self.model.check_inputs(x, light)
+        return self.model(x, light).float()
+
+    def render(self, maps: np.ndarray, sun_direction, turbidity) -> np.ndarray:
+        """Stored maps ``(11, H, W)`` or ``(N, 11, H, W) uint8`` under one sun (or ``N`` suns:
+        ``sun_direction (N, 3)``, ``turbidity (N,)``) → ``(3, H, W)`` / ``(N, 3, H, W)``."""
+        arr = np.asarray(maps)
+        if arr.dtype != np.uint8:
+            raise ValueError(f"maps must be stored uint8 maps, not {arr.dtype}")
+        single = arr.ndim == 3
+        batch = torch.from_numpy(np.array(arr[None] if single else arr))
+        light = np.broadcast_to(light_vector(sun_direction, turbidity), (len(batch), 4))
+        out = self.render_batch(batch, torch.from_numpy(np.ascontiguousarray(light)))
+        out = out.cpu().numpy()
+        return out[0] if single else out

@@ -1,0 +1,74 @@
+"""``trainer launch``: torchrun around ``trainer train``, on one node or many.
+
+One node (the default) uses torchrun's ``--standalone`` rendezvous; several nodes use c10d
+rendezvous at ``--rdzv-endpoint HOST:PORT`` (every node runs the same command with its own
+``--node-rank``; the launcher prints the command for the others). torchrun restarts all
+ranks when one fails (``--max-restarts``); a restarted rank resumes from the run folder's
+latest checkpoint (``TORCHELASTIC_RESTART_COUNT`` > 0 implies ``--resume``).
+"""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from dataclasses import dataclass
+
+import torch
+
+from trainer.config import TrainConfig, to_argv
+
+
+@dataclass(frozen=True)
+class LaunchConfig:
+    nodes: int = 1
+    nproc_per_node: int | None = None  # None: all local GPUs, or 1 process on CPU
+    rdzv_endpoint: str | None = None
+    node_rank: int | None = None
+    max_restarts: int = 0
+    rdzv_id: str = "shaderball"
+
+    def __post_init__(self) -> None:
+        if self.nodes < 1:
+            raise ValueError(f"--nodes must be at least 1, not {self.nodes}")
+        if self.nodes > 1 and not self.rdzv_endpoint:
+            raise ValueError("several nodes need --rdzv-endpoint HOST:PORT (reachable by all)")
+        if self.rdzv_endpoint and ":" not in self.rdzv_endpoint:
+            raise ValueError(f"--rdzv-endpoint {self.rdzv_endpoint!r} is not HOST:PORT")
+        if self.node_rank is not None and not 0 <= self.node_rank < self.nodes:
+            raise ValueError(f"--node-rank {self.node_rank} is not in 0..{self.nodes - 1}")
+
+    def procs(self) -> int:
+        if self.nproc_per_node is not None:
+            return self.nproc_per_node
+        return max(torch.cuda.device_count(), 1)
+
+
+def torchrun_argv(launch: LaunchConfig, cfg: TrainConfig, node_rank: int | None = None) -> list:
+    """The torchrun command line for one node."""
+    argv = [sys.executable, "-m", "torch.distributed.run"]
+    if launch.nodes == 1 and not launch.rdzv_endpoint:
+        argv += ["--standalone", "--nnodes", "1"]
+    else:
+        argv += ["--nnodes", str(launch.nodes), "--rdzv-backend", "c10d"]
+        argv += ["--rdzv-endpoint", launch.rdzv_endpoint, "--rdzv-id", launch.rdzv_id]
+        rank = launch.node_rank if node_rank is None else node_rank
+        if rank is not None:
+            argv += ["--node-rank", str(rank)]
+    argv += ["--nproc-per-node", str(launch.procs()), "--max-restarts", str(launch.max_restarts)]
+    return [*argv, "-m", "trainer.cli", "train", *to_argv(cfg)]
+
+
+def other_node_commands(launch: LaunchConfig, cfg: TrainConfig) -> list[str]:
+    """``trainer launch`` lines to run on the other nodes of a multi-node job."""
+    here = launch.node_rank or 0
+    out = []
+    for r in range(launch.nodes):
+        if r == here:
+            continue
+        args = ["trainer", "launch", "--nodes", str(launch.nodes)]
+        if launch.nproc_per_node is not None:
+            args += ["--nproc-per-node", str(launch.nproc_per_node)]
+        args += ["--rdzv-endpoint", launch.rdzv_endpoint, "--node-rank", str(r)]
+        args += ["--max-restarts", str(launch.max_restarts), *to_argv(cfg)]
+        out.append(shlex.join(args))
+    return out
