@@ -122,7 +122,8 @@ def test_bad_option_values_are_refused(tmp_path):
 def test_no_process_but_a_blender_worker_imports_bpy():
     code = (
         "import sys\n"
-        "import farm, farm.cli, storage, storage.cli, trainer, trainer.cli\n"
+        "import farm, farm.cli, storage, storage.cli, trainer, trainer.cli, trainer.train\n"
+        "import trainer.evaluate, trainer.infer, trainer.launch\n"
         "import render_jobs, render_jobs.materials, render_jobs.preview, render_jobs.worker\n"
         "import render_jobs.geometry, render_jobs.sun, render_jobs.exr\n"
         "assert 'bpy' not in sys.modules, 'bpy was imported'\n"

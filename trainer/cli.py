@@ -41,8 +41,10 @@ def main() -> None:
 def train(**kwargs) -> None:
     """Train on one process: the per-rank entry that ``trainer launch`` runs under torchrun.
 
-    Run it directly for a single CPU/GPU process, e.g.
-    ``trainer train --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo``.
+    Run it directly for a single CPU/GPU process. Example:
+
+    \b
+      trainer train --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
     """
     from storage.errors import StoreError
     from trainer.checkpoint import CheckpointError
@@ -77,7 +79,8 @@ def train(**kwargs) -> None:
 def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_run, **kwargs):
     """Train with torchrun: DDP over every rank of every node.
 
-    With no launch options: one node, all its GPUs (or one CPU process). The smallest run:
+    With no launch options: one node, all its GPUs (or one CPU process). Example, the
+    smallest run:
 
     \b
       trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
@@ -107,16 +110,20 @@ def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_ru
 @main.command("eval")
 @click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
 @click.option("--store", "stores", multiple=True, help="the run's stores at another address")
-@click.option("--batch-size", default=8, show_default=True, type=int)
+@click.option("--batch-size", default=8, show_default=True, type=int, help="images per batch")
 @click.option("--grid", type=click.Path(path_type=Path), default=None, help="PNG grid path")
 @click.option("--grid-count", default=4, show_default=True, type=int, help="samples in the grid")
 @click.option(
-    "--device", default="auto", show_default=True, type=click.Choice(["auto", "cuda", "cpu"])
+    "--device",
+    default="auto",
+    show_default=True,
+    type=click.Choice(["auto", "cuda", "cpu"]),
+    help="where the network runs",
 )
 @click.option("--json", "as_json", is_flag=True, help="print the metrics as JSON")
 def eval_(ckpt, stores, batch_size, grid, grid_count, device, as_json):
     """PSNR and SSIM on the held-out materials, overall and per kind, and a PNG grid
-    (ground truth | prediction | error x4) of a few samples.
+    (ground truth | prediction | error x4) of a few samples. Example:
 
     \b
       trainer eval --checkpoint runs/demo --grid runs/demo/eval.png
@@ -164,10 +171,14 @@ def _floats(text: str | None, n: int, name: str):
 @click.option("--turbidity", type=float, default=None, help="sky turbidity [the sample's]")
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="PNG")
 @click.option(
-    "--device", default="auto", show_default=True, type=click.Choice(["auto", "cuda", "cpu"])
+    "--device",
+    default="auto",
+    show_default=True,
+    type=click.Choice(["auto", "cuda", "cpu"]),
+    help="where the network runs",
 )
 def render(ckpt, store, sample, sun, turbidity, output, device):
-    """Render a stored material with the network, under its own sun or any other.
+    """Render a stored material with the network, under its own sun or any other. Example:
 
     \b
       trainer render --checkpoint runs/demo --store out/demo.zarr --sample 3 \\

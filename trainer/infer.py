@@ -61,6 +61,6 @@ class Renderer:
         single = arr.ndim == 3
         batch = torch.from_numpy(np.array(arr[None] if single else arr))
         light = np.broadcast_to(light_vector(sun_direction, turbidity), (len(batch), 4))
-        out = self.render_batch(batch, torch.from_numpy(np.ascontiguousarray(light)))
+        out = self.render_batch(batch, torch.from_numpy(np.array(light)))
         out = out.cpu().numpy()
         return out[0] if single else out

@@ -158,7 +158,7 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
 
     def save() -> Path | None:
         """Rank 0 writes a checkpoint (after checking that the weights are still finite)."""
-        check_finite()
+        check_finite(weights=True)
         if not master:
             return None
         return checkpoint.save(
@@ -179,7 +179,9 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
 
     bad = torch.zeros((), dtype=torch.bool, device=device)
 
-    def check_finite() -> None:
+    def check_finite(weights: bool = False) -> None:
+        if weights and not all(torch.isfinite(p).all() for p in model.parameters()):
+            bad.fill_(True)
         if bad.item():
             last = checkpoint.latest(out)
             raise TrainingDiverged(

@@ -1,0 +1,200 @@
+"""Trainer parts without processes: model shapes, targets, VGG weights, data partition."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+
+from render_jobs.tonemap import tonemap as numpy_tonemap
+from trainer.data import epoch_order, rank_batches, steps_left, worker_batches
+from trainer.model import ModelConfig, NeuralRenderer, count_parameters
+from trainer.perceptual import MissingWeightsError, RendererLoss, load_vgg, vgg16_relu3_3
+from trainer.targets import Tonemap, light_vector, model_inputs
+
+
+def vgg_weights_file(path, seed: int = 0):
+    """A torchvision-format VGG16 state dict (random weights; classifier keys included)."""
+    torch.manual_seed(seed)
+    state = {f"features.{k}": v for k, v in vgg16_relu3_3().state_dict().items()}
+    state["features.17.weight"] = torch.zeros(512, 256, 3, 3)  # beyond relu3_3: ignored
+    state["classifier.0.weight"] = torch.zeros(8, 8)
+    torch.save(state, path)
+    return path
+
+
+# ---- model ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("res", [64, 128, 400])
+def test_output_shape_and_range(res):
+    model = NeuralRenderer(ModelConfig(resolution=res)).eval()
+    with torch.no_grad():
+        out = model(torch.rand(2, 10, res, res), torch.rand(2, 4))
+    assert out.shape == (2, 3, res, res)
+    assert float(out.min()) >= 0 and float(out.max()) <= 1
+
+
+def test_ablations_and_twelve_channels():
+    full = NeuralRenderer(ModelConfig(resolution=64))
+    flat = NeuralRenderer(ModelConfig(resolution=64, skips=False))
+    thin = NeuralRenderer(ModelConfig(resolution=64, width=16, roughness_channels=3))
+    assert count_parameters(flat) < count_parameters(full)
+    assert count_parameters(thin) < count_parameters(flat)
+    assert thin(torch.rand(1, 12, 64, 64), torch.rand(1, 4)).shape == (1, 3, 64, 64)
+    assert flat(torch.rand(1, 10, 64, 64), torch.rand(1, 4)).shape == (1, 3, 64, 64)
+    # the light encoder's plane is the bottleneck's size, replicated to 128 channels
+    plane = full.light(torch.rand(3, 4))
+    assert plane.shape == (3, 128, 4, 4) and torch.equal(plane[:, 0], plane[:, 127])
+
+
+def test_light_changes_the_image():
+    model = NeuralRenderer(ModelConfig(resolution=64)).eval()
+    maps = torch.rand(1, 10, 64, 64)
+    with torch.no_grad():
+        a = model(maps, torch.tensor([[0.0, 0.0, 1.0, 0.2]]))
+        b = model(maps, torch.tensor([[0.7, 0.0, 0.7, 0.9]]))
+    assert not torch.allclose(a, b)
+
+
+def test_glorot_init():
+    model = NeuralRenderer(ModelConfig(resolution=64, width=16))
+    conv = model.encoder[1][0].weight.detach()  # 16 → 32 channels, 3x3
+    bound = (6 / (16 * 9 + 32 * 9)) ** 0.5
+    assert float(conv.abs().max()) <= bound
+    assert float(conv.std()) == pytest.approx(bound / 3**0.5, rel=0.1)
+
+
+@pytest.mark.parametrize("res", [0, 40, 100, 401])
+def test_resolution_not_divisible_by_16(res):
+    with pytest.raises(ValueError, match=f"resolution {res} is not a positive multiple of 16"):
+        ModelConfig(resolution=res)
+
+
+def test_input_shape_errors_name_the_input():
+    model = NeuralRenderer(ModelConfig(resolution=64))
+    with pytest.raises(ValueError, match=r"maps have shape \(1, 10, 32, 32\)"):
+        model.check_inputs(torch.rand(1, 10, 32, 32), torch.rand(1, 4))
+    with pytest.raises(ValueError, match=r"light has shape \(1, 3\)"):
+        model.check_inputs(torch.rand(1, 10, 64, 64), torch.rand(1, 3))
+
+
+# ---- targets --------------------------------------------------------------------------------
+
+
+def test_tonemap_is_the_preview_curve():
+    x = np.random.default_rng(0).gamma(1.0, 0.5, (1, 3, 16, 16)).astype(np.float32)
+    ours = Tonemap()(torch.from_numpy(x).half()).numpy()[0]
+    np.testing.assert_allclose(ours, numpy_tonemap(x[0].astype(np.float16)), atol=1e-5)
+    assert Tonemap.from_dict(Tonemap(exposure=0.5).to_dict()) == Tonemap(exposure=0.5)
+
+
+def test_model_inputs_and_light_vector():
+    packed = torch.arange(11 * 4, dtype=torch.uint8).view(1, 11, 2, 2)
+    x = model_inputs(packed)
+    assert x.shape == (1, 10, 2, 2) and torch.allclose(x * 255, packed[:, :10].float())
+    x12 = model_inputs(packed, 3)
+    assert torch.equal(x12[:, 6], x12[:, 8]) and torch.equal(x12[:, 9:], x[:, 7:])
+    v = light_vector((0.0, 0.0, 2.0), 3.0)
+    np.testing.assert_allclose(v, [0, 0, 1, 0.3], atol=1e-7)
+    with pytest.raises(ValueError, match="zero vector"):
+        light_vector((0, 0, 0), 3)
+
+
+# ---- perceptual loss ------------------------------------------------------------------------
+
+
+def test_vgg_loads_torchvision_format(tmp_path):
+    path = vgg_weights_file(tmp_path / "vgg16.pth")
+    vgg = load_vgg(path)
+    state = torch.load(path, weights_only=True)
+    assert torch.equal(vgg[14].weight, state["features.14.weight"])  # conv3_3
+    assert not any(p.requires_grad for p in vgg.parameters())
+    loss = RendererLoss(vgg)
+    a, b = torch.rand(2, 3, 32, 32), torch.rand(2, 3, 32, 32)
+    assert float(loss(a, a)) == 0 and float(loss(a, b)) > float(RendererLoss()(a, b))
+
+
+def test_vgg_found_in_the_hub_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))
+    with pytest.raises(MissingWeightsError, match="--vgg-weights FILE .* or train with --loss l1"):
+        load_vgg()
+    (tmp_path / "hub" / "checkpoints").mkdir(parents=True)
+    vgg_weights_file(tmp_path / "hub" / "checkpoints" / "vgg16-397923af.pth")
+    assert isinstance(load_vgg(), torch.nn.Sequential)
+
+
+def test_bad_vgg_files(tmp_path):
+    with pytest.raises(MissingWeightsError, match="does not exist"):
+        load_vgg(tmp_path / "nope.pth")
+    (tmp_path / "junk.pth").write_bytes(b"not a torch file")
+    with pytest.raises(MissingWeightsError, match="junk.pth: not a readable torch state dict"):
+        load_vgg(tmp_path / "junk.pth")
+    torch.save({"features.0.weight": torch.zeros(1)}, tmp_path / "other.pth")
+    with pytest.raises(MissingWeightsError, match="other.pth: not VGG16 weights"):
+        load_vgg(tmp_path / "other.pth")
+
+
+# ---- data partition: pure functions of integers ---------------------------------------------
+
+
+def test_epoch_order_is_a_seeded_shard_shuffle():
+    groups = [np.arange(i * 5, i * 5 + 5) for i in range(8)]
+    a = epoch_order(groups, seed=1, epoch=0, buffer=5)
+    assert sorted(a.tolist()) == list(range(40))
+    assert np.array_equal(a, epoch_order(groups, seed=1, epoch=0, buffer=5))
+    assert not np.array_equal(a, epoch_order(groups, seed=1, epoch=1, buffer=5))
+    assert not np.array_equal(a, epoch_order(groups, seed=2, epoch=0, buffer=5))
+    # with a buffer of one shard, each window of 5 is one whole shard, shuffled inside
+    windows = [set(a[i : i + 5] // 5) for i in range(0, 40, 5)]
+    assert all(len(w) == 1 for w in windows) and a[:5].tolist() != sorted(a[:5].tolist())
+    assert epoch_order([], 0, 0, 4).size == 0
+
+
+CASES = list(itertools.product([1, 7, 24, 50], [1, 2, 3, 8], [1, 4], [0, 1, 3]))
+
+
+@pytest.mark.parametrize(("n", "world", "batch", "workers"), CASES)
+def test_ranks_and_workers_cover_each_position_once(n, world, batch, workers):
+    seen = []
+    counts = []
+    for rank in range(world):
+        mine = rank_batches(n, world, rank, batch)
+        counts.append(len(mine))
+        assert len(mine) in (steps_left(n, world, batch), steps_left(n, world, batch) - 1)
+        # the DataLoader's round-robin over workers gives the rank's batches back in order
+        per_worker = [list(worker_batches(len(mine), workers, w)) for w in range(max(workers, 1))]
+        merged = [b for group in itertools.zip_longest(*per_worker) for b in group if b is not None]
+        assert merged == list(range(len(mine)))
+        seen += [p for r in mine for p in r]
+    assert sorted(seen) == list(range(n))  # no overlap, no gap
+    assert max(counts) - min(counts) <= 1
+
+
+@pytest.mark.parametrize(
+    ("world", "batch", "k", "new_world"), [(2, 3, 2, 2), (4, 2, 1, 3), (1, 5, 3, 2)]
+)
+def test_resume_continues_exactly_even_with_another_world_size(world, batch, k, new_world):
+    n = 37
+    first = [p for rank in range(world) for r in rank_batches(n, world, rank, batch)[:k] for p in r]
+    assert sorted(first) == list(range(k * world * batch))  # k full steps = a prefix
+    start = k * world * batch
+    rest = [
+        p
+        for rank in range(new_world)
+        for r in rank_batches(n, new_world, rank, batch, start)
+        for p in r
+    ]
+    assert sorted(first + rest) == list(range(n))
+    # the same world size resumes with exactly the batches it would have read
+    for rank in range(world):
+        assert rank_batches(n, world, rank, batch)[k:] == rank_batches(n, world, rank, batch, start)
+
+
+def test_bad_partition_arguments():
+    with pytest.raises(ValueError, match="bad partition"):
+        rank_batches(10, 2, 2, 1)
+    with pytest.raises(ValueError, match="shuffle buffer"):
+        epoch_order([np.arange(3)], 0, 0, 0)

@@ -1,0 +1,257 @@
+"""Real training runs on a real rendered store: in-process, torchrun (gloo), kill + resume."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+from PIL import Image
+
+from storage.schema import Layout
+from storage.writer import create_store, write_shard
+from tests.storage_helpers import synthetic_payload
+from tests.test_trainer import vgg_weights_file
+from trainer import checkpoint
+from trainer.cli import main as trainer_main
+from trainer.config import TrainConfig
+from trainer.data import Catalog, ShardStream
+from trainer.infer import Renderer
+from trainer.model import ModelConfig, NeuralRenderer
+from trainer.targets import Tonemap, model_inputs
+from trainer.train import TrainingDiverged, train
+
+pytestmark = pytest.mark.slow
+
+BASE = {"loss": "l1", "batch_size": 2, "holdout_fraction": 0.25, "workers": 0, "log_every": 2}
+
+
+def config(store, out, **kw) -> TrainConfig:
+    return TrainConfig(**{"store": (store.url,), "out": str(out), **BASE, **kw})
+
+
+def argv(store, out, **kw) -> list[str]:
+    from trainer.config import to_argv
+
+    return to_argv(config(store, out, **kw))
+
+
+def sample_lines(run: Path, rank: int = 0) -> list[str]:
+    return (run / "samples" / f"rank-{rank}.txt").read_text().splitlines()
+
+
+def mean_l1(model: NeuralRenderer, catalog: Catalog) -> float:
+    split = catalog.split("train")
+    stream = ShardStream(split, batch=8, seed=0, buffer=8)
+    model.eval()
+    losses = []
+    with torch.no_grad():
+        for b in stream:
+            pred = model(model_inputs(b["maps"]), b["light"])
+            losses.append(float((pred - Tonemap()(b["render"])).abs().mean()))
+    return float(np.mean(losses))
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_store, tmp_path_factory):
+    """A short L1 run (6 epochs, batch 2) on the tiny store: its folder."""
+    out = tmp_path_factory.mktemp("run") / "run"
+    train(config(tiny_store, out, epochs=6, workers=2))
+    return out
+
+
+def test_training_lowers_the_loss(tiny_store, trained):
+    state = checkpoint.load(trained)
+    catalog = Catalog.from_dict(state["catalog"])
+    torch.manual_seed(0)  # the run's initial weights
+    before = mean_l1(NeuralRenderer(ModelConfig(resolution=64)), catalog)
+    after = mean_l1(Renderer.from_checkpoint(trained).model, catalog)
+    assert after < 0.7 * before, (before, after)
+    assert state["step"] == 6 * 9 and state["epoch"] == 6 and state["position"] == 0
+    assert len(checkpoint.listing(trained)) <= 3
+    log = [json.loads(line) for line in (trained / "log.jsonl").read_text().splitlines()]
+    assert log[-1]["step"] == 54 and all(0 <= r["data_wait"] <= 1 for r in log)
+    assert list((trained / "tb").glob("events.out.tfevents.*"))
+
+
+def test_eval_and_render(tiny_store, trained, tmp_path):
+    r = CliRunner().invoke(
+        trainer_main,
+        ["eval", "--checkpoint", str(trained), "--json", "--grid", str(tmp_path / "g.png")],
+    )
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.output[r.output.index("{") :])
+    held = Catalog.from_dict(checkpoint.load(trained)["catalog"]).heldout[0]
+    assert result["samples"] == 3 * len(held) == result["overall"]["n"]
+    assert sum(m["n"] for m in result["by_kind"].values()) == result["samples"]
+    assert 5 < result["overall"]["psnr"] < 60 and 0 < result["overall"]["ssim"] <= 1
+    rows = min(4, result["samples"])  # --grid-count 4; 3 panels a row
+    assert Image.open(tmp_path / "g.png").size == (3 * 64, rows * 64)
+
+    out = tmp_path / "a.png"
+    args = ["render", "--checkpoint", str(trained), "--store", tiny_store.url, "--sample", "4"]
+    assert CliRunner().invoke(trainer_main, [*args, "-o", str(out)]).exit_code == 0
+    other = tmp_path / "b.png"
+    r = CliRunner().invoke(
+        trainer_main, [*args, "--sun", "0.8,0,0.2", "--turbidity", "8", "-o", str(other)]
+    )
+    assert r.exit_code == 0, r.output
+    a, b = np.asarray(Image.open(out)), np.asarray(Image.open(other))
+    assert a.shape == (64, 64, 3) and np.abs(a.astype(int) - b).mean() > 0  # the sun matters
+
+    # the Python API: one material under two suns at once, as the CLI did
+    renderer = Renderer.from_checkpoint(trained, "cpu")
+    maps = tiny_store.packed_maps(1)
+    two = renderer.render(np.stack([maps, maps]), [(0, 0, 1), (0.8, 0, 0.2)], [3, 8])
+    assert two.shape == (2, 3, 64, 64) and not np.allclose(two[0], two[1])
+    with pytest.raises(ValueError, match="maps have shape"):
+        renderer.render(maps[:, :32, :32].copy(), (0, 0, 1), 3)
+
+
+def test_torchrun_two_ranks_stay_identical_and_read_disjoint_samples(tiny_store, tmp_path):
+    out = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
+    cmd += argv(tiny_store, out, epochs=2, batch_size=4, workers=2, log_samples=True)
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "--standalone" in r.stderr and "done: " in r.stdout
+    catalog = Catalog.from_dict(checkpoint.load(out)["catalog"])
+    split = catalog.split("train")
+    lines = [sample_lines(out, rank) for rank in range(2)]
+    assert lines[0][-1].startswith("params ") and lines[0][-1] == lines[1][-1]
+    for epoch in range(2):
+        per_rank = []
+        for rank in range(2):
+            got = [ln.split()[2] for ln in lines[rank][:-1] if ln.split()[0] == str(epoch)]
+            stream = ShardStream(split, batch=4, seed=0, buffer=256, world=2, rank=rank)
+            stream.set_position(epoch, 0)
+            assert got == [",".join(map(str, b)) for b in stream.batches()]  # the pure plan
+            per_rank.append({int(i) for g in got for i in g.split(",")})
+        assert not per_rank[0] & per_rank[1]
+        assert per_rank[0] | per_rank[1] == set(range(len(split)))
+
+
+def test_killed_run_resumes_with_exactly_the_remaining_order(tiny_store, tmp_path):
+    ref = tmp_path / "ref"
+    train(config(tiny_store, ref, epochs=3, log_samples=True, checkpoint_every=3))
+    full = sample_lines(ref)[:-1]
+
+    run = tmp_path / "killed"
+    cmd = [sys.executable, "-m", "trainer.cli", "train"]
+    cmd += argv(tiny_store, run, epochs=3, log_samples=True, checkpoint_every=3)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    target = checkpoint.folder(run) / "step-00000006.pt"
+    deadline = time.monotonic() + 120
+    while not target.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    os.kill(proc.pid, signal.SIGKILL)
+    assert proc.wait() == -signal.SIGKILL  # killed mid-run, not finished
+    state = checkpoint.load(run)
+    step = state["step"]
+    assert 6 <= step < len(full)
+    seen = len(sample_lines(run))
+
+    train(config(tiny_store, run, epochs=3, log_samples=True, checkpoint_every=3, resume=True))
+    resumed = sample_lines(run)[seen:-1]
+    assert resumed == full[step:]  # same steps, same epochs, same samples, same order
+    a, b = checkpoint.load(ref), checkpoint.load(run)
+    assert a["step"] == b["step"] and a["epoch"] == b["epoch"]
+
+
+def test_perceptual_loss_and_divergence(tiny_store, tmp_path):
+    weights = vgg_weights_file(tmp_path / "vgg16.pth")
+    out = tmp_path / "vgg"
+    summary = train(config(tiny_store, out, loss="l1+vgg", vgg_weights=str(weights), max_steps=2))
+    assert summary["steps"] == 2 and checkpoint.load(out)["config"]["loss"] == "l1+vgg"
+    good = checkpoint.latest(out)
+    with pytest.raises(
+        TrainingDiverged, match=r"NaN/Inf by step \d+; stopped. Last good checkpoint"
+    ):
+        train(
+            config(
+                tiny_store, out, loss="l1+vgg", vgg_weights=str(weights), lr=1e30, resume=True,
+                checkpoint_every=1, log_every=100, keep=10,
+            )
+        )  # fmt: skip
+    kept = checkpoint.listing(out)
+    assert good in kept and len(kept) <= 3  # at most one step on before the NaN showed
+    for path in kept:  # nothing written from NaN/Inf weights
+        assert all(torch.isfinite(v).all() for v in checkpoint.load(path)["model"].values())
+
+
+def one_line_error(args: list[str], env: dict | None = None) -> str:
+    r = CliRunner().invoke(trainer_main, args, env=env)
+    assert r.exit_code == 1, r.output
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), r.output
+    return lines[0]
+
+
+def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
+    run = tmp_path / "run"
+    base = ["train", "--loss", "l1", "--out", str(run)]
+
+    (tmp_path / "plain.zarr").mkdir()
+    (tmp_path / "plain.zarr" / "zarr.json").write_text(json.dumps({"node_type": "group"}))
+    msg = one_line_error([*base, "--store", str(tmp_path / "plain.zarr")])
+    assert "plain.zarr: a zarr store, but not a shaderball shard store" in msg
+
+    newer = tmp_path / "newer.zarr"
+    create_store(str(newer), Layout(1, 1, 16, 1), {})
+    meta = json.loads((newer / "zarr.json").read_text())
+    meta["attributes"]["shaderball"]["schema_version"] = 99
+    (newer / "zarr.json").write_text(json.dumps(meta))
+    assert "unknown schema version 99" in one_line_error([*base, "--store", str(newer)])
+
+    empty = create_store(str(tmp_path / "empty.zarr"), Layout(2, 1, 16, 1), {})
+    assert "no committed samples" in one_line_error([*base, "--store", empty.url])
+
+    odd_layout = Layout(2, 1, 40, 1)
+    odd = create_store(str(tmp_path / "odd.zarr"), odd_layout, {})
+    for shard in range(2):
+        write_shard(odd, shard, synthetic_payload(odd_layout, shard))
+    assert "resolution 40 is not divisible by 16" in one_line_error([*base, "--store", odd.url])
+
+    env = {"TORCH_HOME": str(tmp_path / "torch-home")}
+    msg = one_line_error(["train", "--out", str(run), "--store", tiny_store.url], env=env)
+    assert "needs ImageNet VGG16 weights" in msg and "--vgg-weights FILE" in msg
+    assert "missing.pth does not exist" in one_line_error(
+        [*base[:1], "--vgg-weights", str(tmp_path / "missing.pth"), "--store", tiny_store.url]
+    )
+    assert "no store given" in one_line_error(base)
+    assert not run.exists()  # nothing half written
+
+    assert "no checkpoints" in one_line_error(["eval", "--checkpoint", str(tmp_path)])
+
+
+def test_existing_run_needs_resume_and_eval_needs_a_holdout(tiny_store, tmp_path):
+    out = tmp_path / "r"
+    train(config(tiny_store, out, max_steps=1, holdout_fraction=0.0))
+    msg = one_line_error(["train", "--loss", "l1", "--store", tiny_store.url, "--out", str(out)])
+    assert "already holds checkpoints: pass --resume" in msg
+    assert "no held-out samples" in one_line_error(["eval", "--checkpoint", str(out)])
+
+
+def test_launch_commands():
+    r = CliRunner().invoke(trainer_main, ["launch", "--dry-run", "--store", "s.zarr"])
+    assert r.exit_code == 0 and "--standalone --nnodes 1 --nproc-per-node 1" in r.output
+    args = ["launch", "--dry-run", "--nodes", "2", "--nproc-per-node", "8"]
+    args += ["--rdzv-endpoint", "head:29400", "--node-rank", "0", "--store", "s3://b/d.zarr"]
+    r = CliRunner().invoke(trainer_main, args)
+    assert r.exit_code == 0, r.output
+    assert "--rdzv-backend c10d --rdzv-endpoint head:29400" in r.output
+    assert (
+        "on another node: trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint " in r.output
+    )
+    assert "--node-rank 1" in r.output
+    assert "nodes need --rdzv-endpoint" in one_line_error(
+        ["launch", "--nodes", "2", "--store", "s"]
+    )
