@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test lint bench-render bench-farm bench-storage clean
+.PHONY: demo test lint bench-render bench-farm bench-train bench-infer bench-storage clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +30,13 @@ bench-render: $(BIN)/.installed
 
 bench-farm: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.farm
+
+# Training and inference at 400² (renders out/bench-400.zarr with the farm on first use).
+bench-train: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.train
+
+bench-infer: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.infer
 
 # MDS (mosaicml-streaming) needs torchvision, so the storage benchmark has its own environment:
 # torch 2.14.1 + torchvision 0.29.1 (about 6 GB), kept apart from the project's.

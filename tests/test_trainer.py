@@ -198,3 +198,11 @@ def test_bad_partition_arguments():
         rank_batches(10, 2, 2, 1)
     with pytest.raises(ValueError, match="shuffle buffer"):
         epoch_order([np.arange(3)], 0, 0, 0)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on CPU machines")
+def test_cuda_graph_path_refuses_a_cpu_model():
+    from trainer.infer import GraphedRenderer
+
+    with pytest.raises(RuntimeError, match="CUDA graphs need the model on a CUDA device"):
+        GraphedRenderer(NeuralRenderer(ModelConfig(resolution=64)), 1)

@@ -237,6 +237,8 @@ def test_existing_run_needs_resume_and_eval_needs_a_holdout(tiny_store, tmp_path
     train(config(tiny_store, out, max_steps=1, holdout_fraction=0.0))
     msg = one_line_error(["train", "--loss", "l1", "--store", tiny_store.url, "--out", str(out)])
     assert "already holds checkpoints: pass --resume" in msg
+    resume = ["train", "--loss", "l1", "--store", tiny_store.url, "--out", str(out), "--resume"]
+    assert "trained with --seed 0, not 5" in one_line_error([*resume, "--seed", "5"])
     assert "no held-out samples" in one_line_error(["eval", "--checkpoint", str(out)])
 
 

@@ -86,6 +86,12 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
             str(Path(u)) for u in catalog.urls
         ]:
             raise RunError(f"{found} trained on {catalog.urls}, not {list(cfg.store)}")
+        for name in ("seed", "shuffle_buffer"):  # they fix the epoch order being resumed
+            if state["config"][name] != getattr(cfg, name):
+                raise RunError(
+                    f"{found} was trained with --{name.replace('_', '-')} "
+                    f"{state['config'][name]}, not {getattr(cfg, name)}"
+                )
     else:
         snap = [None]
         if master:  # one snapshot for all ranks, even if a farm is still writing the store
