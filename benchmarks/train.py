@@ -31,7 +31,7 @@ def loader_rate(store: str, batch: int, workers: int, batches: int) -> float:
     """Images/s of the DataLoader alone over the store's training split."""
     split = Catalog.snapshot([store], 0, 0.0, None).split("train")
     stream = ShardStream(split, batch=batch, seed=0, buffer=256)
-    loader = DataLoader(stream, batch_size=None, num_workers=workers)
+    loader = DataLoader(stream, batch_size=None, num_workers=workers, persistent_workers=True)
     n, t0, epoch = 0, None, 0
     while n < batches * batch:
         stream.set_position(epoch, 0)

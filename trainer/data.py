@@ -213,11 +213,21 @@ class ShardStream(IterableDataset):
             raise StoreError("no samples to stream (the split is empty)")
         self.reader = SampleReader(split)
         self.batch, self.seed, self.buffer, self.world, self.rank = batch, seed, buffer, world, rank
-        self.epoch, self.position = 0, 0
+        # (epoch, position) in shared memory: persistent DataLoader workers read the new
+        # position when the next epoch's iteration starts, so they are started only once
+        self._where = torch.zeros(2, dtype=torch.int64).share_memory_()
+
+    @property
+    def epoch(self) -> int:
+        return int(self._where[0])
+
+    @property
+    def position(self) -> int:
+        return int(self._where[1])
 
     def set_position(self, epoch: int, position: int) -> None:
         """Start the next iteration at global ``position`` of epoch ``epoch``."""
-        self.epoch, self.position = epoch, position
+        self._where[0], self._where[1] = epoch, position
 
     def steps(self) -> int:
         """Global steps left in the epoch from the current position."""

@@ -139,6 +139,7 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
         num_workers=cfg.workers,
         pin_memory=cuda,
         prefetch_factor=4 if cfg.workers else None,
+        persistent_workers=cfg.workers > 0,  # started once; they follow stream.set_position
     )
     per_step = world * cfg.batch_size
 
