@@ -1,6 +1,12 @@
-"""Shared fixtures: one real Blender worker process for the session (64 px, 8 spp)."""
+"""Shared fixtures: a real Blender worker (64 px, 8 spp), a tiny rendered store, an S3 server."""
 
 from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +16,7 @@ from render_jobs.specs import RenderSettings, UniformValues
 from render_jobs.worker import RenderProcess
 
 TINY = RenderSettings(resolution=64, samples=8, threads=2)
+BIN = Path(sys.executable).parent
 
 
 @pytest.fixture(scope="session")
@@ -50,3 +57,49 @@ def tiny_store(worker, tmp_path_factory):
     path = tmp_path_factory.mktemp("trainer") / "tiny.zarr"
     store, _ = rendered_store(worker, str(path), ["uniform:4", "procedural:4"], 3, 6)
     return store
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def s3():
+    """A real S3-compatible server (moto) on 127.0.0.1 with bucket ``shaderball``:
+    ``(endpoint, storage_options)``."""
+    port = free_port()
+    proc = subprocess.Popen(
+        [str(BIN / "moto_server"), "-H", "127.0.0.1", "-p", str(port)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    endpoint = f"http://127.0.0.1:{port}"
+    deadline = time.time() + 30
+    while time.time() < deadline:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            break
+        except OSError:
+            time.sleep(0.2)
+    else:
+        proc.kill()
+        pytest.fail("moto_server did not start")
+    import boto3
+
+    boto3.client(
+        "s3",
+        endpoint_url=endpoint,
+        aws_access_key_id="test",
+        aws_secret_access_key="test",
+        region_name="us-east-1",
+    ).create_bucket(Bucket="shaderball")
+    opts = {
+        "key": "test",
+        "secret": "test",
+        "client_kwargs": {"endpoint_url": endpoint, "region_name": "us-east-1"},
+    }
+    yield endpoint, opts
+    proc.terminate()
+    proc.wait(10)

@@ -257,3 +257,31 @@ def test_launch_commands():
     assert "nodes need --rdzv-endpoint" in one_line_error(
         ["launch", "--nodes", "2", "--store", "s"]
     )
+
+
+def test_trains_from_an_s3_store(tiny_store, s3, tmp_path):
+    """The loader streams shards from object storage (credentials and endpoint from the
+    standard AWS environment variables, as on a cluster)."""
+    endpoint, opts = s3
+    url = "s3://shaderball/tiny.zarr"
+    remote = create_store(url, tiny_store.layout, tiny_store.settings, storage_options=opts)
+    for shard in tiny_store.committed_shards():
+        write_shard(remote, shard, tiny_store.read_shard(shard))
+    env = {
+        **os.environ,
+        "AWS_ACCESS_KEY_ID": "test",
+        "AWS_SECRET_ACCESS_KEY": "test",
+        "AWS_ENDPOINT_URL": endpoint,
+        "AWS_DEFAULT_REGION": "us-east-1",
+    }
+    out = tmp_path / "s3run"
+    cmd = [sys.executable, "-m", "trainer.cli", "train"]
+    cmd += argv(remote, out, max_steps=3, workers=2, log_samples=True)
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    state = checkpoint.load(out)
+    assert state["step"] == 3 and state["catalog"]["urls"] == [url]
+    local = Catalog.from_dict({**state["catalog"], "urls": [tiny_store.url]})
+    stream = ShardStream(local.split("train"), batch=2, seed=0, buffer=256)
+    want = [",".join(map(str, b)) for b in stream.batches()[:3]]
+    assert [ln.split()[2] for ln in sample_lines(out)[:-1]] == want
