@@ -285,3 +285,26 @@ def test_trains_from_an_s3_store(tiny_store, s3, tmp_path):
     stream = ShardStream(local.split("train"), batch=2, seed=0, buffer=256)
     want = [",".join(map(str, b)) for b in stream.batches()[:3]]
     assert [ln.split()[2] for ln in sample_lines(out)[:-1]] == want
+
+
+def test_torchrun_restart_resumes_from_the_last_checkpoint(tiny_store, tmp_path):
+    """Rank 0 dies abruptly at step 5 of the first attempt; torchrun (--max-restarts 1)
+    restarts both ranks, which resume from the step-4 checkpoint and finish the job."""
+    out = tmp_path / "restart"
+    cmd = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
+    cmd += ["--max-restarts", "1"]
+    cmd += argv(tiny_store, out, epochs=2, checkpoint_every=2, log_samples=True)
+    env = {**os.environ, "SHADERBALL_TRAIN_CRASH_AT": "5"}
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "from step 4" in r.stdout  # the restarted attempt resumed
+    state = checkpoint.load(out)
+    split = Catalog.from_dict(state["catalog"]).split("train")
+    assert state["epoch"] == 2 and state["step"] == 2 * steps_per_epoch(len(split), 2, 2)
+    lines = sample_lines(out)
+    assert lines.count("params " + lines[-1].split()[1]) == 1  # one finished attempt
+    assert lines[-1] == sample_lines(out, 1)[-1]
+
+
+def steps_per_epoch(n: int, world: int, batch: int) -> int:
+    return -(-n // (world * batch))

@@ -37,6 +37,13 @@ from trainer.model import ModelConfig, NeuralRenderer
 from trainer.perceptual import RendererLoss, load_vgg
 from trainer.targets import Tonemap, model_inputs
 
+#: test hook: rank 0 of a first torchrun attempt exits abruptly after this global step
+CRASH_AT = int(os.environ.get("SHADERBALL_TRAIN_CRASH_AT", "0")) or None
+
+
+def _first_attempt() -> bool:
+    return os.environ.get("TORCHELASTIC_RESTART_COUNT") == "0"
+
 
 class TrainingDiverged(RuntimeError):
     """The loss or gradients became NaN or infinite."""
@@ -60,7 +67,7 @@ def train(cfg: TrainConfig) -> dict:
     else:
         device = torch.device("cpu")
     if distributed:
-        dist.init_process_group("nccl" if use_cuda else "gloo")
+        _init_process_group("nccl" if use_cuda else "gloo", rank, world)
     master = rank == 0
     out = Path(cfg.out)
 
@@ -69,6 +76,26 @@ def train(cfg: TrainConfig) -> dict:
     finally:
         if distributed:
             dist.destroy_process_group()
+
+
+def _init_process_group(backend: str, rank: int, world: int) -> None:
+    """``init_process_group`` from torchrun's environment, with the rendezvous keys under a
+    prefix unique to the torchrun attempt: after a restart, torch 2.13 could otherwise hand
+    a rank its peer's address from the failed attempt (gloo: "connection refused")."""
+    attempt = os.environ.get("TORCHELASTIC_RESTART_COUNT")
+    if attempt is None:
+        dist.init_process_group(backend)
+        return
+    agent = os.environ.get("TORCHELASTIC_USE_AGENT_STORE") == "True"  # torchrun hosts it
+    store = dist.TCPStore(
+        os.environ["MASTER_ADDR"],
+        int(os.environ["MASTER_PORT"]),
+        world,
+        is_master=not agent and rank == 0,
+        multi_tenant=not agent,
+    )
+    prefixed = dist.PrefixStore(f"shaderball/attempt-{attempt}", store)
+    dist.init_process_group(backend, store=prefixed, rank=rank, world_size=world)
 
 
 def _train(cfg, rank, world, device, distributed, master, out) -> dict:
@@ -239,6 +266,8 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
                     ids = ",".join(str(int(i)) for i in batch["id"])
                     samples_log.write(f"{epoch} {step} {ids}\n")
                 bar.update(1)
+                if step == CRASH_AT and master and _first_attempt():
+                    os._exit(3)  # fault injection for tests: rank 0 dies, torchrun restarts all
                 if step % cfg.log_every == 0:
                     check_finite()
                     if master:
