@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test lint bench-render bench-farm bench-train bench-infer bench-storage clean
+.PHONY: demo demo-train test lint bench-render bench-farm bench-train bench-infer bench-storage clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,6 +17,13 @@ demo: $(BIN)/.installed
 	$(BIN)/farm submit --materials uniform:4 --materials procedural:4 --resolution 128 \
 		--samples 32 --shard-size 10 --out out/demo.zarr
 	$(BIN)/shards info out/demo.zarr
+
+# Then the smallest training run on that store (1 epoch, L1, CPU or all GPUs) and its metrics.
+demo-train: $(BIN)/.installed
+	test -f out/demo.zarr/zarr.json || $(MAKE) demo
+	rm -rf out/runs/demo
+	$(BIN)/trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out out/runs/demo
+	$(BIN)/trainer eval --checkpoint out/runs/demo
 
 test: $(BIN)/.installed lint
 	$(BIN)/pytest -q

@@ -299,7 +299,7 @@ def status(store, as_json, watch):
             if watch:
                 click.clear()
             click.echo(format_status(state))
-        if not watch or state["status"] != "running":
+        if not watch or state["effective_status"] != "running":
             return
         time.sleep(2)
 

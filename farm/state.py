@@ -76,6 +76,17 @@ class JobState:
         backend.put_atomic(STATE_KEY, self.to_json())
 
 
+#: a running driver rewrites the state every few seconds; this long without, it is gone
+LOST_AFTER_S = 60.0
+
+
 def load_state(url: str, storage_options: dict | None = None) -> dict | None:
+    """The job state as saved, plus ``effective_status``: ``lost`` when it says ``running``
+    but its driver has not updated it for :data:`LOST_AFTER_S` (a killed driver or machine)."""
     raw = Backend(url, storage_options).get(STATE_KEY)
-    return json.loads(raw) if raw is not None else None
+    if raw is None:
+        return None
+    st = json.loads(raw)
+    stale = st["status"] == "running" and now() - st["updated"] > LOST_AFTER_S
+    st["effective_status"] = "lost" if stale else st["status"]
+    return st

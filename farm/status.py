@@ -14,8 +14,14 @@ def format_status(st: dict) -> str:
     done = st["frames_done"] + st["frames_skipped"]
     total = st["frames_total"]
     eta = f"{st['eta_s']:.0f} s" if st.get("eta_s") else "-"
+    status = st.get("effective_status", st["status"])
+    if status == "lost":
+        status = (
+            "lost: says running, but its driver stopped updating it (killed?); "
+            "run the same `farm submit` again to resume"
+        )
     lines = [
-        f"job       {st['status']}  (driver {st['driver']}, updated {_ago(st['updated'])})",
+        f"job       {status}  (driver {st['driver']}, updated {_ago(st['updated'])})",
         f"store     {st['store']}",
         f"frames    {done}/{total} ({100 * done / total:.1f}%), {st['frames_per_s']:.2f} frames/s,"
         f" ETA {eta}",

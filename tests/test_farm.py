@@ -15,6 +15,7 @@ import psutil
 import pytest
 
 from farm.plan import JobConfig, material_specs, task_for
+from farm.state import LOST_AFTER_S
 from render_jobs.specs import derive_seed
 from storage.reader import ShardStore
 
@@ -266,6 +267,16 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
         subprocess.run([str(BIN / "ray"), "stop", "--force"], capture_output=True)
     done_before = len(ShardStore(str(out)).committed_shards())
     assert 2 <= done_before < 5
+    # the dead driver's state still says running; once it is older than LOST_AFTER_S (set
+    # back here rather than waited for), `farm status` calls the job lost and says what to do
+    path = Path(out) / "farm" / "job.json"
+    st = json.loads(path.read_text())
+    assert st["status"] == "running"
+    st["updated"] -= LOST_AFTER_S + 5
+    path.write_text(json.dumps(st))
+    s = farm("status", out)
+    assert s.returncode == 0 and "lost: says running" in s.stdout and "farm submit" in s.stdout
+    assert json.loads(farm("status", out, "--json").stdout)["effective_status"] == "lost"
     r = farm(*args)
     assert r.returncode == 0, r.stderr
     assert f"resuming: {done_before} of 5 shards already committed" in r.stdout
