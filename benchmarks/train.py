@@ -1,12 +1,16 @@
 """Training benchmark at 400²: images/s and data-wait share of the real training loop.
 
     .venv/bin/python -m benchmarks.train [--store out/bench-400.zarr] [--batch 4] [--steps 12]
-                                          [--workers 2] [--device auto]
+                                          [--workers 2] [--device auto] [--loss l1]
+                                          [--replicate N] [--log-every 4]
 
 Rows: the loader alone (DataLoader over the shards, no model: the data path's ceiling), and
 ``trainer.train.train`` itself (L1, from scratch, ``--max-steps``), whose images/s and data
 wait are read from the run's ``log.jsonl`` after the first ``--warmup`` steps. On CUDA the
-loop runs with bf16 autocast and channels_last, as in real runs.
+loop runs with bf16 autocast and channels_last, as in real runs. ``--loss l1+vgg`` times the
+perceptual loss with random VGG16 weights (speed does not depend on them). ``--replicate N``
+first writes the store N times over into a temporary store (``benchmarks.trainstore``), so
+that epochs last long enough at GPU speed.
 """
 
 from __future__ import annotations
@@ -21,9 +25,10 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
-from benchmarks.trainstore import DEFAULT, ensure_store
+from benchmarks.trainstore import DEFAULT, ensure_store, replicate
 from trainer.config import TrainConfig
 from trainer.data import Catalog, ShardStream
+from trainer.perceptual import vgg16_relu3_3
 from trainer.train import train
 
 
@@ -58,25 +63,41 @@ def main() -> None:
     ap.add_argument("--warmup", type=int, default=4)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
+    ap.add_argument("--loss", default="l1", choices=["l1", "l1+vgg"])
+    ap.add_argument("--replicate", type=int, default=0, help="copies of the store to train on")
+    ap.add_argument("--log-every", type=int, default=1, help="steps per timed window")
     args = ap.parse_args()
     store = ensure_store(args.store)
-    load = loader_rate(store, args.batch, args.workers, args.steps)
-    with tempfile.TemporaryDirectory(prefix="bench-train-") as run:
+    with tempfile.TemporaryDirectory(prefix="bench-train-") as tmp:
+        if args.replicate > 1:
+            store = replicate(store, f"{tmp}/replicated.zarr", args.replicate)
+        load = loader_rate(store, args.batch, args.workers, args.steps)
+        vgg = None
+        if args.loss == "l1+vgg":
+            vgg = f"{tmp}/vgg16-random.pth"
+            state = {f"features.{k}": v for k, v in vgg16_relu3_3().state_dict().items()}
+            torch.save(state, vgg)
+        run = f"{tmp}/run"
         cfg = TrainConfig(
-            store=(store,), out=run, loss="l1", batch_size=args.batch, workers=args.workers,
-            max_steps=args.steps, log_every=1, holdout_fraction=0.0, device=args.device,
-            checkpoint_every=10**9,
+            store=(store,), out=run, loss=args.loss, vgg_weights=vgg, batch_size=args.batch,
+            workers=args.workers, max_steps=args.steps, log_every=args.log_every,
+            holdout_fraction=0.0, device=args.device, checkpoint_every=10**9,
         )  # fmt: skip
         train(cfg)
         log = [json.loads(x) for x in (Path(run) / "log.jsonl").read_text().splitlines()]
-    timed = [r for r in log if r["step"] > args.warmup]
-    seconds = sum(args.batch / r["images_per_second"] for r in timed)
-    wait = sum(r["data_wait"] * args.batch / r["images_per_second"] for r in timed) / seconds
-    print(f"\ndevice: {device_name(args.device)}; 400², batch {args.batch}, {args.workers} workers")
+        samples = len(Catalog.snapshot([store], 0, 0.0, None).split("train"))
+    per_window = args.batch * args.log_every
+    timed = [r for r in log if r["step"] - args.log_every >= args.warmup]
+    seconds = sum(per_window / r["images_per_second"] for r in timed)
+    wait = sum(r["data_wait"] * per_window / r["images_per_second"] for r in timed) / seconds
+    print(
+        f"\ndevice: {device_name(args.device)}; 400², batch {args.batch}, {args.workers} "
+        f"workers, loss {args.loss}, {samples} samples an epoch"
+    )
     print(f"{'row':<28}{'images/s':>10}{'data wait':>11}")
     print(f"{'loader only':<28}{load:>10.1f}{'-':>11}")
     row = f"train (steps {args.warmup + 1}-{args.steps})"
-    print(f"{row:<28}{len(timed) * args.batch / seconds:>10.2f}{wait:>11.1%}")
+    print(f"{row:<28}{len(timed) * per_window / seconds:>10.2f}{wait:>11.1%}")
 
 
 if __name__ == "__main__":

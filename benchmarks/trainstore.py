@@ -2,11 +2,13 @@
 
 ``out/bench-400.zarr``: 4 uniform + 4 procedural materials x 5 suns at 400², 4 spp (the
 benchmarks time the network and the loader, not the renders' noise). Made once, then reused;
-copy it to a GPU machine to benchmark there (``--store``).
+copy it to a GPU machine to benchmark there (``--store``), and there :func:`replicate` it into a
+store long enough for GPU-speed epochs (its real renders repeated, materials renumbered).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 DEFAULT = "out/bench-400.zarr"
@@ -27,3 +29,29 @@ def ensure_store(path: str = DEFAULT) -> str:
     if not summary.ok:
         raise RuntimeError(f"benchmark store failed: {summary.failed_materials}")
     return path
+
+
+def replicate(src: str, dst: str, copies: int) -> str:
+    """Write ``dst``: ``copies`` x every shard of ``src`` (all committed, whole shards), with
+    material indices renumbered; returns ``dst``. For load tests where Blender is absent."""
+    from storage.reader import ShardStore
+    from storage.schema import Layout
+    from storage.writer import create_store, write_shard
+
+    source = ShardStore(src)
+    lay = source.layout
+    if source.committed_shards() != list(range(lay.num_shards)) or (
+        lay.num_materials % lay.materials_per_shard
+    ):
+        raise ValueError(f"{src}: replicate needs a complete store of whole shards")
+    layout = Layout(
+        lay.num_materials * copies, lay.suns_per_material, lay.resolution, lay.shard_size
+    )
+    settings = {**source.settings, "replicated_from": str(src), "copies": copies}
+    store = create_store(dst, layout, settings)
+    for c in range(copies):
+        for shard in range(lay.num_shards):
+            p = source.read_shard(shard)
+            p = dataclasses.replace(p, material_index=p.material_index + c * lay.num_materials)
+            write_shard(store, c * lay.num_shards + shard, p)
+    return dst
