@@ -1,12 +1,13 @@
 """Inference benchmark at 400²: ms per frame at batch 1, frames/s batched.
 
-    .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto]
+    .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
 
-Rows: eager fp32 (every device); on CUDA also bf16 + channels_last eager, and a CUDA-graph
-replay (``trainer.infer.GraphedRenderer``). The network is the paper's (width 64, skips) with
-fresh weights (speed does not depend on them); inputs are real maps and suns from the
-benchmark store (``benchmarks.trainstore``). Times are medians over ``--iters`` after warm-up,
-each synchronised on CUDA.
+Rows: eager fp32 (every device); on CUDA also bf16 + channels_last eager (cudnn.benchmark), the
+same with BatchNorm folded, a CUDA-graph replay of that (``trainer.infer.GraphedRenderer``),
+and with ``--compile`` torch.compile (inductor, ``reduce-overhead``: fused kernels + CUDA graphs).
+The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
+them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
+Times are medians over ``--iters`` after warm-up, each synchronised on CUDA.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from benchmarks.train import device_name
 from benchmarks.trainstore import DEFAULT, ensure_store
 from trainer.data import Catalog, SampleReader
 from trainer.infer import GraphedRenderer, pick_device
-from trainer.model import ModelConfig, NeuralRenderer
+from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
 from trainer.targets import model_inputs
 
 
@@ -46,6 +47,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--iters", type=int, default=20)
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
+    ap.add_argument("--compile", action="store_true", help="add a torch.compile row (CUDA)")
     args = ap.parse_args()
     device = pick_device(args.device)
     cuda = device.type == "cuda"
@@ -58,23 +60,31 @@ def main() -> None:
 
     rows = []
 
-    def eager(x, light, bf16: bool):
-        with torch.inference_mode(), torch.autocast(device.type, torch.bfloat16, enabled=bf16):
-            return model(x, light)
-
-    for name, bf16, fmt in [("eager fp32", False, torch.contiguous_format)] + (
-        [("eager bf16 channels_last", True, torch.channels_last)] if cuda else []
-    ):
-        model.to(memory_format=fmt)
+    def eager_row(name, net, bf16, fmt):
+        net.to(memory_format=fmt)
         x1, xb = x_all[:1].contiguous(memory_format=fmt), x_all.contiguous(memory_format=fmt)
-        one = timed(lambda x1=x1, bf16=bf16: eager(x1, l_all[:1], bf16), args.iters, cuda)
-        many = timed(lambda xb=xb, bf16=bf16: eager(xb, l_all, bf16), args.iters, cuda)
+
+        def run(x, light):
+            with torch.inference_mode(), torch.autocast(device.type, torch.bfloat16, enabled=bf16):
+                return net(x, light)
+
+        one = timed(lambda: run(x1, l_all[:1]), args.iters, cuda)
+        many = timed(lambda: run(xb, l_all), args.iters, cuda)
         rows.append((name, one * 1e3, args.batch / many))
+
+    eager_row("eager fp32", model, False, torch.contiguous_format)
     if cuda:
+        torch.backends.cudnn.benchmark = True
+        eager_row("eager bf16 channels_last", model, True, torch.channels_last)
+        folded = fold_batchnorm(model)
+        eager_row("  + BatchNorm folded", folded, True, torch.channels_last)
         g1, gb = GraphedRenderer(model, 1), GraphedRenderer(model, args.batch)
         one = timed(lambda: g1(x_all[:1], l_all[:1]), args.iters, cuda)
         many = timed(lambda: gb(x_all, l_all), args.iters, cuda)
-        rows.append(("CUDA graph bf16", one * 1e3, args.batch / many))
+        rows.append(("  + CUDA graph", one * 1e3, args.batch / many))
+        if args.compile:
+            compiled = torch.compile(folded, mode="reduce-overhead")
+            eager_row("torch.compile reduce-overhead", compiled, True, torch.channels_last)
     print(f"\ndevice: {device_name(args.device)}; 400², batch {args.batch} for frames/s")
     print(f"{'mode':<28}{'ms/frame (b=1)':>16}{'frames/s':>12}")
     for name, ms, fps in rows:

@@ -10,7 +10,7 @@ import torch
 
 from render_jobs.tonemap import tonemap as numpy_tonemap
 from trainer.data import epoch_order, rank_batches, steps_left, worker_batches
-from trainer.model import ModelConfig, NeuralRenderer, count_parameters
+from trainer.model import ModelConfig, NeuralRenderer, count_parameters, fold_batchnorm
 from trainer.perceptual import MissingWeightsError, RendererLoss, load_vgg, vgg16_relu3_3
 from trainer.targets import Tonemap, light_vector, model_inputs
 
@@ -65,6 +65,19 @@ def test_glorot_init():
     bound = (6 / (16 * 9 + 32 * 9)) ** 0.5
     assert float(conv.abs().max()) <= bound
     assert float(conv.std()) == pytest.approx(bound / 3**0.5, rel=0.1)
+
+
+def test_folded_batchnorm_gives_the_same_image():
+    model = NeuralRenderer(ModelConfig(resolution=64, width=16))
+    model.train()
+    for _ in range(3):  # running statistics that are not the identity
+        model(torch.rand(4, 10, 64, 64) * 2, torch.rand(4, 4))
+    model.eval()
+    x, light = torch.rand(2, 10, 64, 64), torch.rand(2, 4)
+    folded = fold_batchnorm(model)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
+    with torch.no_grad():
+        torch.testing.assert_close(folded(x, light), model(x, light), atol=1e-5, rtol=1e-4)
 
 
 @pytest.mark.parametrize("res", [0, 40, 100, 401])

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from trainer import checkpoint
-from trainer.model import ModelConfig, NeuralRenderer
+from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
 from trainer.targets import Tonemap, light_vector, model_inputs
 
 
@@ -70,15 +70,16 @@ class GraphedRenderer:
     """A CUDA-graph replay of the network at one batch size, bf16 and channels_last: the
     fast path for interactive use. ``__call__(x (N, C, H, W) float, light (N, 4))`` copies
     into static inputs, replays, and returns the static ``(N, 3, H, W) bfloat16`` output
-    (overwritten by the next call). CUDA only; written for the H100 benchmark and not
-    exercised on the CPU machines the tests run on."""
+    (overwritten by the next call). BatchNorm is folded into the convolutions first. CUDA only:
+    measured by ``benchmarks.infer`` on an H100, not exercised by the CPU test suite."""
 
     def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3):
         if not torch.cuda.is_available() or next(model.parameters()).device.type != "cuda":
             raise RuntimeError("CUDA graphs need the model on a CUDA device")
         cfg = model.config
         dev = next(model.parameters()).device
-        self.model = model.eval().to(memory_format=torch.channels_last)
+        torch.backends.cudnn.benchmark = True
+        self.model = fold_batchnorm(model).to(memory_format=torch.channels_last)
         self.x = torch.zeros(batch, cfg.in_channels, cfg.resolution, cfg.resolution, device=dev)
         self.x = self.x.contiguous(memory_format=torch.channels_last)
         self.light = torch.zeros(batch, 4, device=dev)

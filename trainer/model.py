@@ -19,6 +19,7 @@ Glorot (Xavier) uniform initialisation for every conv and linear weight, zero bi
 
 from __future__ import annotations
 
+import copy
 from dataclasses import asdict, dataclass
 
 import torch
@@ -142,3 +143,17 @@ class NeuralRenderer(nn.Module):
 
 def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
+
+
+@torch.no_grad()
+def fold_batchnorm(model: NeuralRenderer) -> NeuralRenderer:
+    """An inference copy (eval mode) with each BatchNorm folded into the convolution before
+    it, using the running statistics: the same outputs with fewer kernels and less traffic."""
+    folded = copy.deepcopy(model).eval()
+    for block in [*folded.encoder, folded.fuse, *folded.decoder]:
+        conv, bn = block[0], block[1]
+        scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
+        conv.weight = nn.Parameter(conv.weight * scale[:, None, None, None])
+        conv.bias = nn.Parameter(bn.bias - bn.running_mean * scale)
+        block[1] = nn.Identity()
+    return folded

@@ -94,9 +94,12 @@ class RendererLoss(nn.Module):
         self.register_buffer("std", torch.tensor(STD).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Scalar fp32 loss. Under autocast the VGG convolutions run in its dtype (bf16 on
+        CUDA); the L1 and the feature MSE are always computed in fp32."""
+        pred, target = pred.float(), target.float()
         loss = F.l1_loss(pred, target)
         if self.vgg is not None:
             both = (torch.cat([pred, target]) - self.mean) / self.std
-            fp, ft = self.vgg(both).chunk(2)
-            loss = loss + self.perceptual_weight * F.mse_loss(fp, ft.detach())
+            fp, ft = self.vgg(both).chunk(2)  # channels_last when the VGG weights are
+            loss = loss + self.perceptual_weight * F.mse_loss(fp.float(), ft.detach().float())
         return loss

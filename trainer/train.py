@@ -7,8 +7,9 @@ same loop as one DDP job: NCCL on GPUs, gloo on CPU. Examples::
     trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo     # torchrun
     trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint head:29400 ...    # 2 nodes x 8
 
-On CUDA: bf16 autocast and channels_last. Each rank reads its own disjoint part of every epoch
-(``trainer.data``); ranks that end an epoch one batch short are handled by DDP's ``join``.
+On CUDA: bf16 autocast and channels_last (the U-Net and VGG16), cudnn.benchmark. Each rank
+reads its own disjoint part of every epoch (``trainer.data``); ranks that end an epoch one
+batch short are handled by DDP's ``join``.
 Rank 0 writes the progress bar, ``RUNDIR/log.jsonl``, TensorBoard events under ``RUNDIR/tb``
 and the checkpoints (``trainer.checkpoint``). A NaN or infinite gradient norm (identical on
 every rank, since gradients are all-reduced) stops the run with :class:`TrainingDiverged`
@@ -142,7 +143,9 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
     cuda = device.type == "cuda"
     fmt = torch.channels_last if cuda else torch.contiguous_format
     model = NeuralRenderer(model_cfg).to(device, memory_format=fmt)
-    criterion = RendererLoss(vgg, cfg.perceptual_weight).to(device)
+    criterion = RendererLoss(vgg, cfg.perceptual_weight).to(device, memory_format=fmt)
+    if cuda:
+        torch.backends.cudnn.benchmark = True  # fixed shapes: let cuDNN pick its fastest convs
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
     step, epoch, position = 0, 0, 0
     if state is not None:
@@ -242,9 +245,9 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
                 x = model_inputs(maps, model_cfg.roughness_channels).contiguous(memory_format=fmt)
                 light = batch["light"].to(device, non_blocking=True)
                 target = tonemap(batch["render"].to(device, non_blocking=True))
-                with autocast:
+                with autocast:  # the U-Net and VGG in bf16; L1 and feature MSE in fp32
                     pred = net(x, light)
-                loss = criterion(pred.float(), target)
+                    loss = criterion(pred, target)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 if cfg.clip > 0:
