@@ -99,7 +99,8 @@ class RendererLoss(nn.Module):
         pred, target = pred.float(), target.float()
         loss = F.l1_loss(pred, target)
         if self.vgg is not None:
-            both = (torch.cat([pred, target]) - self.mean) / self.std
-            fp, ft = self.vgg(both).chunk(2)  # channels_last when the VGG weights are
-            loss = loss + self.perceptual_weight * F.mse_loss(fp.float(), ft.detach().float())
+            fp = self.vgg((pred - self.mean) / self.std)
+            with torch.no_grad():  # no backward through the target's half
+                ft = self.vgg((target - self.mean) / self.std)
+            loss = loss + self.perceptual_weight * F.mse_loss(fp.float(), ft.float())
         return loss
