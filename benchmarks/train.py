@@ -66,7 +66,6 @@ def main() -> None:
     ap.add_argument("--loss", default="l1", choices=["l1", "l1+vgg"])
     ap.add_argument("--replicate", type=int, default=0, help="copies of the store to train on")
     ap.add_argument("--log-every", type=int, default=1, help="steps per timed window")
-    ap.add_argument("--compile", action="store_true", help="torch.compile (CUDA)")
     args = ap.parse_args()
     store = ensure_store(args.store)
     with tempfile.TemporaryDirectory(prefix="bench-train-") as tmp:
@@ -83,7 +82,6 @@ def main() -> None:
             store=(store,), out=run, loss=args.loss, vgg_weights=vgg, batch_size=args.batch,
             workers=args.workers, max_steps=args.steps, log_every=args.log_every,
             holdout_fraction=0.0, device=args.device, checkpoint_every=10**9,
-            compile=args.compile,
         )  # fmt: skip
         train(cfg)
         log = [json.loads(x) for x in (Path(run) / "log.jsonl").read_text().splitlines()]
@@ -95,7 +93,6 @@ def main() -> None:
     print(
         f"\ndevice: {device_name(args.device)}; 400², batch {args.batch}, {args.workers} "
         f"workers, loss {args.loss}, {samples} samples an epoch"
-        + (", torch.compile" if args.compile else "")
     )
     print(f"{'row':<28}{'images/s':>10}{'data wait':>11}")
     print(f"{'loader only':<28}{load:>10.1f}{'-':>11}")

@@ -53,7 +53,6 @@ class TrainConfig:
         "auto", "auto (CUDA if present), cuda or cpu", choices=("auto", "cuda", "cpu")
     )
     log_samples: bool = _opt(False, "record each rank's sample ids in samples/rank-R.txt")
-    compile: bool = _opt(False, "torch.compile the U-Net and the loss (CUDA only)")
 
     def __post_init__(self) -> None:
         self.store = tuple(self.store)

@@ -155,10 +155,6 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
             group["lr"] = cfg.lr
         step, epoch, position = state["step"], state["epoch"], state["position"]
     net = DDP(model, device_ids=[device.index] if cuda else None) if distributed else model
-    if cfg.compile:
-        if not cuda:
-            raise RunError("--compile is for CUDA runs only (this run is on the CPU)")
-        net, criterion = torch.compile(net), torch.compile(criterion)
     autocast = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
 
     # ---- data ---------------------------------------------------------------------------------
