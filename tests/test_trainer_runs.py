@@ -44,6 +44,22 @@ def argv(store, out, **kw) -> list[str]:
     return to_argv(config(store, out, **kw))
 
 
+def run_group(cmd: list[str], env: dict | None = None, timeout: float = 300):
+    """Run ``cmd`` in its own process group; on a timeout kill the whole group (torchrun and
+    its ranks), so that a hung run leaves nothing behind."""
+    proc = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True,
+    )  # fmt: skip
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise
+    return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
+
+
 def sample_lines(run: Path, rank: int = 0) -> list[str]:
     return (run / "samples" / f"rank-{rank}.txt").read_text().splitlines()
 
@@ -120,7 +136,7 @@ def test_torchrun_two_ranks_stay_identical_and_read_disjoint_samples(tiny_store,
     out = tmp_path / "ddp"
     cmd = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
     cmd += argv(tiny_store, out, epochs=2, batch_size=4, workers=2, log_samples=True)
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    r = run_group(cmd, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "--standalone" in r.stderr and "done: " in r.stdout
     catalog = Catalog.from_dict(checkpoint.load(out)["catalog"])
@@ -277,7 +293,7 @@ def test_trains_from_an_s3_store(tiny_store, s3, tmp_path):
     out = tmp_path / "s3run"
     cmd = [sys.executable, "-m", "trainer.cli", "train"]
     cmd += argv(remote, out, max_steps=3, workers=2, log_samples=True)
-    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    r = run_group(cmd, env=env, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     state = checkpoint.load(out)
     assert state["step"] == 3 and state["catalog"]["urls"] == [url]
@@ -295,7 +311,7 @@ def test_torchrun_restart_resumes_from_the_last_checkpoint(tiny_store, tmp_path)
     cmd += ["--max-restarts", "1"]
     cmd += argv(tiny_store, out, epochs=2, checkpoint_every=2, log_samples=True)
     env = {**os.environ, "SHADERBALL_TRAIN_CRASH_AT": "5"}
-    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+    r = run_group(cmd, env=env, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "from step 4" in r.stdout  # the restarted attempt resumed
     state = checkpoint.load(out)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import os
 import shlex
-import subprocess
 import sys
 from pathlib import Path
 
@@ -104,7 +103,8 @@ def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_ru
         click.echo(f"on another node: {line}", err=True)
     if dry_run:
         return
-    sys.exit(subprocess.run(argv).returncode)
+    sys.stderr.flush()
+    os.execv(argv[0], argv)  # torchrun takes this process's place: signals reach it directly
 
 
 @main.command("eval")
