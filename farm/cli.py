@@ -168,6 +168,12 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
     help="Ray cluster to join (else RAY_ADDRESS, else an embedded local Ray).",
 )
 @click.option(
+    "--ray-dashboard/--no-ray-dashboard",
+    default=True,
+    show_default=True,
+    help="Start the embedded Ray's dashboard (off saves CPU on small machines).",
+)
+@click.option(
     "--max-attempts",
     default=3,
     show_default=True,
@@ -207,6 +213,7 @@ def submit(
     cpus_per_worker,
     gpus_per_worker,
     address,
+    ray_dashboard,
     max_attempts,
     task_timeout,
     recycle_after,
@@ -241,6 +248,7 @@ def submit(
             cpus_per_worker=cpus_per_worker,
             gpus_per_worker=gpus_per_worker,
             address=address,
+            ray_dashboard=ray_dashboard,
             max_attempts=max_attempts,
             task_timeout_s=task_timeout,
             recycle_after=recycle_after,

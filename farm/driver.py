@@ -36,6 +36,9 @@ from storage.convert import payload_from_packed
 from storage.writer import create_store, write_shard
 
 STATE_EVERY_S = 2.0
+#: tasks a worker may hold: the next waits in its actor's queue, so it never idles while the
+#: driver handles a result (the second is only given while the queue outnumbers the workers)
+PIPELINE = 2
 
 
 class FarmError(RuntimeError):
@@ -53,6 +56,7 @@ class Summary:
     wall_s: float
     dashboard: str | None
     startup_s: float
+    render_end_s: float  # from the start to the last result (before workers and Ray stop)
 
     @property
     def ok(self) -> bool:
@@ -89,9 +93,9 @@ def _keep_ray_on_loopback(address: str | None) -> None:
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
 
-def connect(address: str | None) -> str | None:
-    """Join the Ray cluster at ``address`` (or ``RAY_ADDRESS``), else start an embedded one.
-    Returns the dashboard URL."""
+def connect(address: str | None, dashboard: bool = True) -> str | None:
+    """Join the Ray cluster at ``address`` (or ``RAY_ADDRESS``), else start an embedded one
+    (with its dashboard unless ``dashboard`` is false). Returns the dashboard URL."""
     import ray
 
     address = address or os.environ.get("RAY_ADDRESS") or None
@@ -101,7 +105,7 @@ def connect(address: str | None) -> str | None:
     else:
         ctx = ray.init(  # embedded: everything on the loopback interface
             num_cpus=os.cpu_count(),
-            include_dashboard=True,
+            include_dashboard=dashboard,
             log_to_driver=False,
             _node_ip_address="127.0.0.1",
             dashboard_host="127.0.0.1",
@@ -200,13 +204,15 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     if committed:
         echo(f"resuming: {len(committed)} of {layout.num_shards} shards already committed")
     if not todo:  # keep the finished job's state as it is
-        return Summary(cfg.out, layout.num_samples, 0, state.frames_skipped, {}, [], 0.0, None, 0.0)
+        return Summary(
+            cfg.out, layout.num_samples, 0, state.frames_skipped, {}, [], 0.0, None, 0.0, 0.0
+        )
 
     import ray
     from ray.exceptions import RayActorError, RayTaskError
 
-    state.dashboard = connect(cfg.address)
-    echo(f"ray dashboard: {state.dashboard}")
+    state.dashboard = connect(cfg.address, cfg.ray_dashboard)
+    echo(f"ray dashboard: {state.dashboard or 'off'}")
     workers = cfg.workers or max(
         1, int(ray.cluster_resources().get("CPU", 1)) // cfg.cpus_per_worker
     )
@@ -256,6 +262,7 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
             not_before[m] = now() + cfg.backoff_s * 2 ** (attempts[m] - 1)
             queue.append(m)
         if w.failures >= cfg.blocklist_after and wid in pool.actors:
+            release_queued(wid)
             pool.remove(wid, "blocklisted")
             pool.start()
         bar.set_postfix(
@@ -263,6 +270,14 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
             failures=sum(attempts.values()),
             refresh=False,
         )
+
+    def release_queued(wid: str, keep=None) -> None:
+        """Put the tasks still queued at a worker being removed back in the queue, uncounted:
+        they never started there (``keep``: a ref that stays, to fail on its own)."""
+        for r, (q, m, _) in list(inflight.items()):
+            if q == wid and r is not keep:
+                inflight.pop(r)
+                queue.appendleft(m)
 
     def done(m: int, wid: str, res: dict) -> None:
         w = state.workers[wid]
@@ -297,8 +312,15 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     try:
         while queue or inflight:
             t = now()
-            idle = [w for w in pool.actors if state.workers[w].status == "idle"]
-            for wid in idle:
+            load = collections.Counter(wid for wid, _, _ in inflight.values())
+            usable = [w for w in pool.actors if state.workers[w].status in ("idle", "busy")]
+            free = [w for w in usable if load[w] == 0]
+            if len(queue) > len(usable):
+                free += [w for w in usable if 0 < load[w] < PIPELINE]
+                free += [w for w in usable if load[w] == 0] * (PIPELINE - 1)
+            for wid in free:
+                if state.workers[wid].status not in ("idle", "busy"):
+                    continue  # blocklisted or gone since the list was made
                 pick = None
                 for m in queue:
                     if not_before.get(m, 0) > t:
@@ -315,7 +337,8 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
                     task_for(cfg, pick, specs[pick]).to_dict(), cfg.task_timeout_s
                 )
                 inflight[ref] = (wid, pick, t)
-                state.workers[wid].status, state.workers[wid].current = "busy", pick
+                if state.workers[wid].status == "idle":
+                    state.workers[wid].status, state.workers[wid].current = "busy", pick
             waiting = list(inflight) + list(pool.starting)
             ready, _ = ray.wait(waiting, num_returns=1, timeout=0.25) if waiting else ([], [])
             if not waiting:
@@ -338,10 +361,15 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
                 wid, m, started = inflight.pop(ref)
                 w = state.workers[wid]
                 w.last_seen, w.current = now(), None
+                queued = [r for r, (q, _, _) in inflight.items() if q == wid]
+                for r in queued[:1]:  # the worker starts its queued task now: time it from here
+                    inflight[r] = (wid, inflight[r][1], now())
+                    w.current = inflight[r][1]
                 try:
                     res = ray.get(ref)
                 except RayActorError as exc:
                     if wid in pool.actors:  # died under us: replace it
+                        release_queued(wid)
                         pool.remove(wid, "dead")
                         pool.start()
                     if ref in timed_out:
@@ -352,21 +380,24 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
                     continue
                 except RayTaskError as exc:
                     cause = exc.cause if getattr(exc, "cause", None) else exc
-                    if w.status == "busy":
+                    if w.status == "busy" and not queued:
                         w.status = "idle"
                     fail(m, wid, f"{type(cause).__name__}: {str(cause).splitlines()[0]}")
                     continue
-                w.status = "idle"
+                if not queued:
+                    w.status = "idle"
                 done(m, wid, res)
             for ref, (wid, _m, started) in list(inflight.items()):
                 if now() - started > guard and wid in pool.actors:
                     timed_out.add(ref)
+                    release_queued(wid, keep=ref)
                     pool.remove(wid, "dead")  # its ref now fails with RayActorError
                     pool.start()
             if now() - last_save > STATE_EVERY_S:
                 state.save(store.backend)
                 last_save = now()
         state.status = "failed" if failed else "done"
+        render_end = time.perf_counter() - t_start
     except BaseException:
         state.status = "interrupted"
         raise
@@ -386,4 +417,5 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
         wall_s=time.perf_counter() - t_start,
         dashboard=state.dashboard,
         startup_s=startup if startup is not None else time.perf_counter() - t_start,
+        render_end_s=render_end,
     )

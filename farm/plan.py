@@ -42,6 +42,7 @@ class JobConfig:
     cpus_per_worker: int = 1
     gpus_per_worker: int = 0
     address: str | None = None
+    ray_dashboard: bool = True  # the embedded Ray's dashboard (it costs CPU on small machines)
     max_attempts: int = 3
     blocklist_after: int = 3
     task_timeout_s: float = 600.0

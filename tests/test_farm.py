@@ -277,8 +277,9 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
     s = farm("status", out)
     assert s.returncode == 0 and "lost: says running" in s.stdout and "farm submit" in s.stdout
     assert json.loads(farm("status", out, "--json").stdout)["effective_status"] == "lost"
-    r = farm(*args)
+    r = farm(*args, "--no-ray-dashboard")  # how to run is not part of the dataset
     assert r.returncode == 0, r.stderr
+    assert "ray dashboard: off" in r.stdout
     assert f"resuming: {done_before} of 5 shards already committed" in r.stdout
     assert f"{20 - 4 * done_before} rendered, {4 * done_before} already there" in r.stdout
     assert_exactly_once(out, 10)
