@@ -24,6 +24,15 @@ def _make_config(kwargs: dict):
         _fail(exc)
 
 
+device_option = click.option(
+    "--device",
+    default="auto",
+    show_default=True,
+    type=click.Choice(["auto", "cuda", "cpu"]),
+    help="where the network runs",
+)
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
     """Train and run the neural material renderer on shard stores made by ``farm submit``.
@@ -113,13 +122,7 @@ def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_ru
 @click.option("--batch-size", default=8, show_default=True, type=int, help="images per batch")
 @click.option("--grid", type=click.Path(path_type=Path), default=None, help="PNG grid path")
 @click.option("--grid-count", default=4, show_default=True, type=int, help="samples in the grid")
-@click.option(
-    "--device",
-    default="auto",
-    show_default=True,
-    type=click.Choice(["auto", "cuda", "cpu"]),
-    help="where the network runs",
-)
+@device_option
 @click.option("--json", "as_json", is_flag=True, help="print the metrics as JSON")
 def eval_(ckpt, stores, batch_size, grid, grid_count, device, as_json):
     """PSNR and SSIM on the held-out materials, overall and per kind, and a PNG grid
@@ -170,13 +173,7 @@ def _floats(text: str | None, n: int, name: str):
 @click.option("--sun", default=None, help="X,Y,Z sun direction (z up) [the sample's]")
 @click.option("--turbidity", type=float, default=None, help="sky turbidity [the sample's]")
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="PNG")
-@click.option(
-    "--device",
-    default="auto",
-    show_default=True,
-    type=click.Choice(["auto", "cuda", "cpu"]),
-    help="where the network runs",
-)
+@device_option
 def render(ckpt, store, sample, sun, turbidity, output, device):
     """Render a stored material with the network, under its own sun or any other. Example:
 
