@@ -314,10 +314,8 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
             t = now()
             load = collections.Counter(wid for wid, _, _ in inflight.values())
             usable = [w for w in pool.actors if state.workers[w].status in ("idle", "busy")]
-            free = [w for w in usable if load[w] == 0]
-            if len(queue) > len(usable):
-                free += [w for w in usable if 0 < load[w] < PIPELINE]
-                free += [w for w in usable if load[w] == 0] * (PIPELINE - 1)
+            depth = PIPELINE if len(queue) > len(usable) else 1
+            free = [w for k in range(depth) for w in usable if load[w] <= k]  # one each first
             for wid in free:
                 if state.workers[wid].status not in ("idle", "busy"):
                     continue  # blocklisted or gone since the list was made

@@ -32,6 +32,7 @@ from torch.utils.data import IterableDataset, get_worker_info
 from storage.dataset import Dataset, split_by_material
 from storage.errors import StoreError
 from storage.reader import ShardStore
+from trainer.targets import light_vector
 
 # ---- pure partition functions ---------------------------------------------------------------
 
@@ -186,8 +187,6 @@ class SampleReader:
     def batch(self, ids: np.ndarray) -> dict[str, torch.Tensor]:
         """Samples ``ids`` → ``maps (B, 11, H, W) uint8``, ``render (B, 3, H, W) float16``
         (linear HDR), ``light (B, 4) float32``, ``id (B,) int64``."""
-        from trainer.targets import light_vector
-
         maps, renders, lights = [], [], []
         for i in ids:
             s, k = self.split.refs[i]

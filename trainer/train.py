@@ -110,9 +110,7 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
     vgg = load_vgg(cfg.vgg_weights) if cfg.loss == "l1+vgg" else None  # fail before any work
     if state is not None:
         catalog = Catalog.from_dict(state["catalog"])
-        if list(cfg.store) != catalog.urls and [str(Path(s)) for s in cfg.store] != [
-            str(Path(u)) for u in catalog.urls
-        ]:
+        if [str(Path(u)) for u in cfg.store] != [str(Path(u)) for u in catalog.urls]:
             raise RunError(f"{found} trained on {catalog.urls}, not {list(cfg.store)}")
         for name in ("seed", "shuffle_buffer"):  # they fix the epoch order being resumed
             if state["config"][name] != getattr(cfg, name):
@@ -235,7 +233,7 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
         stream.set_position(epoch, position)
         total = stream.steps()
         bar = tqdm(total=total, desc=f"epoch {epoch + 1}/{cfg.epochs}", disable=not master)
-        window = {"t": time.perf_counter(), "wait": 0.0, "images": 0, "loss": 0.0, "n": 0}
+        window = _new_window()
         join = net.join() if distributed else contextlib.nullcontext()
         with join, contextlib.closing(bar):  # the bar ends its line even on errors
             t_fetch = time.perf_counter()
@@ -275,9 +273,7 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
                     check_finite()
                     if master:
                         _log(out, writer, bar, step, epoch, window, world)
-                    window = {
-                        "t": time.perf_counter(), "wait": 0.0, "images": 0, "loss": 0.0, "n": 0
-                    }  # fmt: skip
+                    window = _new_window()
                 if step % cfg.checkpoint_every == 0:
                     last_ckpt = save() or last_ckpt
                 if cfg.max_steps is not None and step >= cfg.max_steps:
@@ -303,6 +299,11 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
     if writer is not None:
         writer.close()
     return summary
+
+
+def _new_window() -> dict:
+    """Running totals between two log lines."""
+    return {"t": time.perf_counter(), "wait": 0.0, "images": 0, "loss": 0.0, "n": 0}
 
 
 def _log(out: Path, writer, bar, step: int, epoch: int, window: dict, world: int) -> None:
