@@ -3,11 +3,14 @@
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
 
 Rows: eager fp32 (every device); on CUDA also bf16 + channels_last eager (cudnn.benchmark), the
-same with BatchNorm folded, a CUDA-graph replay of that (``trainer.infer.GraphedRenderer``),
-and with ``--compile`` torch.compile (inductor, ``reduce-overhead``: fused kernels + CUDA graphs).
+same with BatchNorm folded, that with the weights cast to bf16 once and replayed as a CUDA graph
+(``trainer.infer.GraphedRenderer``), and with ``--compile`` the same after torch.compile
+(Inductor ``max-autotune-no-cudagraphs``: fused pointwise work around cuDNN, then captured).
+``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
-Times are medians over ``--iters`` after warm-up, each synchronised on CUDA.
+Times are medians over ``--iters`` after warm-up, each synchronised on CUDA; ``max |diff|`` is
+the largest difference of each mode's batch-1 image from eager fp32 (display units, [0, 1]).
 """
 
 from __future__ import annotations
@@ -47,7 +50,11 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--iters", type=int, default=20)
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
-    ap.add_argument("--compile", action="store_true", help="add a torch.compile row (CUDA)")
+    ap.add_argument(
+        "--compile",
+        action="store_true",
+        help="add a torch.compile + CUDA graph row (CUDA; minutes of autotuning)",
+    )
     args = ap.parse_args()
     device = pick_device(args.device)
     cuda = device.type == "cuda"
@@ -59,6 +66,12 @@ def main() -> None:
     model = NeuralRenderer(ModelConfig(resolution=400)).to(device).eval()
 
     rows = []
+    with torch.inference_mode():
+        reference = model(x_all[:1], l_all[:1]).float()
+
+    def error(out: torch.Tensor) -> float:
+        """Largest difference from the eager fp32 image, in [0, 1] display units."""
+        return (out.float() - reference).abs().max().item()
 
     def eager_row(name, net, bf16, fmt):
         net.to(memory_format=fmt)
@@ -70,7 +83,14 @@ def main() -> None:
 
         one = timed(lambda: run(x1, l_all[:1]), args.iters, cuda)
         many = timed(lambda: run(xb, l_all), args.iters, cuda)
-        rows.append((name, one * 1e3, args.batch / many))
+        rows.append((name, one * 1e3, args.batch / many, error(run(x1, l_all[:1]))))
+
+    def graph_row(name, compile):
+        g1 = GraphedRenderer(model, 1, compile=compile)
+        gb = GraphedRenderer(model, args.batch, compile=compile)
+        one = timed(lambda: g1(x_all[:1], l_all[:1]), args.iters, cuda)
+        many = timed(lambda: gb(x_all, l_all), args.iters, cuda)
+        rows.append((name, one * 1e3, args.batch / many, error(g1(x_all[:1], l_all[:1]))))
 
     eager_row("eager fp32", model, False, torch.contiguous_format)
     if cuda:
@@ -78,17 +98,13 @@ def main() -> None:
         eager_row("eager bf16 channels_last", model, True, torch.channels_last)
         folded = fold_batchnorm(model)
         eager_row("  + BatchNorm folded", folded, True, torch.channels_last)
-        g1, gb = GraphedRenderer(model, 1), GraphedRenderer(model, args.batch)
-        one = timed(lambda: g1(x_all[:1], l_all[:1]), args.iters, cuda)
-        many = timed(lambda: gb(x_all, l_all), args.iters, cuda)
-        rows.append(("  + CUDA graph", one * 1e3, args.batch / many))
+        graph_row("  + bf16 weights, CUDA graph", False)
         if args.compile:
-            compiled = torch.compile(folded, mode="reduce-overhead")
-            eager_row("torch.compile reduce-overhead", compiled, True, torch.channels_last)
+            graph_row("torch.compile + CUDA graph", True)
     print(f"\ndevice: {device_name(args.device)}; 400², batch {args.batch} for frames/s")
-    print(f"{'mode':<28}{'ms/frame (b=1)':>16}{'frames/s':>12}")
-    for name, ms, fps in rows:
-        print(f"{name:<28}{ms:>16.2f}{fps:>12.1f}")
+    print(f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'max |diff|':>12}")
+    for name, ms, fps, err in rows:
+        print(f"{name:<32}{ms:>16.2f}{fps:>12.1f}{err:>12.4f}")
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
 """The neural renderer's trainer: U-Net + light encoder, streaming DDP over shards (issue #5).
 
-Not built yet: the ``trainer`` command group exists so the CLI surface is in place.
-Importing ``trainer`` never loads Blender.
+``trainer launch`` / ``train`` / ``eval`` / ``render`` (``trainer.cli``); the Python API is
+``trainer.infer.Renderer``. Importing ``trainer`` never loads Blender.
 """

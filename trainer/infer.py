@@ -67,39 +67,40 @@ class Renderer:
 
 
 class GraphedRenderer:
-    """A CUDA-graph replay of the network at one batch size, bf16 and channels_last: the
-    fast path for interactive use. ``__call__(x (N, C, H, W) float, light (N, 4))`` copies
-    into static inputs, replays, and returns the static ``(N, 3, H, W) bfloat16`` output
-    (overwritten by the next call). BatchNorm is folded into the convolutions first. CUDA only:
-    measured by ``benchmarks.infer`` on an H100, not exercised by the CPU test suite."""
+    """A CUDA-graph replay of the network at one batch size: the fast path for interactive use.
 
-    def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3):
+    BatchNorm is folded into the convolutions and the weights are cast to bf16 once
+    (channels_last), so no autocast casts run per call. With ``compile=True`` the folded model
+    is first compiled by Inductor (``max-autotune-no-cudagraphs``: bias, ReLU, upsampling and
+    concatenation fused around the cuDNN convolutions; minutes of autotuning at first use)
+    and then captured. ``__call__(x (N, C, H, W) float, light (N, 4))`` copies into static
+    inputs, replays, and returns the static ``(N, 3, H, W) bfloat16`` output (overwritten by
+    the next call). CUDA only: measured by ``benchmarks.infer`` on an H100, not exercised by
+    the CPU test suite."""
+
+    def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3, compile: bool = False):
         if not torch.cuda.is_available() or next(model.parameters()).device.type != "cuda":
             raise RuntimeError("CUDA graphs need the model on a CUDA device")
         cfg = model.config
         dev = next(model.parameters()).device
         torch.backends.cudnn.benchmark = True
-        self.model = fold_batchnorm(model).to(memory_format=torch.channels_last)
-        self.x = torch.zeros(batch, cfg.in_channels, cfg.resolution, cfg.resolution, device=dev)
-        self.x = self.x.contiguous(memory_format=torch.channels_last)
-        self.light = torch.zeros(batch, 4, device=dev)
+        fmt, bf16 = torch.channels_last, torch.bfloat16
+        self.model = fold_batchnorm(model).to(bf16, memory_format=fmt)
+        net = self.model
+        if compile:
+            net = torch.compile(net, mode="max-autotune-no-cudagraphs", dynamic=False)
+        shape = (batch, cfg.in_channels, cfg.resolution, cfg.resolution)
+        self.x = torch.zeros(shape, device=dev, dtype=bf16).contiguous(memory_format=fmt)
+        self.light = torch.zeros(batch, 4, device=dev, dtype=bf16)
         stream = torch.cuda.Stream()
         stream.wait_stream(torch.cuda.current_stream())
-        with (
-            torch.cuda.stream(stream),
-            torch.inference_mode(),
-            torch.autocast("cuda", torch.bfloat16),
-        ):
+        with torch.cuda.stream(stream), torch.inference_mode():
             for _ in range(warmup):
-                self.model(self.x, self.light)
+                net(self.x, self.light)
         torch.cuda.current_stream().wait_stream(stream)
         self.graph = torch.cuda.CUDAGraph()
-        with (
-            torch.cuda.graph(self.graph),
-            torch.inference_mode(),
-            torch.autocast("cuda", torch.bfloat16),
-        ):
-            self.out = self.model(self.x, self.light)
+        with torch.cuda.graph(self.graph), torch.inference_mode():
+            self.out = net(self.x, self.light)
 
     def __call__(self, x: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         self.x.copy_(x)

@@ -1,0 +1,83 @@
+"""Where inference time goes: CUDA kernel time per operator of the network at 400².
+
+    python -m benchmarks.infer_profile [--batch 128] [--compile]
+
+Runs the BatchNorm-folded bf16 channels_last network (the ``benchmarks.infer`` fast path)
+under ``torch.profiler`` and prints the CUDA kernels by total time a forward (with their share
+and calls a forward), then every convolution layer's time and achieved TFLOP/s. Fresh
+weights; speed does not depend on them. CUDA only.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+from torch import nn
+from torch.autograd import DeviceType
+from torch.profiler import ProfilerActivity, profile
+
+from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
+
+
+def conv_flops(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> dict:
+    """``{(input shape, weight shape): FLOPs}`` of every convolution in one forward."""
+    flops: dict = {}
+
+    def hook(conv, inputs, out):
+        w = conv.weight
+        key = (list(inputs[0].shape), list(w.shape))
+        flops[str(key)] = 2.0 * out.numel() * w[0].numel()
+
+    handles = [m.register_forward_hook(hook) for m in net.modules() if isinstance(m, nn.Conv2d)]
+    net(x, light)
+    for h in handles:
+        h.remove()
+    return flops
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batch", type=int, default=128)
+    ap.add_argument("--compile", action="store_true", help="profile torch.compile instead")
+    ap.add_argument("--rows", type=int, default=25)
+    args = ap.parse_args()
+    torch.backends.cudnn.benchmark = True
+    cfg = ModelConfig(resolution=400)
+    fmt = torch.channels_last
+    net = fold_batchnorm(NeuralRenderer(cfg).cuda()).to(torch.bfloat16, memory_format=fmt)
+    x = torch.rand(args.batch, cfg.in_channels, 400, 400, device="cuda", dtype=torch.bfloat16)
+    x = x.contiguous(memory_format=fmt)
+    light = torch.rand(args.batch, 4, device="cuda", dtype=torch.bfloat16)
+    with torch.inference_mode():
+        flops = conv_flops(net, x, light)
+        if args.compile:
+            net = torch.compile(net, mode="max-autotune-no-cudagraphs")
+        for _ in range(5):
+            net(x, light)
+        torch.cuda.synchronize()
+        with profile(
+            activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA], record_shapes=True
+        ) as prof:
+            for _ in range(3):
+                net(x, light)
+            torch.cuda.synchronize()
+    kernels = [r for r in prof.key_averages() if r.device_type == DeviceType.CUDA]
+    kernels.sort(key=lambda r: r.self_device_time_total, reverse=True)
+    total = sum(r.self_device_time_total for r in kernels) / 3 / 1e3
+    print(f"\nbatch {args.batch}: {total:.3f} ms of kernels a forward")
+    print(f"{'kernel':<80}{'ms':>8}{'share':>7}{'calls':>6}")
+    for r in kernels[: args.rows]:
+        ms = r.self_device_time_total / 3 / 1e3
+        if ms > 0:
+            print(f"{r.key[:79]:<80}{ms:>8.3f}{ms / total:>7.1%}{r.count // 3:>6}")
+    print(f"\n{'convolution (input, weight)':<60}{'ms':>8}{'TFLOP/s':>9}")
+    for r in prof.key_averages(group_by_input_shape=True):
+        key = str((r.input_shapes[0], r.input_shapes[1])) if len(r.input_shapes) > 1 else ""
+        if r.key == "aten::convolution" and key in flops:
+            ms = r.device_time_total / 3 / 1e3
+            print(f"{key:<60}{ms:>8.3f}{flops[key] / ms / 1e9:>9.0f}")
+
+
+if __name__ == "__main__":
+    main()
