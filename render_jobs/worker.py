@@ -41,15 +41,40 @@ def sweep_stale_scratch(folder: str) -> None:
             shutil.rmtree(entry.path, ignore_errors=True)
 
 
+@contextlib.contextmanager
+def thread_pool_of(threads: int):
+    """Inside, load Blender so that its thread pool holds ``threads`` threads (0: all cores).
+
+    Blender sizes its TBB pool from the process's CPU mask once, when ``bpy`` loads, whatever
+    ``render.threads`` says. With ``render.threads`` below the core count, the pool's spare
+    workers spin in ``sched_yield`` through every render: a 1-thread worker on 2 cores used
+    1.97 cores of CPU for the same frame time, so two such workers slowed each other. So the
+    process may use only ``threads`` CPUs while Blender loads; on leaving, every thread gets
+    the full mask back, and the OS still places the worker anywhere. Linux only (elsewhere
+    a no-op)."""
+    full = os.sched_getaffinity(0) if hasattr(os, "sched_setaffinity") else set()
+    if not threads or threads >= len(full):
+        yield
+        return
+    os.sched_setaffinity(0, sorted(full)[:threads])
+    try:
+        yield
+    finally:
+        for tid in os.listdir("/proc/self/task"):
+            with contextlib.suppress(OSError):  # a thread that ended meanwhile
+                os.sched_setaffinity(int(tid), full)
+
+
 def _serve(conn, settings: dict, log_path: str | None, scratch: str) -> None:  # in the child
     os.environ["SHADERBALL_BLENDER_WORKER"] = "1"
     log = os.open(log_path or os.devnull, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(log, 1)
     code = 0
     try:
-        from render_jobs.blender.renderer import ShaderballRenderer
+        with thread_pool_of(settings["threads"]):
+            from render_jobs.blender.renderer import ShaderballRenderer
 
-        renderer = ShaderballRenderer(RenderSettings.from_dict(settings), scratch)
+            renderer = ShaderballRenderer(RenderSettings.from_dict(settings), scratch)
         conn.send(("ready", {"geometry_hash": renderer.geometry_hash, "pid": os.getpid()}))
         while True:
             request = conn.recv()

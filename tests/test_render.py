@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -138,6 +139,29 @@ def test_killed_worker_raises_and_restarts(grey_maps):
     finally:
         w.close()
     assert not os.path.exists(scratch)
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of process ``pid``, all its threads, from /proc."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+@pytest.mark.skipif(
+    not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+    reason="needs Linux and 2 CPUs: the spare thread pool only spins on a spare core",
+)
+def test_one_thread_worker_keeps_one_core_busy(grey_maps):
+    """threads=1 renders use one core, not one plus spinning pool threads (see
+    render_jobs.worker.thread_pool_of), and the worker may still run on every CPU."""
+    with RenderProcess(TINY.__class__(resolution=64, samples=64, threads=1)) as w:
+        render(w, grey_maps, [RIGHT])
+        c0, t0 = cpu_seconds(w.pid), time.perf_counter()
+        render(w, grey_maps, [RIGHT, LEFT, RIGHT])
+        busy = (cpu_seconds(w.pid) - c0) / (time.perf_counter() - t0)
+        assert os.sched_getaffinity(w.pid) == os.sched_getaffinity(0)
+    assert busy < 1.3, f"a 1-thread worker kept {busy:.2f} cores busy"
 
 
 def test_stale_scratch_of_dead_processes_is_swept(tmp_path):
