@@ -109,6 +109,8 @@ def connect(address: str | None, dashboard: bool = True) -> str | None:
             log_to_driver=False,
             _node_ip_address="127.0.0.1",
             dashboard_host="127.0.0.1",
+            # Ray runs its workers at nice 15 by default; here the renders are the work
+            _system_config={"worker_niceness": 0},
         )
     url = getattr(ctx, "dashboard_url", None)
     return f"http://{url}" if url and not url.startswith("http") else url
@@ -163,6 +165,7 @@ class _Pool:
             return
         if wid in self.actors:
             w.status, w.host, w.pid, w.last_seen = "idle", info["host"], info["pid"], now()
+            w.nice = info["nice"]
 
     def remove(self, wid: str, status: str) -> None:
         actor = self.actors.pop(wid, None)

@@ -29,6 +29,7 @@ class WorkerStats:
     status: str = "starting"  # starting | idle | busy | dead | blocklisted | stopped
     host: str = ""
     pid: int = 0
+    nice: int = 0  # the worker's (and its Blender's) niceness: 0 unless the cluster says else
     frames: int = 0
     materials: int = 0
     frame_seconds: float = 0.0  # sum, for the mean

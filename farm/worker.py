@@ -49,6 +49,7 @@ class RenderWorker:
             "pid": os.getpid(),
             "host": socket.gethostname(),
             "blender_pid": self.process.pid,
+            "nice": os.getpriority(os.PRIO_PROCESS, 0),
         }
 
     def _inject(self, index: int) -> None:

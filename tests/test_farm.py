@@ -84,6 +84,7 @@ def test_submit_resume_and_refusal(tmp_path):
     assert state["status"] == "done" and state["frames_done"] == 10
     assert sum(w["frames"] for w in state["workers"].values()) == 10
     assert sum(w["recycled"] for w in state["workers"].values()) >= 2  # --recycle-after 2
+    assert {w["nice"] for w in state["workers"].values()} == {0}  # not Ray's default 15
     status = farm("status", out)
     assert status.returncode == 0 and "10/10" in status.stdout and "w0" in status.stdout
     again = farm("submit", "-m", "uniform:3", "-m", "procedural:2", *TINY, "-o", out)
@@ -136,6 +137,7 @@ def _blender_children() -> list[psutil.Process]:
 def test_killed_blender_and_killed_worker_lose_nothing(tmp_path):
     out = tmp_path / "set.zarr"
     proc = farm("submit", "-m", "uniform:8", *TINY, "-o", out, faults={"slow_s": 1.0}, wait=False)
+    watch = None
     try:
         deadline = time.time() + 120
         while time.time() < deadline and not _blender_children():
@@ -147,15 +149,30 @@ def test_killed_blender_and_killed_worker_lose_nothing(tmp_path):
         actors = _children("ray::RenderWorker")
         assert actors
         actors[0].send_signal(signal.SIGKILL)  # and then a whole Ray worker
+        watch = farm("status", out, "--watch", wait=False)  # follows the job to its end
         stdout, stderr = proc.communicate(timeout=240)
+        watched, _ = watch.communicate(timeout=30)
     finally:
         proc.kill()
+        if watch is not None:
+            watch.kill()
     assert proc.returncode == 0, stderr
+    assert watch.returncode == 0 and watched.count("frames    ") >= 2
+    assert "job       done" in watched.split("frames    ")[-2]  # the last refresh
     assert_exactly_once(out, 8)
     state = job(out)
     assert any(w["status"] == "dead" for w in state["workers"].values())
     recovered = [f for f in state["failures"].values() if f.get("recovered")]
     assert recovered and not any(f["final"] for f in state["failures"].values())
+
+
+def test_blender_is_recycled_above_the_rss_bound(tmp_path):
+    out = tmp_path / "set.zarr"
+    r = farm("submit", "-m", "uniform:3", *TINY, "--rss-limit-mb", "64", "-o", out)
+    assert r.returncode == 0, r.stderr
+    assert_exactly_once(out, 3)
+    # a kept-loaded Blender holds well over 64 MB: it is restarted after every material
+    assert sum(w["recycled"] for w in job(out)["workers"].values()) == 3
 
 
 def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
