@@ -17,7 +17,8 @@ from torch import nn
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
+from trainer.infer import fast_network
+from trainer.model import ModelConfig, NeuralRenderer
 
 
 def conv_flops(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> dict:
@@ -45,14 +46,13 @@ def main() -> None:
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)
     fmt = torch.channels_last
-    net = fold_batchnorm(NeuralRenderer(cfg).cuda()).to(torch.bfloat16, memory_format=fmt)
+    model = NeuralRenderer(cfg).cuda()
+    plain, net = fast_network(model), fast_network(model, compile=args.compile)
     x = torch.rand(args.batch, cfg.in_channels, 400, 400, device="cuda", dtype=torch.bfloat16)
     x = x.contiguous(memory_format=fmt)
     light = torch.rand(args.batch, 4, device="cuda", dtype=torch.bfloat16)
     with torch.inference_mode():
-        flops = conv_flops(net, x, light)
-        if args.compile:
-            net = torch.compile(net, mode="max-autotune-no-cudagraphs")
+        flops = conv_flops(plain, x, light)
         for _ in range(5):
             net(x, light)
         torch.cuda.synchronize()

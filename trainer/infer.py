@@ -66,14 +66,20 @@ class Renderer:
         return out[0] if single else out
 
 
+def fast_network(model: NeuralRenderer, compile: bool = False) -> torch.nn.Module:
+    """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
+    channels_last; with ``compile``, compiled by Inductor (``max-autotune-no-cudagraphs``:
+    bias, ReLU, upsampling and concatenation fused around the cuDNN convolutions; minutes of
+    autotuning at first use). Feed it bf16 channels_last inputs."""
+    net = fold_batchnorm(model).to(torch.bfloat16, memory_format=torch.channels_last)
+    return torch.compile(net, mode="max-autotune-no-cudagraphs", dynamic=False) if compile else net
+
+
 class GraphedRenderer:
     """A CUDA-graph replay of the network at one batch size: the fast path for interactive use.
 
-    BatchNorm is folded into the convolutions and the weights are cast to bf16 once
-    (channels_last), so no autocast casts run per call. With ``compile=True`` the folded model
-    is first compiled by Inductor (``max-autotune-no-cudagraphs``: bias, ReLU, upsampling and
-    concatenation fused around the cuDNN convolutions; minutes of autotuning at first use)
-    and then captured. ``__call__(x (N, C, H, W) float, light (N, 4))`` copies into static
+    The :func:`fast_network` (compiled with ``compile=True``) is captured, so no autocast
+    casts run per call. ``__call__(x (N, C, H, W) float, light (N, 4))`` copies into static
     inputs, replays, and returns the static ``(N, 3, H, W) bfloat16`` output (overwritten by
     the next call). CUDA only: measured by ``benchmarks.infer`` on an H100, not exercised by
     the CPU test suite."""
@@ -85,10 +91,7 @@ class GraphedRenderer:
         dev = next(model.parameters()).device
         torch.backends.cudnn.benchmark = True
         fmt, bf16 = torch.channels_last, torch.bfloat16
-        self.model = fold_batchnorm(model).to(bf16, memory_format=fmt)
-        net = self.model
-        if compile:
-            net = torch.compile(net, mode="max-autotune-no-cudagraphs", dynamic=False)
+        self.model = net = fast_network(model, compile)
         shape = (batch, cfg.in_channels, cfg.resolution, cfg.resolution)
         self.x = torch.zeros(shape, device=dev, dtype=bf16).contiguous(memory_format=fmt)
         self.light = torch.zeros(batch, 4, device=dev, dtype=bf16)
