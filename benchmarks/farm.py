@@ -100,6 +100,8 @@ def main() -> None:
         help="repeat every row this many times, in turn; print medians and the efficiency range",
     )
     args = ap.parse_args()
+    if args.rounds < 1:
+        ap.error(f"--rounds must be at least 1, not {args.rounds}")
     root = tempfile.mkdtemp(prefix="bench-farm-")
     try:
 
