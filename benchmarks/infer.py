@@ -1,11 +1,15 @@
 """Inference benchmark at 400²: ms per frame at batch 1, frames/s batched.
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
+        [--gemm-at N]
 
-Rows: eager fp32 (every device); on CUDA also bf16 + channels_last eager (cudnn.benchmark), the
-same with BatchNorm folded, that with the weights cast to bf16 once and replayed as a CUDA graph
-(``trainer.infer.GraphedRenderer``), and with ``--compile`` the same after torch.compile
-(Inductor ``max-autotune-no-cudagraphs``: fused pointwise work around cuDNN, then captured).
+Rows: eager fp32 and the exact fp32 rewrite ``trainer.infer.Renderer`` runs
+(``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on every
+device; on CUDA also bf16 + channels_last eager (cudnn.benchmark), the same with BatchNorm
+folded, that with the weights cast to bf16 once and replayed as a CUDA graph
+(``trainer.infer.GraphedRenderer``), the rewrite so replayed, and with ``--compile`` both
+after torch.compile (Inductor ``max-autotune-no-cudagraphs``: fused pointwise work around the
+tuned convolutions, then captured).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -24,6 +28,7 @@ import torch
 from benchmarks.train import device_name
 from benchmarks.trainstore import DEFAULT, ensure_store
 from trainer.data import Catalog, SampleReader
+from trainer.fastnet import SubpixelRenderer
 from trainer.infer import GraphedRenderer, pick_device
 from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
 from trainer.targets import model_inputs
@@ -55,6 +60,14 @@ def main() -> None:
         action="store_true",
         help="add a torch.compile + CUDA graph row (CUDA; minutes of autotuning)",
     )
+    ap.add_argument(
+        "--gemm-at",
+        type=int,
+        default=0,
+        metavar="N",
+        help="add a compiled subpixel row with the convolutions on inputs at most N wide as "
+        "GEMMs (trainer.fastnet.Conv; CUDA)",
+    )
     args = ap.parse_args()
     device = pick_device(args.device)
     cuda = device.type == "cuda"
@@ -85,22 +98,33 @@ def main() -> None:
         many = timed(lambda: run(xb, l_all), args.iters, cuda)
         rows.append((name, one * 1e3, args.batch / many, error(run(x1, l_all[:1]))))
 
-    def graph_row(name, compile):
-        g1 = GraphedRenderer(model, 1, compile=compile)
-        gb = GraphedRenderer(model, args.batch, compile=compile)
+    def graph_row(name, **fast):
+        g1 = GraphedRenderer(model, 1, **fast)
+        gb = GraphedRenderer(model, args.batch, **fast)
         one = timed(lambda: g1(x_all[:1], l_all[:1]), args.iters, cuda)
         many = timed(lambda: gb(x_all, l_all), args.iters, cuda)
         rows.append((name, one * 1e3, args.batch / many, error(g1(x_all[:1], l_all[:1]))))
 
     eager_row("eager fp32", model, False, torch.contiguous_format)
+    subpixel = SubpixelRenderer(fold_batchnorm(model))
+    eager_row("subpixel fp32 (Renderer)", subpixel, False, torch.channels_last)
     if cuda:
         torch.backends.cudnn.benchmark = True
         eager_row("eager bf16 channels_last", model, True, torch.channels_last)
         folded = fold_batchnorm(model)
         eager_row("  + BatchNorm folded", folded, True, torch.channels_last)
-        graph_row("  + bf16 weights, CUDA graph", False)
+        graph_row("  + bf16 weights, CUDA graph")
+        graph_row("subpixel bf16, CUDA graph", subpixel=True)
         if args.compile:
-            graph_row("torch.compile + CUDA graph", True)
+            graph_row("torch.compile + CUDA graph", compile=True)
+            graph_row("subpixel compiled + graph", compile=True, subpixel=True)
+        if args.gemm_at:
+            graph_row(
+                f"  + GEMMs at <= {args.gemm_at}²",
+                compile=True,
+                subpixel=True,
+                gemm_at=args.gemm_at,
+            )
     print(f"\ndevice: {device_name(args.device)}; 400², batch {args.batch} for frames/s")
     print(f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'max |diff|':>12}")
     for name, ms, fps, err in rows:

@@ -42,12 +42,15 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=128)
     ap.add_argument("--compile", action="store_true", help="profile torch.compile instead")
     ap.add_argument("--rows", type=int, default=25)
+    ap.add_argument("--subpixel", action="store_true", help="the trainer.fastnet rewrite")
+    ap.add_argument("--gemm-at", type=int, default=0, help="with --subpixel: GEMM convs this wide")
     args = ap.parse_args()
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)
     fmt = torch.channels_last
     model = NeuralRenderer(cfg).cuda()
-    plain, net = fast_network(model), fast_network(model, compile=args.compile)
+    fast = {"subpixel": args.subpixel, "gemm_at": args.gemm_at}
+    plain, net = fast_network(model, **fast), fast_network(model, compile=args.compile, **fast)
     x = torch.rand(args.batch, cfg.in_channels, 400, 400, device="cuda", dtype=torch.bfloat16)
     x = x.contiguous(memory_format=fmt)
     light = torch.rand(args.batch, 4, device="cuda", dtype=torch.bfloat16)

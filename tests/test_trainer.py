@@ -7,6 +7,7 @@ import itertools
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from render_jobs.tonemap import tonemap as numpy_tonemap
 from trainer.data import epoch_order, rank_batches, steps_left, worker_batches
@@ -211,6 +212,50 @@ def test_bad_partition_arguments():
         rank_batches(10, 2, 2, 1)
     with pytest.raises(ValueError, match="shuffle buffer"):
         epoch_order([np.arange(3)], 0, 0, 0)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (2, 3), (5, 4), (25, 25)])
+def test_upconv_is_upsampling_then_convolution(size):
+    from trainer.fastnet import UpConv
+
+    z = torch.randn(2, 6, *size, dtype=torch.float64)
+    w = torch.randn(5, 6, 3, 3, dtype=torch.float64)
+    want = F.conv2d(F.interpolate(z, scale_factor=2, mode="bilinear"), w, padding=1)
+    got = UpConv(w)(z)
+    assert got.shape == want.shape
+    torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+    up = UpConv(w)
+    up.phases.gemm = True  # the im2col GEMM form of the same convolution
+    torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        ModelConfig(resolution=16, width=8),
+        ModelConfig(resolution=64, width=16),
+        ModelConfig(resolution=64, width=16, skips=False, roughness_channels=3),
+        ModelConfig(resolution=128, width=8),
+    ],
+)
+@pytest.mark.parametrize("gemm_at", [0, 1 << 10])
+def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at):
+    from trainer.fastnet import SubpixelRenderer
+
+    model = NeuralRenderer(cfg).train()
+    r, c = cfg.resolution, cfg.in_channels
+    for _ in range(2):  # running statistics that are not the identity
+        model(torch.rand(3, c, r, r) * 2, torch.rand(3, 4))
+    model.eval()
+    fast = SubpixelRenderer(fold_batchnorm(model)).gemm_at(gemm_at)
+    fast.to(memory_format=torch.channels_last)
+    x, light = torch.rand(2, c, r, r), torch.rand(2, 4)
+    with torch.no_grad():
+        want = model(x, light)
+        got = fast(x.contiguous(memory_format=torch.channels_last), light)
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="fold the BatchNorm first"):
+        SubpixelRenderer(model)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on CPU machines")

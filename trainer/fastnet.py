@@ -1,0 +1,174 @@
+"""An exact inference rewrite of the U-Net that never builds an upsampled tensor.
+
+The trained network (``trainer.model``) upsamples each decoder level by bilinear x2 and
+convolves the concatenation of that with the skip. Both steps are linear, so for inference:
+
+* **Skips split.** ``conv(cat(up(z), skip), W) = conv(up(z), W_up) + conv(skip, W_skip)``:
+  no concatenated tensor.
+* **Sub-pixel convolution.** A 3x3 convolution of ``up(z)`` equals, for each of the four
+  output phases (row parity, column parity), a 3x3 convolution of ``z`` itself with weights
+  mixed by the bilinear taps (0.25 / 0.75), so one low-resolution convolution with 4x the
+  output channels, then ``pixel_shuffle``. ``z`` is replicate-padded first, as the upsampling
+  clamps at the edge; that is exact everywhere but the outermost ring of the output, where the
+  original convolution sees its zero padding. The ring is recomputed exactly from two-row strips
+  of ``up(z)`` (:func:`ring`).
+* **Light plane.** The 128 light channels are one plane repeated, so their weights are summed
+  into one input channel.
+
+The output equals the original network's up to rounding (``tests/test_trainer.py`` checks
+fp32 to 1e-5; about 1e-7 in practice) with about the same FLOPs. The high-resolution tensors that
+dominated the compiled batched forward on an H100 (``benchmarks.infer_profile``: upsampled
+features, concatenations, a 64-channel 400² input to the 3-channel output convolution) no
+longer exist. ``trainer.infer.Renderer`` runs it in fp32 (1.34x faster at batch 1 on CPU,
+``benchmarks.infer``); its GPU rows in that benchmark have not been run yet. BatchNorm must be
+folded first (:func:`trainer.model.fold_batchnorm`).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from trainer.model import LIGHT_CHANNELS, NeuralRenderer
+
+# TAPS[p][a][k]: weight of the original tap k (row offset k - 1 on the upsampled grid) that
+# lands on the low-resolution offset a - 1, for output phase p (2i + p), as bilinear x2
+# (align_corners=False) samples rows 2i and 2i + 1 from 0.25 / 0.75 of rows i - 1, i, i + 1.
+TAPS = torch.tensor(
+    [
+        [[0.75, 0.25, 0.0], [0.25, 0.75, 0.75], [0.0, 0.0, 0.25]],
+        [[0.25, 0.0, 0.0], [0.75, 0.75, 0.25], [0.0, 0.25, 0.75]],
+    ],
+    dtype=torch.float64,
+)
+
+
+def subpixel_weight(w: torch.Tensor) -> torch.Tensor:
+    """``(O, I, 3, 3)`` weights of a conv after bilinear x2 → ``(4·O, I, 3, 3)`` weights of the
+    same conv at low resolution, in ``pixel_shuffle`` order (channel ``4o + 2p + q``)."""
+    taps = TAPS.to(w.device)
+    k = torch.einsum("pak,qbl,oikl->opqiab", taps, taps, w.double())
+    return k.reshape(4 * w.shape[0], w.shape[1], 3, 3).to(w.dtype)
+
+
+def ring(z: torch.Tensor, w: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """``y`` with its outermost ring replaced by the exact ``conv(up(z), w, padding=1)``.
+
+    Each border row of the output needs only two rows of ``up(z)``, made by upsampling two
+    rows of ``z`` (the clamped edge included); the zero padding beyond them is the conv's own.
+    Top and bottom go through one convolution, left and right through another."""
+    n = z.shape[0]
+
+    def edges(a: torch.Tensor, b: torch.Tensor, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
+        up = F.interpolate(torch.cat([a, b]), scale_factor=2, mode="bilinear", align_corners=False)
+        first, last = up[:n].narrow(dim, 0, 2), up[n:].narrow(dim, up.shape[dim] - 2, 2)
+        out = F.conv2d(torch.cat([first, last]), w, padding=1)
+        return out[:n].narrow(dim, 0, 1), out[n:].narrow(dim, 1, 1)
+
+    top, bottom = edges(z[:, :, :2], z[:, :, -2:], 2)
+    left, right = edges(z[:, :, :, :2], z[:, :, :, -2:], 3)
+    y = torch.cat([top, y[:, :, 1:-1], bottom], 2)
+    return torch.cat([left, y[:, :, :, 1:-1], right], 3)
+
+
+class Conv(nn.Module):
+    """A 3x3 convolution with optional bias, stride and zero or replicate padding.
+
+    ``gemm = True`` runs it as an explicit channels-last im2col matrix product instead, the
+    same numbers, so that Inductor tunes it as a GEMM (its choices include split-K, which a
+    direct convolution on a small image lacks). Not measured on a GPU yet: the knob is there
+    for ``benchmarks.infer --gemm-at``; on CPU it is no faster."""
+
+    def __init__(self, weight, bias=None, stride: int = 1, pad: str = "zeros"):
+        super().__init__()
+        self.weight = nn.Parameter(weight.detach().clone(), requires_grad=False)
+        self.bias = None if bias is None else nn.Parameter(bias.detach().clone(), False)
+        self.stride, self.pad, self.gemm = stride, pad, False
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.pad == "zeros" and not self.gemm:
+            return F.conv2d(x, self.weight, self.bias, self.stride, 1)
+        x = F.pad(x, (1, 1, 1, 1), mode="replicate" if self.pad == "replicate" else "constant")
+        if not self.gemm:
+            return F.conv2d(x, self.weight, self.bias, self.stride)
+        n, c, hp, wp = x.shape
+        s, o = self.stride, self.weight.shape[0]
+        ho, wo = (hp - 3) // s + 1, (wp - 3) // s + 1
+        t = x.permute(0, 2, 3, 1)  # a view when x is channels_last
+        taps = [
+            t[:, a : a + s * (ho - 1) + 1 : s, b : b + s * (wo - 1) + 1 : s]
+            for a in range(3)
+            for b in range(3)
+        ]
+        w = self.weight.permute(2, 3, 1, 0).reshape(9 * c, o)  # rows in (a, b, c) order
+        y = (torch.cat(taps, 3).reshape(-1, 9 * c) @ w).view(n, ho, wo, o).permute(0, 3, 1, 2)
+        return y if self.bias is None else y + self.bias.view(1, -1, 1, 1)
+
+
+class UpConv(nn.Module):
+    """``conv(up(z), weight, padding=1)`` (no bias) without building ``up(z)``."""
+
+    def __init__(self, weight: torch.Tensor):
+        super().__init__()
+        self.weight = nn.Parameter(weight.detach().clone(), requires_grad=False)
+        self.phases = Conv(subpixel_weight(weight.detach()), pad="replicate")
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return ring(z, self.weight, F.pixel_shuffle(self.phases(z), 2))
+
+
+class SubpixelRenderer(nn.Module):
+    """The folded network rewritten as the module docstring says; same inputs and outputs."""
+
+    def __init__(self, folded: NeuralRenderer):
+        super().__init__()
+        if any(isinstance(block[1], nn.BatchNorm2d) for block in folded.encoder):
+            raise ValueError("fold the BatchNorm first (trainer.model.fold_batchnorm)")
+        self.config = cfg = folded.config
+        self.light = folded.light.mlp
+        self.b = cfg.bottleneck
+        self.encoder = nn.ModuleList(Conv(b[0].weight, b[0].bias, 2) for b in folded.encoder)
+        fw = folded.fuse[0].weight
+        deep = fw.shape[1] - LIGHT_CHANNELS  # the bottleneck's features; then the plane
+        self.fuse = Conv(
+            torch.cat([fw[:, :deep], fw[:, deep:].sum(1, True)], 1), folded.fuse[0].bias
+        )
+        self.dec0 = Conv(folded.decoder[0][0].weight, folded.decoder[0][0].bias)
+        self.up = nn.ModuleList()
+        self.skip = nn.ModuleList()
+        self.bias = nn.ParameterList()
+        for block in folded.decoder[1:]:
+            w, b = block[0].weight, block[0].bias
+            feats = w.shape[1] - (w.shape[0] if cfg.skips else 0)  # a skip has cout channels
+            self.up.append(UpConv(w[:, :feats]))
+            self.skip.append(Conv(w[:, feats:], None) if cfg.skips else nn.Identity())
+            self.bias.append(nn.Parameter(b.detach().clone().view(1, -1, 1, 1), False))
+        self.out = UpConv(folded.out.weight)
+        self.out_bias = nn.Parameter(folded.out.bias.detach().clone().view(1, -1, 1, 1), False)
+
+    def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+        skips = []
+        x = maps
+        for enc in self.encoder:
+            x = F.relu(enc(x))
+            skips.append(x)
+        plane = self.light(light).view(-1, 1, self.b, self.b).to(x.dtype)
+        x = F.relu(self.fuse(torch.cat([x, plane], 1)))
+        x = F.relu(self.dec0(torch.cat([x, skips[-1]], 1) if self.config.skips else x))
+        for i, (up, skip, bias) in enumerate(zip(self.up, self.skip, self.bias, strict=True)):
+            y = up(x) + bias
+            x = F.relu(y + skip(skips[-2 - i]) if self.config.skips else y)
+        return torch.sigmoid(self.out(x) + self.out_bias)
+
+    def gemm_at(self, largest: int) -> SubpixelRenderer:
+        """Run every convolution whose input is at most ``largest`` pixels wide as a GEMM
+        (:class:`Conv`); returns self."""
+        r = self.config.resolution
+        sized = [(c, r >> i) for i, c in enumerate(self.encoder)]
+        sized += [(self.fuse, r // 16), (self.dec0, r // 16)]
+        sized += [(u.phases, r >> (4 - i)) for i, u in enumerate([*self.up, self.out])]
+        sized += [(s, r >> (3 - i)) for i, s in enumerate(self.skip) if isinstance(s, Conv)]
+        for conv, size in sized:
+            conv.gemm = size <= largest
+        return self
