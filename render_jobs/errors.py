@@ -7,3 +7,7 @@ class MaterialError(ValueError):
 
 class RenderError(RuntimeError):
     """Blender failed to render, or its worker process died."""
+
+
+class WorkerDied(RenderError):
+    """The Blender worker process exited (crash, kill, or a failed start)."""

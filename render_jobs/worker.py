@@ -22,7 +22,7 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from render_jobs.errors import MaterialError, RenderError
+from render_jobs.errors import MaterialError, RenderError, WorkerDied
 from render_jobs.materials.maps import MaterialMaps
 from render_jobs.results import MaterialRender
 from render_jobs.specs import RenderSettings, Sun
@@ -134,7 +134,14 @@ class RenderProcess:
         self._proc.start()
         child.close()
         self._conn = parent
-        kind, payload = self._receive(READY_TIMEOUT_S)
+        try:
+            kind, payload = self._receive(READY_TIMEOUT_S)
+        except WorkerDied as exc:
+            raise WorkerDied(
+                f"{exc} before it was ready; its error is above. A script that starts a "
+                'RenderProcess needs an `if __name__ == "__main__":` guard: the spawned child '
+                "imports the script again"
+            ) from None
         if kind != "ready":
             self.close()
             raise RenderError(f"Blender worker failed to start: {payload}")
@@ -153,7 +160,7 @@ class RenderProcess:
             code = self._proc.exitcode
             self._proc = self._conn = None
             self._remove_scratch()
-            raise RenderError(f"Blender worker died (exit code {code})") from None
+            raise WorkerDied(f"Blender worker died (exit code {code})") from None
 
     @property
     def alive(self) -> bool:

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import psutil
@@ -140,6 +143,25 @@ def test_killed_worker_raises_and_restarts(grey_maps):
     finally:
         w.close()
     assert not os.path.exists(scratch)
+
+
+def test_script_without_main_guard_gets_a_clear_error(tmp_path):
+    """The spawned child imports the calling script again; without a main guard it cannot
+    start and the parent says why, instead of a bare 'died'."""
+    script = tmp_path / "no_guard.py"
+    script.write_text(
+        "from render_jobs.specs import RenderSettings\n"
+        "from render_jobs.worker import RenderProcess\n"
+        "RenderProcess(RenderSettings(resolution=32, samples=1)).start()\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    run = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env
+    )
+    assert run.returncode == 1
+    last = run.stderr.strip().splitlines()[-1]
+    assert last.startswith("render_jobs.errors.WorkerDied: Blender worker died (exit code 1)")
+    assert 'needs an `if __name__ == "__main__":` guard' in last
 
 
 def cpu_seconds(pid: int) -> float:
