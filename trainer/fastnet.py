@@ -10,7 +10,7 @@ convolves the concatenation of that with the skip. Both steps are linear, so for
   mixed by the bilinear taps (0.25 / 0.75), so one low-resolution convolution with 4x the
   output channels, then ``pixel_shuffle``. ``z`` is replicate-padded first, as the upsampling
   clamps at the edge; that is exact everywhere but the outermost ring of the output, where the
-  original convolution sees its zero padding. The ring is recomputed exactly from two-row strips
+  original convolution sees its zero padding. The ring is recomputed exactly from thin strips
   of ``up(z)`` (:func:`ring`).
 * **Light plane.** The 128 light channels are one plane repeated, so their weights are summed
   into one input channel.
@@ -55,16 +55,19 @@ def subpixel_weight(w: torch.Tensor) -> torch.Tensor:
 def ring(z: torch.Tensor, w: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """``y`` with its outermost ring replaced by the exact ``conv(up(z), w, padding=1)``.
 
-    Each border row of the output needs only two rows of ``up(z)``, made by upsampling two
-    rows of ``z`` (the clamped edge included); the zero padding beyond them is the conv's own.
-    Top and bottom go through one convolution, left and right through another."""
+    Each border row of the output sees the conv's zero padding and two rows of ``up(z)``,
+    made by upsampling two rows of ``z`` (the clamped edge included): a three-row strip
+    convolved to one row. Top and bottom go through one convolution, left and right through
+    another; together about 2/h of the sub-pixel convolution's work for a ``z`` h wide."""
     n = z.shape[0]
 
     def edges(a: torch.Tensor, b: torch.Tensor, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
         up = F.interpolate(torch.cat([a, b]), scale_factor=2, mode="bilinear", align_corners=False)
         first, last = up[:n].narrow(dim, 0, 2), up[n:].narrow(dim, up.shape[dim] - 2, 2)
-        out = F.conv2d(torch.cat([first, last]), w, padding=1)
-        return out[:n].narrow(dim, 0, 1), out[n:].narrow(dim, 1, 1)
+        zero = torch.zeros_like(first.narrow(dim, 0, 1))
+        strips = torch.cat([torch.cat([zero, first], dim), torch.cat([last, zero], dim)])
+        out = F.conv2d(strips, w, padding=(0, 1) if dim == 2 else (1, 0))
+        return out[:n], out[n:]
 
     top, bottom = edges(z[:, :, :2], z[:, :, -2:], 2)
     left, right = edges(z[:, :, :, :2], z[:, :, :, -2:], 3)
