@@ -4,7 +4,10 @@
                                           [--workers 2] [--device auto] [--loss l1]
                                           [--replicate N] [--log-every 4]
 
-Rows: the loader alone (DataLoader over the shards, no model: the data path's ceiling), and
+Rows: the loader alone (DataLoader over the shards, no model: the data path's ceiling); the
+loader feeding a consumer that sleeps ``--step-ms`` a batch (a stand-in for a GPU step) over
+``--sim-epochs`` epochs, read in one iteration (as training does) and, for comparison, in one
+iteration an epoch (the cost of restarting the workers' read-ahead at every epoch); and
 ``trainer.train.train`` itself (L1, from scratch, ``--max-steps``), whose images/s and data
 wait are read from the run's ``log.jsonl`` after the first ``--warmup`` steps. On CUDA the
 loop runs with bf16 autocast and channels_last, as in real runs. ``--loss l1+vgg`` times the
@@ -33,20 +36,44 @@ from trainer.train import train
 
 
 def loader_rate(store: str, batch: int, workers: int, batches: int) -> float:
-    """Images/s of the DataLoader alone over the store's training split."""
+    """Images/s of the DataLoader alone over the store's training split (as many epochs as
+    it takes, in one iteration, as training reads it)."""
     split = Catalog.snapshot([store], 0, 0.0, None).split("train")
-    stream = ShardStream(split, batch=batch, seed=0, buffer=256)
-    loader = DataLoader(stream, batch_size=None, num_workers=workers, persistent_workers=True)
-    n, t0, epoch = 0, None, 0
-    while n < batches * batch:
-        stream.set_position(epoch, 0)
-        for b in loader:
-            if t0 is None:  # from the first batch on: worker start-up is not throughput
-                t0, n = time.perf_counter(), 0
-                continue
-            n += len(b["id"])
-        epoch += 1
+    stream = ShardStream(split, batch=batch, seed=0, buffer=256, epochs=10**6)
+    loader = iter(DataLoader(stream, batch_size=None, num_workers=workers))
+    next(loader)  # from the first batch on: worker start-up is not throughput
+    t0 = time.perf_counter()
+    n = sum(len(next(loader)["id"]) for _ in range(batches))
     return n / (time.perf_counter() - t0)
+
+
+def epoch_end_wait(
+    store: str, batch: int, workers: int, step_ms: float, epochs: int, across: bool
+) -> tuple[float, float, float]:
+    """Images/s, data-wait share and longest wait (s) of a consumer that spends ``step_ms`` on
+    every batch (a stand-in for a GPU step) over ``epochs`` epochs, timed from the first batch.
+    ``across``: one iteration over all epochs, as ``trainer.train`` reads; otherwise one
+    iteration an epoch (persistent workers), as it read before, when each epoch start waited
+    for every worker's first batch."""
+    split = Catalog.snapshot([store], 0, 0.0, None).split("train")
+    stream = ShardStream(split, batch=batch, seed=0, buffer=256, epochs=epochs if across else None)
+    loader = DataLoader(
+        stream, batch_size=None, num_workers=workers, prefetch_factor=4, persistent_workers=True
+    )  # as trainer.train makes it
+    waits, images, t0 = [], 0, None
+    for epoch in range(1 if across else epochs):
+        stream.set_position(epoch, 0)
+        t = time.perf_counter()
+        for b in loader:
+            if t0 is None:
+                t0 = time.perf_counter()
+            else:
+                waits.append(time.perf_counter() - t)
+                images += len(b["id"])
+            time.sleep(step_ms / 1000)
+            t = time.perf_counter()
+    seconds = time.perf_counter() - t0
+    return images / seconds, sum(waits) / seconds, max(waits)
 
 
 def device_name(device: str) -> str:
@@ -66,12 +93,25 @@ def main() -> None:
     ap.add_argument("--loss", default="l1", choices=["l1", "l1+vgg"])
     ap.add_argument("--replicate", type=int, default=0, help="copies of the store to train on")
     ap.add_argument("--log-every", type=int, default=1, help="steps per timed window")
+    ap.add_argument(
+        "--step-ms",
+        type=float,
+        help="the simulated step of the epoch-end rows (default: twice the loader's time a batch)",
+    )
+    ap.add_argument("--sim-epochs", type=int, default=6, help="epochs of the epoch-end rows")
     args = ap.parse_args()
     store = ensure_store(args.store)
     with tempfile.TemporaryDirectory(prefix="bench-train-") as tmp:
         if args.replicate > 1:
             store = replicate(store, f"{tmp}/replicated.zarr", args.replicate)
         load = loader_rate(store, args.batch, args.workers, args.steps)
+        step_ms = args.step_ms or 2000 * args.batch / load
+        ends = {
+            across: epoch_end_wait(
+                store, args.batch, args.workers, step_ms, args.sim_epochs, across
+            )
+            for across in (False, True)
+        }
         vgg = None
         if args.loss == "l1+vgg":
             vgg = f"{tmp}/vgg16-random.pth"
@@ -94,10 +134,14 @@ def main() -> None:
         f"\ndevice: {device_name(args.device)}; 400², batch {args.batch}, {args.workers} "
         f"workers, loss {args.loss}, {samples} samples an epoch"
     )
-    print(f"{'row':<28}{'images/s':>10}{'data wait':>11}")
-    print(f"{'loader only':<28}{load:>10.1f}{'-':>11}")
+    print(f"{'row':<50}{'images/s':>10}{'data wait':>11}{'longest wait':>14}")
+    print(f"{'loader only':<50}{load:>10.1f}{'-':>11}{'-':>14}")
+    for across, label in ((False, "an iteration an epoch"), (True, "one iteration (trainer)")):
+        row = f"loader + {step_ms:.0f} ms steps, {label}"
+        rate, share, longest = ends[across]
+        print(f"{row:<50}{rate:>10.1f}{share:>11.1%}{longest * 1000:>11.0f} ms")
     row = f"train (steps {args.warmup + 1}-{args.steps})"
-    print(f"{row:<28}{len(timed) * per_window / seconds:>10.2f}{wait:>11.1%}")
+    print(f"{row:<50}{len(timed) * per_window / seconds:>10.2f}{wait:>11.1%}{'-':>14}")
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import pytest
 import torch
 from click.testing import CliRunner
 from PIL import Image
+from torch.utils.data import DataLoader
 
 from storage.schema import Layout
 from storage.writer import create_store, write_shard
@@ -130,6 +131,21 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     assert two.shape == (2, 3, 64, 64) and not np.allclose(two[0], two[1])
     with pytest.raises(ValueError, match="maps have shape"):
         renderer.render(maps[:, :32, :32].copy(), (0, 0, 1), 3)
+
+
+@pytest.mark.filterwarnings("ignore:This DataLoader will create")  # 3 > 2 cores
+@pytest.mark.parametrize("workers", [0, 2, 3])
+def test_one_iteration_reads_across_epochs_in_the_planned_order(tiny_store, workers):
+    """The trainer reads all its epochs in one iteration (no restart at epoch ends): from a
+    mid-epoch position, the batches are the pure plan of each epoch in turn, tagged with it,
+    whatever the worker count (3 workers do not divide the first epoch's 2 batches)."""
+    split = Catalog.snapshot([tiny_store.url], 0, 0.0, None).split("train")
+    stream = ShardStream(split, batch=3, seed=0, buffer=256, world=2, rank=1, epochs=3)
+    stream.set_position(1, 12)
+    want = [(e, b.tolist()) for e in (1, 2) for b in stream.batches(e, 12 if e == 1 else 0)]
+    loader = DataLoader(stream, batch_size=None, num_workers=workers)
+    got = [(b["epoch"], b["id"].tolist()) for b in loader]
+    assert got == want and len(want) == 2 + 4
 
 
 def test_torchrun_two_ranks_stay_identical_and_read_disjoint_samples(tiny_store, tmp_path):

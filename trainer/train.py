@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import itertools
 import json
 import os
 import time
@@ -33,7 +34,7 @@ from tqdm import tqdm
 
 from trainer import checkpoint
 from trainer.config import TrainConfig
-from trainer.data import Catalog, ShardStream
+from trainer.data import Catalog, ShardStream, steps_left
 from trainer.model import ModelConfig, NeuralRenderer
 from trainer.perceptual import RendererLoss, load_vgg
 from trainer.targets import Tonemap, model_inputs
@@ -159,7 +160,7 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
     split = catalog.split("train")
     stream = ShardStream(
         split, batch=cfg.batch_size, seed=cfg.seed, buffer=cfg.shuffle_buffer, world=world,
-        rank=rank,
+        rank=rank, epochs=cfg.epochs,
     )  # fmt: skip
     loader = DataLoader(
         stream,
@@ -167,8 +168,8 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
         num_workers=cfg.workers,
         pin_memory=cuda,
         prefetch_factor=4 if cfg.workers else None,
-        persistent_workers=cfg.workers > 0,  # started once; they follow stream.set_position
     )
+    batches = None  # one iteration for the whole run: the workers read across epoch ends
     per_step = world * cfg.batch_size
 
     # ---- logs ---------------------------------------------------------------------------------
@@ -230,15 +231,22 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
     last_ckpt = None
     done = cfg.max_steps is not None and step >= cfg.max_steps
     while epoch < cfg.epochs and not done:
-        stream.set_position(epoch, position)
-        total = stream.steps()
+        if batches is None:
+            stream.set_position(epoch, position)
+            batches = iter(loader)
+        mine = len(stream.batches(epoch, position))  # this rank's; one fewer on some ranks
+        total = steps_left(len(split), world, cfg.batch_size, position)
         bar = tqdm(total=total, desc=f"epoch {epoch + 1}/{cfg.epochs}", disable=not master)
         window = _new_window()
         join = net.join() if distributed else contextlib.nullcontext()
         with join, contextlib.closing(bar):  # the bar ends its line even on errors
             t_fetch = time.perf_counter()
-            for batch in loader:
+            for batch in itertools.islice(batches, mine):
                 waited = time.perf_counter() - t_fetch
+                if batch["epoch"] != epoch:
+                    raise RuntimeError(
+                        f"the loader is out of step: epoch {batch['epoch']} in {epoch}"
+                    )
                 maps = batch["maps"].to(device, non_blocking=True)
                 x = model_inputs(maps, model_cfg.roughness_channels).contiguous(memory_format=fmt)
                 light = batch["light"].to(device, non_blocking=True)
