@@ -258,6 +258,28 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at):
         SubpixelRenderer(model)
 
 
+def test_bf16_fast_networks_stay_close_to_fp32():
+    """The networks the CUDA benchmark rows capture (trainer.infer.fast_network: BatchNorm
+    folded, bf16 weights, channels_last; plain, sub-pixel, sub-pixel with GEMMs), run here on
+    CPU: bf16 images stay within 0.02 of fp32, the rewrite no further off than the original."""
+    from trainer.infer import fast_network
+
+    torch.manual_seed(0)
+    model = NeuralRenderer(ModelConfig(resolution=64)).eval()
+    x, light = torch.rand(2, model.config.in_channels, 64, 64), torch.rand(2, 4)
+    with torch.no_grad():
+        want = model(x, light)
+        xb = x.to(torch.bfloat16).contiguous(memory_format=torch.channels_last)
+        errors = {
+            kw: (fast_network(model, **dict(kw))(xb, light.bfloat16()).float() - want).abs().max()
+            for kw in [(), (("subpixel", True),), (("subpixel", True), ("gemm_at", 64))]
+        }
+    plain = errors.pop(())
+    assert 0 < plain < 0.02, errors
+    for kw, err in errors.items():
+        assert err < max(2 * plain, 0.01), (kw, float(err), float(plain))
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on CPU machines")
 def test_cuda_graph_path_refuses_a_cpu_model():
     from trainer.infer import GraphedRenderer
