@@ -280,6 +280,21 @@ def test_bf16_fast_networks_stay_close_to_fp32():
         assert err < max(2 * plain, 0.01), (kw, float(err), float(plain))
 
 
+@pytest.mark.parametrize("gemm_at", [0, 64])
+def test_subpixel_network_traces_as_one_graph(gemm_at):
+    """``--compile`` must see the rewrite whole: Dynamo traces it with ``fullgraph=True``
+    (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here)."""
+    from trainer.fastnet import SubpixelRenderer
+
+    torch._dynamo.reset()
+    model = NeuralRenderer(ModelConfig(resolution=32)).eval()
+    net = SubpixelRenderer(fold_batchnorm(model)).gemm_at(gemm_at)
+    x, light = torch.rand(1, model.config.in_channels, 32, 32), torch.rand(1, 4)
+    traced = torch.compile(net, backend="eager", fullgraph=True, dynamic=False)
+    with torch.no_grad():
+        torch.testing.assert_close(traced(x, light), model(x, light), atol=1e-5, rtol=0)
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on CPU machines")
 def test_cuda_graph_path_refuses_a_cpu_model():
     from trainer.infer import GraphedRenderer
