@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint bench-render bench-farm bench-train bench-infer bench-storage clean
+.PHONY: demo demo-train test lint bench-render bench-farm bench-train bench-infer bench-storage gpu-wheels clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -44,6 +44,15 @@ bench-train: $(BIN)/.installed
 
 bench-infer: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.infer
+
+# For a GPU machine with CUDA torch but no package registry (benchmarks/gpu.sh says how):
+# the store's packages as wheels for its Python (GPU_PYTHON, the device's is 3.12) in .whl/.
+GPU_PYTHON ?= 3.12
+gpu-wheels: $(BIN)/.installed
+	$(BIN)/pip download --quiet --only-binary=:all: --no-deps --python-version $(GPU_PYTHON) \
+		--platform manylinux2014_x86_64 --platform manylinux_2_28_x86_64 \
+		--platform manylinux1_x86_64 -d .whl 'zarr>=3.1,<3.2' 'numcodecs>=0.14' donfig crc32c \
+		'zstandard>=0.22' 'google-crc32c>=1.5'
 
 # MDS (mosaicml-streaming) needs torchvision, so the storage benchmark has its own environment:
 # torch 2.14.1 + torchvision 0.29.1 (about 6 GB), kept apart from the project's.

@@ -98,7 +98,9 @@ def main() -> None:
         type=float,
         help="the simulated step of the epoch-end rows (default: twice the loader's time a batch)",
     )
-    ap.add_argument("--sim-epochs", type=int, default=6, help="epochs of the epoch-end rows")
+    ap.add_argument(
+        "--sim-epochs", type=int, default=6, help="epochs of the epoch-end rows (0: no such rows)"
+    )
     args = ap.parse_args()
     store = ensure_store(args.store)
     with tempfile.TemporaryDirectory(prefix="bench-train-") as tmp:
@@ -110,7 +112,7 @@ def main() -> None:
             across: epoch_end_wait(
                 store, args.batch, args.workers, step_ms, args.sim_epochs, across
             )
-            for across in (False, True)
+            for across in ((False, True) if args.sim_epochs > 0 else ())
         }
         vgg = None
         if args.loss == "l1+vgg":
@@ -137,6 +139,8 @@ def main() -> None:
     print(f"{'row':<50}{'images/s':>10}{'data wait':>11}{'longest wait':>14}")
     print(f"{'loader only':<50}{load:>10.1f}{'-':>11}{'-':>14}")
     for across, label in ((False, "an iteration an epoch"), (True, "one iteration (trainer)")):
+        if across not in ends:
+            continue
         row = f"loader + {step_ms:.0f} ms steps, {label}"
         rate, share, longest = ends[across]
         print(f"{row:<50}{rate:>10.1f}{share:>11.1%}{longest * 1000:>11.0f} ms")

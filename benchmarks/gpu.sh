@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# The CUDA benchmarks (issue targets: training and inference at 400² on one H100), run on a GPU
+# machine that has Python with CUDA torch but no package registry, such as the lent device.
+#
+# On the CPU machine, once: `make bench-train` (renders out/bench-400.zarr) and `make gpu-wheels`
+# (the store's own packages as wheels in .whl/). Carry out/bench-400.zarr and .whl/ with the
+# checkout, then there:
+#
+#     bash benchmarks/gpu.sh infer     # benchmarks.infer at batch 1 and 128, compiled rows too
+#     bash benchmarks/gpu.sh train     # benchmarks.train, L1 (2,000 samples), then L1 + VGG16
+#
+# Output is printed and appended to ${OUT:-out}/gpu-bench.txt. Each part is meant to fit the
+# device's 10-minute call; not yet run there (no device was lent to the session that wrote it).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+py=${PYTHON:-python3}
+store=out/bench-400.zarr
+part=${1:-}
+[[ $part == infer || $part == train ]] || { echo "usage: bash benchmarks/gpu.sh infer|train" >&2; exit 2; }
+[[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make bench-train, then carry it)" >&2; exit 2; }
+if ! "$py" -c "import zarr, numcodecs, zstandard, google_crc32c" 2>/dev/null; then
+    [[ -d .whl ]] || { echo "gpu.sh: zarr is not installed and .whl/ is missing (make gpu-wheels)" >&2; exit 2; }
+    "$py" -m pip install --quiet --no-index --find-links .whl zarr numcodecs donfig crc32c \
+        zstandard google-crc32c
+fi
+log=${OUT:-out}/gpu-bench.txt
+mkdir -p "$(dirname "$log")"
+train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 10)
+{
+    echo "== $part $(date -u +%FT%TZ) $(git rev-parse --short HEAD 2>/dev/null || echo '?')"
+    nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
+    "$py" -c 'import sys, torch; print("python", sys.version.split()[0], "torch", torch.__version__)'
+    case $part in
+        infer) "$py" -m benchmarks.infer --store "$store" --batch 128 --iters 30 --compile \
+                   --gemm-at 50 ;;
+        # L1 on 2,000 samples (63 steps an epoch: the epoch-end stall, if any, shows), then
+        # the paper's loss on 8,000 samples, as the README's H100 table
+        train) "$py" "${train[@]}" --replicate 50 --steps 240 --warmup 40 --sim-epochs 4
+               "$py" "${train[@]}" --replicate 200 --loss l1+vgg --steps 120 --warmup 20 \
+                   --sim-epochs 0 ;;
+    esac
+} 2>&1 | tee -a "$log"
