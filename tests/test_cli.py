@@ -139,3 +139,17 @@ def test_no_process_but_a_blender_worker_imports_bpy():
     env = {k: v for k, v in os.environ.items() if k != "SHADERBALL_BLENDER_WORKER"}
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert r.returncode == 0 and r.stdout.strip() == "clean", r.stderr
+
+
+def test_gpu_benchmark_script_refuses_bad_use(tmp_path):
+    """``benchmarks/gpu.sh`` (run on a GPU machine) stops with one line and exit 2 on a
+    missing part or a missing store, before it installs or runs anything."""
+    script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
+    r = subprocess.run(["bash", str(script), "bogus"], capture_output=True, text=True)
+    assert (r.returncode, r.stderr) == (2, "usage: bash benchmarks/gpu.sh infer|train\n")
+    (tmp_path / "benchmarks").mkdir()  # a checkout without the carried store
+    copy = tmp_path / "benchmarks" / "gpu.sh"
+    copy.write_text(script.read_text())
+    r = subprocess.run(["bash", str(copy), "infer"], capture_output=True, text=True)
+    assert r.returncode == 2 and "out/bench-400.zarr is missing" in r.stderr
+    assert len(r.stderr.splitlines()) == 1 and not (tmp_path / "out").exists()
