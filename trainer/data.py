@@ -20,10 +20,11 @@ The order of an epoch and who reads what are pure functions of integers:
 
 One iteration of a :class:`ShardStream` runs from a position to the end of the last epoch,
 so the workers read the next epoch's first batches while this epoch's last ones train.
-Restarting the iteration every epoch idled the GPU at each epoch start until every worker had
-read a batch (23.6 % data wait on an H100 with 63 steps an epoch; ``benchmarks.train``
-measures both ways). Ranks may end an epoch with one batch fewer; the training loop handles
-that with DDP's ``join``. The loader state in a checkpoint is ``{"epoch", "position"}``.
+Restarting the iteration every epoch stalls each epoch start until every worker has read a
+batch (``benchmarks.train`` times both ways; the likely cause of the 23.6 % data wait once
+measured on an H100 with 63 steps an epoch). Ranks may end an epoch with one batch fewer;
+the training loop handles that with DDP's ``join``. The loader state in a checkpoint is
+``{"epoch", "position"}``.
 """
 
 from __future__ import annotations
@@ -228,8 +229,8 @@ class ShardStream(IterableDataset):
         self.reader = SampleReader(split)
         self.batch, self.seed, self.buffer, self.world, self.rank = batch, seed, buffer, world, rank
         self.epochs = epochs
-        # (epoch, position) in shared memory: persistent DataLoader workers read the new
-        # position when the next epoch's iteration starts, so they are started only once
+        # (epoch, position) in shared memory, read when an iteration starts: persistent
+        # DataLoader workers see a set_position made after they were started
         self._where = torch.zeros(2, dtype=torch.int64).share_memory_()
 
     @property
