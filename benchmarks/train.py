@@ -30,15 +30,14 @@ from torch.utils.data import DataLoader
 
 from benchmarks.trainstore import DEFAULT, ensure_store, replicate
 from trainer.config import TrainConfig
-from trainer.data import Catalog, ShardStream
+from trainer.data import Catalog, ShardStream, Split
 from trainer.perceptual import vgg16_relu3_3
 from trainer.train import train
 
 
-def loader_rate(store: str, batch: int, workers: int, batches: int) -> float:
+def loader_rate(split: Split, batch: int, workers: int, batches: int) -> float:
     """Images/s of the DataLoader alone over the store's training split (as many epochs as
     it takes, in one iteration, as training reads it)."""
-    split = Catalog.snapshot([store], 0, 0.0, None).split("train")
     stream = ShardStream(split, batch=batch, seed=0, buffer=256, epochs=10**6)
     loader = iter(DataLoader(stream, batch_size=None, num_workers=workers))
     next(loader)  # from the first batch on: worker start-up is not throughput
@@ -48,14 +47,13 @@ def loader_rate(store: str, batch: int, workers: int, batches: int) -> float:
 
 
 def epoch_end_wait(
-    store: str, batch: int, workers: int, step_ms: float, epochs: int, across: bool
+    split: Split, batch: int, workers: int, step_ms: float, epochs: int, across: bool
 ) -> tuple[float, float, float]:
     """Images/s, data-wait share and longest wait (s) of a consumer that spends ``step_ms`` on
     every batch (a stand-in for a GPU step) over ``epochs`` epochs, timed from the first batch.
     ``across``: one iteration over all epochs, as ``trainer.train`` reads; otherwise one
     iteration an epoch (persistent workers), as it read before, when each epoch start waited
     for every worker's first batch."""
-    split = Catalog.snapshot([store], 0, 0.0, None).split("train")
     stream = ShardStream(split, batch=batch, seed=0, buffer=256, epochs=epochs if across else None)
     loader = DataLoader(
         stream, batch_size=None, num_workers=workers, prefetch_factor=4, persistent_workers=True
@@ -106,11 +104,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-train-") as tmp:
         if args.replicate > 1:
             store = replicate(store, f"{tmp}/replicated.zarr", args.replicate)
-        load = loader_rate(store, args.batch, args.workers, args.steps)
+        split = Catalog.snapshot([store], 0, 0.0, None).split("train")
+        load = loader_rate(split, args.batch, args.workers, args.steps)
         step_ms = args.step_ms or 2000 * args.batch / load
         ends = {
             across: epoch_end_wait(
-                store, args.batch, args.workers, step_ms, args.sim_epochs, across
+                split, args.batch, args.workers, step_ms, args.sim_epochs, across
             )
             for across in ((False, True) if args.sim_epochs > 0 else ())
         }
@@ -127,14 +126,13 @@ def main() -> None:
         )  # fmt: skip
         train(cfg)
         log = [json.loads(x) for x in (Path(run) / "log.jsonl").read_text().splitlines()]
-        samples = len(Catalog.snapshot([store], 0, 0.0, None).split("train"))
     per_window = args.batch * args.log_every
     timed = [r for r in log if r["step"] - args.log_every >= args.warmup]
     seconds = sum(per_window / r["images_per_second"] for r in timed)
     wait = sum(r["data_wait"] * per_window / r["images_per_second"] for r in timed) / seconds
     print(
         f"\ndevice: {device_name(args.device)}; 400², batch {args.batch}, {args.workers} "
-        f"workers, loss {args.loss}, {samples} samples an epoch"
+        f"workers, loss {args.loss}, {len(split)} samples an epoch"
     )
     print(f"{'row':<50}{'images/s':>10}{'data wait':>11}{'longest wait':>14}")
     print(f"{'loader only':<50}{load:>10.1f}{'-':>11}{'-':>14}")

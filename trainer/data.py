@@ -261,6 +261,6 @@ class ShardStream(IterableDataset):
         made = 0  # batches of this iteration before this epoch's
         for epoch in range(first, first + 1 if self.epochs is None else self.epochs):
             mine = self.batches(epoch, position if epoch == first else 0)
-            for b in worker_batches(len(mine), workers, (worker - made) % max(workers, 1)):
+            for b in worker_batches(len(mine), workers, (worker - made) % workers):
                 yield {**self.reader.batch(mine[b]), "epoch": epoch}
             made += len(mine)
