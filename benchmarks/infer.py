@@ -68,6 +68,12 @@ def main() -> None:
         help="add a compiled subpixel row with the convolutions on inputs at most N wide as "
         "GEMMs (trainer.fastnet.Conv; CUDA)",
     )
+    ap.add_argument(
+        "--only",
+        default="",
+        metavar="TEXT",
+        help="run only the rows whose name contains TEXT (eager fp32 stays the reference)",
+    )
     args = ap.parse_args()
     device = pick_device(args.device)
     cuda = device.type == "cuda"
@@ -78,7 +84,13 @@ def main() -> None:
     l_all = data["light"].repeat(reps, 1)[: args.batch].to(device)
     model = NeuralRenderer(ModelConfig(resolution=400)).to(device).eval()
 
-    rows = []
+    print(f"device: {device_name(args.device)}; 400², batch {args.batch} for frames/s")
+    print(f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'max |diff|':>12}", flush=True)
+
+    def report(name: str, one: float, many: float, err: float) -> None:
+        """One row, printed as soon as it is measured (compiled rows take minutes each)."""
+        print(f"{name:<32}{one * 1e3:>16.3f}{args.batch / many:>12.1f}{err:>12.4f}", flush=True)
+
     with torch.inference_mode():
         reference = model(x_all[:1], l_all[:1]).float()
 
@@ -87,6 +99,8 @@ def main() -> None:
         return (out.float() - reference).abs().max().item()
 
     def eager_row(name, net, bf16, fmt):
+        if args.only not in name:
+            return
         net.to(memory_format=fmt)
         x1, xb = x_all[:1].contiguous(memory_format=fmt), x_all.contiguous(memory_format=fmt)
 
@@ -96,14 +110,16 @@ def main() -> None:
 
         one = timed(lambda: run(x1, l_all[:1]), args.iters, cuda)
         many = timed(lambda: run(xb, l_all), args.iters, cuda)
-        rows.append((name, one * 1e3, args.batch / many, error(run(x1, l_all[:1]))))
+        report(name, one, many, error(run(x1, l_all[:1])))
 
     def graph_row(name, **fast):
+        if args.only not in name:
+            return
         g1 = GraphedRenderer(model, 1, **fast)
         gb = GraphedRenderer(model, args.batch, **fast)
         one = timed(lambda: g1(x_all[:1], l_all[:1]), args.iters, cuda)
         many = timed(lambda: gb(x_all, l_all), args.iters, cuda)
-        rows.append((name, one * 1e3, args.batch / many, error(g1(x_all[:1], l_all[:1]))))
+        report(name, one, many, error(g1(x_all[:1], l_all[:1])))
 
     eager_row("eager fp32", model, False, torch.contiguous_format)
     subpixel = SubpixelRenderer(fold_batchnorm(model))
@@ -125,10 +141,6 @@ def main() -> None:
                 subpixel=True,
                 gemm_at=args.gemm_at,
             )
-    print(f"\ndevice: {device_name(args.device)}; 400², batch {args.batch} for frames/s")
-    print(f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'max |diff|':>12}")
-    for name, ms, fps, err in rows:
-        print(f"{name:<32}{ms:>16.2f}{fps:>12.1f}{err:>12.4f}")
 
 
 if __name__ == "__main__":

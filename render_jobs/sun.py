@@ -26,7 +26,7 @@ import numpy as np
 
 from render_jobs.specs import Sun
 
-#: Default sun sampling (documented in the README): 5 suns per material, at least 10° up,
+#: Default sun sampling (documented in docs/rendering.md): 5 suns per material, at least 10° up,
 #: turbidity in [2, 10] (the authors' tool offers 2, 3, 6 and 10).
 DEFAULT_SUNS = 5
 DEFAULT_MIN_ELEVATION_DEG = 10.0
