@@ -1,9 +1,12 @@
 """The render farm: plans materials x suns into render tasks and runs them on Blender workers.
 
 - ``farm.plan``: the seeded, shard-aligned plan (no Ray);
-- ``farm.worker``: the Ray actor around one kept-loaded Blender process;
-- ``farm.driver``: ``farm submit``: Ray (embedded or a cluster), retries, blocklisting,
-  timeouts, recycling, shard commits, resume;
+- ``farm.actor``: the Ray actor around one kept-loaded Blender process;
+- ``farm.scheduler``: the scheduling policy (dispatch, pipelining, retry with backoff,
+  blocklist, timeouts), no Ray;
+- ``farm.assembly``: results kept until their shard is whole, no Ray;
+- ``farm.pool``: joining or starting Ray, the pool of actors;
+- ``farm.driver``: ``farm submit``'s loop between them: dispatch, wait, commit shards, resume;
 - ``farm.state`` / ``farm.status``: the job state kept with the store, ``farm status``;
 - ``farm.cli``: ``farm submit``, ``farm status``, ``farm preview``.
 

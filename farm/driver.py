@@ -1,43 +1,41 @@
-"""The farm driver: plan, start Ray workers, hand out tasks, retry, commit shards, report.
+"""The farm driver: plan, start Ray workers, hand out tasks, commit shards, report.
+
+Three parts, each its own module: :mod:`farm.scheduler` decides what each worker gets, when a
+failed task is retried and where, when a worker is blocklisted and when a task has timed out
+(pure policy, tested with a fake clock); :mod:`farm.pool` starts, answers for and kills the Ray
+actors; :mod:`farm.assembly` keeps results until their shard is whole. This module is the loop
+between them: dispatch, wait for one Ray event, feed it to the scheduler, write complete
+shards, persist the job state.
 
 Failure handling is the driver's own, not Ray's task retries, because it needs what Ray's
 retries do not give: a retry on *another* worker, exponential backoff, the error of every
-attempt kept for the report, and per-worker failure counts. A task that raises (Blender error,
-unreadable texture, per-sun timeout in the worker) or whose worker dies (SIGKILL, node lost)
-is retried up to ``max_attempts`` times with backoff ``backoff_s * 2**(attempt-1)``, on a worker
-that has not failed it where one exists; then it is recorded as failed and its shard is left
-uncommitted (a resubmit renders it again). A worker that fails ``blocklist_after`` tasks is
-blocklisted (killed) and replaced; a dead worker is replaced. A task running longer than
-``task_timeout_s x (suns + 1)`` has its worker killed (a failure, reported as a timeout).
-
-Backpressure: each worker holds one task; results wait in the driver only until their shard is
-complete and written, and tasks are handed out in shard order, so driver memory is bounded by
-the workers, not the job. Resume: committed shards are skipped.
+attempt kept for the report, and per-worker failure counts. A task whose failures reach
+``max_attempts`` leaves its shard uncommitted (a resubmit renders it again). A worker running
+one task longer than ``task_timeout_s x (suns + 1)`` is killed (the worker itself enforces the
+timeout per sun; this guards against one stuck elsewhere). Resume: committed shards are
+skipped.
 """
 
 from __future__ import annotations
 
-import collections
-import contextlib
-import os
 import sys
 import time
 from dataclasses import dataclass
 
 from tqdm import tqdm
 
+from farm.assembly import ShardAssembly
 from farm.plan import JobConfig, layout_for, material_specs, task_for
-from farm.state import JobState, WorkerStats, now
-from farm.worker import RenderWorker
+from farm.pool import WorkerPool, connect, keep_ray_on_loopback
+from farm.scheduler import Scheduler
+from farm.state import JobState, now
 from render_jobs.errors import MaterialError
 from render_jobs.materials import load_maps
-from render_jobs.specs import RenderSettings
 from storage.convert import payload_from_packed
 from storage.writer import create_store, write_shard
 
 STATE_EVERY_S = 2.0
-#: tasks a worker may hold: the next waits in its actor's queue, so it never idles while the
-#: driver handles a result (the second is only given while the queue outnumbers the workers)
+#: tasks a worker may hold (:mod:`farm.scheduler`, pipelining)
 PIPELINE = 2
 
 
@@ -79,123 +77,34 @@ def validate(cfg: JobConfig, progress: bool = True):
     return specs
 
 
-def _is_loopback(address: str | None) -> bool:
-    if not address:
-        return True  # the embedded Ray
-    host = address.split("://")[-1].rsplit(":", 1)[0]
-    return host in ("localhost", "::1") or host.startswith("127.")
+@dataclass
+class Job:
+    """What a job renders and where: its specs, the store's layout, the store, the shards to do."""
+
+    cfg: JobConfig
+    specs: list
+    layout: object
+    store: object
+    todo: list[int]
+    state: JobState
 
 
-def _keep_ray_on_loopback(address: str | None) -> None:
-    """For the embedded Ray and clusters on 127.0.0.1: Ray on Linux rewrites a loopback
-    address to the machine's outward IP unless this is set before ``ray`` is imported."""
-    if _is_loopback(address or os.environ.get("RAY_ADDRESS")) and "ray" not in sys.modules:
-        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
+def prepare(cfg: JobConfig, progress: bool, echo) -> Job:
+    """Validate every source and create (or reopen, to resume) the store; nothing else runs
+    on bad input."""
+    from storage.errors import StoreError
 
-
-def connect(address: str | None, dashboard: bool = True) -> str | None:
-    """Join the Ray cluster at ``address`` (or ``RAY_ADDRESS``), else start an embedded one
-    (with its dashboard unless ``dashboard`` is false). Returns the dashboard URL."""
-    import ray
-
-    address = address or os.environ.get("RAY_ADDRESS") or None
-    if address:
-        extra = {"_node_ip_address": "127.0.0.1"} if _is_loopback(address) else {}
-        ctx = ray.init(address=address, log_to_driver=False, **extra)
-    else:
-        ctx = ray.init(  # embedded: everything on the loopback interface
-            num_cpus=os.cpu_count(),
-            include_dashboard=dashboard,
-            log_to_driver=False,
-            _node_ip_address="127.0.0.1",
-            dashboard_host="127.0.0.1",
-            # Ray runs its workers at nice 15 by default; here the renders are the work
-            _system_config={"worker_niceness": 0},
-        )
-    url = getattr(ctx, "dashboard_url", None)
-    return f"http://{url}" if url and not url.startswith("http") else url
-
-
-class _Pool:
-    """The live Ray actors, by worker id."""
-
-    def __init__(self, cfg: JobConfig, state: JobState):
-        import ray
-
-        self.ray, self.cfg, self.state = ray, cfg, state
-        settings = RenderSettings(
-            resolution=cfg.resolution,
-            samples=cfg.samples,
-            threads=cfg.cpus_per_worker,
-            device="OPTIX" if cfg.gpus_per_worker else "CPU",
-            texture_tiling=cfg.texture_tiling,
-        ).to_dict()
-        self.settings = settings
-        self.cls = ray.remote(RenderWorker).options(
-            num_cpus=cfg.cpus_per_worker,
-            num_gpus=cfg.gpus_per_worker,
-            max_restarts=0,
-            max_concurrency=1,
-        )
-        self.actors: dict[str, object] = {}
-        self.starting: dict[object, str] = {}  # readiness ref -> worker id
-        self.start_failures: list[str] = []
-        self.count = 0
-
-    def start(self) -> str:
-        """Create a worker; it gets tasks once Ray has placed it and it answers (``ready``)."""
-        wid = f"w{self.count}"
-        self.count += 1
-        actor = self.cls.remote(wid, self.settings, self.cfg.recycle_after, self.cfg.rss_limit_mb)
-        self.actors[wid] = actor
-        self.starting[actor.info.remote()] = wid
-        self.state.workers[wid] = WorkerStats(worker=wid, status="starting", last_seen=now())
-        return wid
-
-    def ready(self, ref) -> None:
-        """A worker answered: it is placed and alive."""
-        wid = self.starting.pop(ref)
-        w = self.state.workers[wid]
-        try:
-            info = self.ray.get(ref)
-        except Exception as exc:  # noqa: BLE001 - any start-up failure: the worker is gone
-            self.actors.pop(wid, None)
-            w.status, w.current = "dead", None
-            self.start_failures.append(f"{wid}: {type(exc).__name__}: {exc}".splitlines()[0])
-            return
-        if wid in self.actors:
-            w.status, w.host, w.pid, w.last_seen = "idle", info["host"], info["pid"], now()
-            w.nice = info["nice"]
-
-    def remove(self, wid: str, status: str) -> None:
-        actor = self.actors.pop(wid, None)
-        if actor is not None:
-            if status == "stopped":  # the job is over: let it close its Blender first
-                with contextlib.suppress(Exception):  # dead or stuck: the kill ends it
-                    self.ray.get(actor.close.remote(), timeout=15)
-            self.ray.kill(actor, no_restart=True)
-        self.state.workers[wid].status = status
-        self.state.workers[wid].current = None
-
-
-def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
-    """Run (or resume) the job ``cfg`` to the end; see the module docstring."""
-    t_start = time.perf_counter()
-    _keep_ray_on_loopback(cfg.address)
     try:
         specs = validate(cfg, progress)
     except MaterialError as exc:
         raise FarmError(str(exc)) from None
     layout = layout_for(cfg, len(specs))
     settings = cfg.dataset_settings()
-    from storage.errors import StoreError
-
     try:
         store = create_store(cfg.out, layout, settings, exist_ok=True)
     except StoreError as exc:
         raise FarmError(f"{exc} (use another --out, or the original settings to resume)") from None
     committed = set(store.committed_shards())
-    todo = [s for s in range(layout.num_shards) if s not in committed]
     state = JobState(
         store=cfg.out,
         settings=settings,
@@ -206,217 +115,230 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     state.frames_skipped = sum(len(layout.shard_samples(s)) for s in committed)
     if committed:
         echo(f"resuming: {len(committed)} of {layout.num_shards} shards already committed")
-    if not todo:  # keep the finished job's state as it is
-        return Summary(
-            cfg.out, layout.num_samples, 0, state.frames_skipped, {}, [], 0.0, None, 0.0, 0.0
-        )
+    todo = [s for s in range(layout.num_shards) if s not in committed]
+    return Job(cfg, specs, layout, store, todo, state)
 
+
+def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
+    """Run (or resume) the job ``cfg`` to the end; see the module docstring."""
+    t_start = time.perf_counter()
+    keep_ray_on_loopback(cfg.address)
+    job = prepare(cfg, progress, echo)
+    if not job.todo:  # keep the finished job's state as it is
+        n = job.layout.num_samples
+        return Summary(cfg.out, n, 0, job.state.frames_skipped, {}, [], 0.0, None, 0.0, 0.0)
     import ray
-    from ray.exceptions import RayActorError, RayTaskError
 
-    state.dashboard = connect(cfg.address, cfg.ray_dashboard)
-    echo(f"ray dashboard: {state.dashboard or 'off'}")
+    job.state.dashboard = connect(cfg.address, cfg.ray_dashboard)
+    echo(f"ray dashboard: {job.state.dashboard or 'off'}")
+    loop = Loop(job, progress)
     workers = cfg.workers or max(
         1, int(ray.cluster_resources().get("CPU", 1)) // cfg.cpus_per_worker
     )
-    pool = _Pool(cfg, state)
-    first = {pool.start() for _ in range(workers)}
-    startup = None  # until the first workers answer: Ray start + Blender scene builds
-
-    queue = collections.deque(m for s in todo for m in layout.shard_materials(s))
-    not_before: dict[int, float] = {}
-    attempts: collections.Counter[int] = collections.Counter()
-    failed_on: dict[int, set[str]] = {}
-    errors: dict[int, list[dict]] = collections.defaultdict(list)
-    failed: dict[int, str] = {}
-    buffer: dict[int, dict[int, dict]] = collections.defaultdict(dict)
-    dead_shards: set[int] = set()
-    inflight: dict[object, tuple[str, int, float]] = {}
-    timed_out: set[object] = set()
-    # the worker enforces the timeout per sun; this guards against a worker stuck elsewhere
-    guard = cfg.task_timeout_s * (cfg.suns + 1)
-    last_live = now()
-    remaining = sum(len(layout.shard_samples(s)) for s in todo)
-    bar = tqdm(
-        total=remaining,
-        desc="frames",
-        unit="frame",
-        disable=not progress,
-        file=sys.stderr,
-        smoothing=0.1,
+    try:
+        loop.start(workers, t_start)
+        while not loop.sched.finished:
+            loop.dispatch()
+            for ref in loop.wait():
+                loop.handle(ref)
+            loop.check_placement()
+            loop.expire()
+            loop.save(every=STATE_EVERY_S)
+        job.state.status = "failed" if loop.sched.final else "done"
+        render_end = time.perf_counter() - t_start
+    except BaseException:
+        job.state.status = "interrupted"
+        raise
+    finally:
+        loop.close()
+        ray.shutdown()
+    return Summary(
+        store=cfg.out,
+        frames_total=job.layout.num_samples,
+        frames_rendered=job.state.frames_done,
+        frames_skipped=job.state.frames_skipped,
+        failed_materials=dict(loop.sched.final),
+        failed_shards=sorted(loop.shards.dead),
+        wall_s=time.perf_counter() - t_start,
+        dashboard=job.state.dashboard,
+        startup_s=loop.startup_s if loop.startup_s is not None else time.perf_counter() - t_start,
+        render_end_s=render_end,
     )
-    last_save = 0.0
 
-    def fail(m: int, wid: str, error: str) -> None:
-        attempts[m] += 1
-        failed_on.setdefault(m, set()).add(wid)
-        errors[m].append({"worker": wid, "error": error, "at": now()})
-        w = state.workers[wid]
-        w.failures += 1
-        final = attempts[m] >= cfg.max_attempts
-        state.failures[str(m)] = {"attempts": attempts[m], "errors": errors[m][-5:], "final": final}
-        if final:
-            failed[m] = error
-            shard = m // layout.materials_per_shard
-            dead_shards.add(shard)
-            buffer.pop(shard, None)
-            state.shards_failed = sorted(dead_shards)
-        else:
-            not_before[m] = now() + cfg.backoff_s * 2 ** (attempts[m] - 1)
-            queue.append(m)
-        if w.failures >= cfg.blocklist_after and wid in pool.actors:
-            release_queued(wid)
-            pool.remove(wid, "blocklisted")
-            pool.start()
-        bar.set_postfix(
-            shards=f"{state.shards_committed}/{layout.num_shards}",
-            failures=sum(attempts.values()),
-            refresh=False,
+
+class Loop:
+    """One job's event loop over Ray: the pool, the scheduler and the shard assembly, and the
+    result refs in flight (``ref -> (worker, material)``)."""
+
+    def __init__(self, job: Job, progress: bool):
+        cfg, layout = job.cfg, job.layout
+        self.job, self.cfg, self.state = job, cfg, job.state
+        self.pool = WorkerPool(cfg, job.state)
+        self.sched = Scheduler(
+            (m for s in job.todo for m in layout.shard_materials(s)),
+            max_attempts=cfg.max_attempts,
+            backoff_s=cfg.backoff_s,
+            blocklist_after=cfg.blocklist_after,
+            timeout_s=cfg.task_timeout_s * (cfg.suns + 1),
+            pipeline=PIPELINE,
+        )
+        self.shards = ShardAssembly(layout)
+        self.refs: dict[object, tuple[str, int]] = {}
+        self.first: set[str] = set()
+        self.startup_s: float | None = None  # until the first workers answer
+        self.t_start = 0.0
+        self.last_live = self.last_save = now()
+        remaining = sum(len(layout.shard_samples(s)) for s in job.todo)
+        self.bar = tqdm(
+            total=remaining,
+            desc="frames",
+            unit="frame",
+            disable=not progress,
+            file=sys.stderr,
+            smoothing=0.1,
         )
 
-    def release_queued(wid: str, keep=None) -> None:
-        """Put the tasks still queued at a worker being removed back in the queue, uncounted:
-        they never started there (``keep``: a ref that stays, to fail on its own)."""
-        for r, (q, m, _) in list(inflight.items()):
-            if q == wid and r is not keep:
-                inflight.pop(r)
-                queue.appendleft(m)
+    def start(self, workers: int, t_start: float) -> None:
+        self.t_start = t_start
+        self.first = {self.pool.start() for _ in range(workers)}
 
-    def done(m: int, wid: str, res: dict) -> None:
-        w = state.workers[wid]
+    def dispatch(self) -> None:
+        for wid, m in self.sched.dispatch(self.pool.usable(), self.pool.actors, now()):
+            task = task_for(self.cfg, m, self.job.specs[m]).to_dict()
+            self.refs[self.pool.submit(wid, task, self.cfg.task_timeout_s)] = (wid, m)
+            w = self.state.workers[wid]
+            if w.status == "idle":
+                w.status, w.current = "busy", m
+
+    def wait(self) -> list:
+        import ray
+
+        waiting = list(self.refs) + list(self.pool.starting)
+        if not waiting:
+            time.sleep(0.05)
+            return []
+        return ray.wait(waiting, num_returns=1, timeout=0.25)[0]
+
+    def handle(self, ref) -> None:
+        """A worker answered its start, or a task ended (result or error)."""
+        import ray
+        from ray.exceptions import RayActorError, RayTaskError
+
+        if ref in self.pool.starting:
+            self.pool.ready(ref)
+            if self.startup_s is None and self.first.isdisjoint(self.pool.starting.values()):
+                self.startup_s = time.perf_counter() - self.t_start
+            return
+        wid, m = self.refs.pop(ref)
+        w = self.state.workers[wid]
+        w.last_seen, w.current = now(), None
+        try:
+            res = ray.get(ref)
+        except RayActorError as exc:
+            started = self.sched.started_at(wid, m) or now()
+            if m in self.sched.timed_out:
+                error = f"timed out after {now() - started:.0f} s (worker killed)"
+            else:
+                error = f"worker died: {type(exc).__name__}"
+            self.remove(wid, "dead", keep=m)
+            self.failed(wid, m, error)
+            return
+        except RayTaskError as exc:
+            cause = exc.cause if getattr(exc, "cause", None) else exc
+            self.failed(wid, m, f"{type(cause).__name__}: {str(cause).splitlines()[0]}")
+            self.settle(wid)
+            return
+        self.sched.completed(wid, m, now())
+        self.settle(wid)
+        self.completed(wid, m, res)
+
+    def settle(self, wid: str) -> None:
+        """The worker's status after a task left it: busy with its next one, or idle."""
+        w = self.state.workers[wid]
+        if w.status in ("idle", "busy"):
+            w.current = self.sched.running(wid)
+            w.status = "idle" if w.current is None else "busy"
+
+    def remove(self, wid: str, status: str, keep: int | None = None) -> None:
+        """Take ``wid`` out (its other tasks back to the queue) and start a replacement."""
+        back = set(self.sched.remove_worker(wid, keep))
+        for r, (q, m) in list(self.refs.items()):
+            if q == wid and m in back:
+                del self.refs[r]
+        self.pool.replace(wid, status)
+
+    def failed(self, wid: str, m: int, error: str) -> None:
+        out = self.sched.failed(wid, m, error, now())
+        self.state.workers[wid].failures += 1
+        self.state.failures[str(m)] = {
+            "attempts": out.attempts,
+            "errors": self.sched.errors[m][-5:],
+            "final": out.final,
+        }
+        if out.final:
+            self.shards.kill(m)
+            self.state.shards_failed = sorted(self.shards.dead)
+        if out.blocklist and wid in self.pool.actors:
+            self.remove(wid, "blocklisted")
+        self.postfix()
+
+    def completed(self, wid: str, m: int, res: dict) -> None:
+        w = self.state.workers[wid]
         w.frames += len(res["seconds"])
         w.materials += 1
         w.frame_seconds += float(sum(res["seconds"]))
         w.recycled += int(res["recycled"])
         w.host, w.pid = res["host"], res["pid"]
-        bar.update(len(res["seconds"]))  # rendered; state.frames_done counts committed ones
-        shard = m // layout.materials_per_shard
-        if str(m) in state.failures:  # an earlier failure was retried successfully
-            state.failures[str(m)]["recovered"] = True
-        if shard in dead_shards:
-            return
-        buffer[shard][m] = res
-        if len(buffer[shard]) == len(layout.shard_materials(shard)):
-            results = buffer.pop(shard)
-            records = [
-                {"kind": specs[i].kind, "source_id": specs[i].source_id, "spec": specs[i].to_dict()}
-                for i in layout.shard_materials(shard)
-            ]
-            packed = [results[i] for i in layout.shard_materials(shard)]
-            write_shard(store, shard, payload_from_packed(layout, shard, packed, records))
-            state.shards_committed += 1
-            state.frames_done += len(layout.shard_samples(shard))
-            bar.set_postfix(
-                shards=f"{state.shards_committed}/{layout.num_shards}",
-                failures=sum(attempts.values()),
-                refresh=False,
-            )
+        self.bar.update(len(res["seconds"]))  # rendered; state.frames_done counts committed ones
+        if str(m) in self.state.failures:  # an earlier failure was retried successfully
+            self.state.failures[str(m)]["recovered"] = True
+        whole = self.shards.add(m, res)
+        if whole is not None:
+            self.commit(*whole)
 
-    try:
-        while queue or inflight:
-            t = now()
-            load = collections.Counter(wid for wid, _, _ in inflight.values())
-            usable = [w for w in pool.actors if state.workers[w].status in ("idle", "busy")]
-            depth = PIPELINE if len(queue) > len(usable) else 1
-            free = [w for k in range(depth) for w in usable if load[w] <= k]  # one each first
-            for wid in free:
-                if state.workers[wid].status not in ("idle", "busy"):
-                    continue  # blocklisted or gone since the list was made
-                pick = None
-                for m in queue:
-                    if not_before.get(m, 0) > t:
-                        continue
-                    tried = failed_on.get(m, ())
-                    # prefer a worker that has not failed m, unless every live one has
-                    if wid not in tried or all(w in tried for w in pool.actors):
-                        pick = m
-                        break
-                if pick is None:
-                    continue
-                queue.remove(pick)
-                ref = pool.actors[wid].render.remote(
-                    task_for(cfg, pick, specs[pick]).to_dict(), cfg.task_timeout_s
-                )
-                inflight[ref] = (wid, pick, t)
-                if state.workers[wid].status == "idle":
-                    state.workers[wid].status, state.workers[wid].current = "busy", pick
-            waiting = list(inflight) + list(pool.starting)
-            ready, _ = ray.wait(waiting, num_returns=1, timeout=0.25) if waiting else ([], [])
-            if not waiting:
-                time.sleep(0.05)
-            live = [w for w in pool.actors if state.workers[w].status in ("idle", "busy")]
-            if live or inflight:
-                last_live = now()
-            elif now() - last_live > cfg.placement_timeout_s:
-                why = "; ".join(pool.start_failures[-3:]) or (
-                    f"Ray could not place a worker needing {cfg.cpus_per_worker} CPU(s) and "
-                    f"{cfg.gpus_per_worker} GPU(s)"
-                )
-                raise FarmError(f"no live worker for {cfg.placement_timeout_s:.0f} s: {why}")
-            for ref in ready:
-                if ref in pool.starting:
-                    pool.ready(ref)
-                    if startup is None and first.isdisjoint(pool.starting.values()):
-                        startup = time.perf_counter() - t_start
-                    continue
-                wid, m, started = inflight.pop(ref)
-                w = state.workers[wid]
-                w.last_seen, w.current = now(), None
-                queued = [r for r, (q, _, _) in inflight.items() if q == wid]
-                for r in queued[:1]:  # the worker starts its queued task now: time it from here
-                    inflight[r] = (wid, inflight[r][1], now())
-                    w.current = inflight[r][1]
-                try:
-                    res = ray.get(ref)
-                except RayActorError as exc:
-                    if wid in pool.actors:  # died under us: replace it
-                        release_queued(wid)
-                        pool.remove(wid, "dead")
-                        pool.start()
-                    if ref in timed_out:
-                        timed_out.discard(ref)
-                        fail(m, wid, f"timed out after {now() - started:.0f} s (worker killed)")
-                    else:
-                        fail(m, wid, f"worker died: {type(exc).__name__}")
-                    continue
-                except RayTaskError as exc:
-                    cause = exc.cause if getattr(exc, "cause", None) else exc
-                    if w.status == "busy" and not queued:
-                        w.status = "idle"
-                    fail(m, wid, f"{type(cause).__name__}: {str(cause).splitlines()[0]}")
-                    continue
-                if not queued:
-                    w.status = "idle"
-                done(m, wid, res)
-            for ref, (wid, _m, started) in list(inflight.items()):
-                if now() - started > guard and wid in pool.actors:
-                    timed_out.add(ref)
-                    release_queued(wid, keep=ref)
-                    pool.remove(wid, "dead")  # its ref now fails with RayActorError
-                    pool.start()
-            if now() - last_save > STATE_EVERY_S:
-                state.save(store.backend)
-                last_save = now()
-        state.status = "failed" if failed else "done"
-        render_end = time.perf_counter() - t_start
-    except BaseException:
-        state.status = "interrupted"
-        raise
-    finally:
-        bar.close()
-        for wid in list(pool.actors):
-            pool.remove(wid, "stopped")
-        state.save(store.backend)
-        ray.shutdown()
-    return Summary(
-        store=cfg.out,
-        frames_total=layout.num_samples,
-        frames_rendered=state.frames_done,
-        frames_skipped=state.frames_skipped,
-        failed_materials=failed,
-        failed_shards=sorted(dead_shards),
-        wall_s=time.perf_counter() - t_start,
-        dashboard=state.dashboard,
-        startup_s=startup if startup is not None else time.perf_counter() - t_start,
-        render_end_s=render_end,
-    )
+    def commit(self, shard: int, packed: list[dict]) -> None:
+        layout, specs = self.job.layout, self.job.specs
+        records = [
+            {"kind": specs[i].kind, "source_id": specs[i].source_id, "spec": specs[i].to_dict()}
+            for i in layout.shard_materials(shard)
+        ]
+        write_shard(self.job.store, shard, payload_from_packed(layout, shard, packed, records))
+        self.state.shards_committed += 1
+        self.state.frames_done += len(layout.shard_samples(shard))
+        self.postfix()
+
+    def postfix(self) -> None:
+        self.bar.set_postfix(
+            shards=f"{self.state.shards_committed}/{self.job.layout.num_shards}",
+            failures=self.sched.total_failures(),
+            refresh=False,
+        )
+
+    def check_placement(self) -> None:
+        """Stop when no worker has been alive for ``placement_timeout_s``."""
+        cfg = self.cfg
+        if self.pool.usable() or self.refs:
+            self.last_live = now()
+        elif now() - self.last_live > cfg.placement_timeout_s:
+            why = "; ".join(self.pool.start_failures[-3:]) or (
+                f"Ray could not place a worker needing {cfg.cpus_per_worker} CPU(s) and "
+                f"{cfg.gpus_per_worker} GPU(s)"
+            )
+            raise FarmError(f"no live worker for {cfg.placement_timeout_s:.0f} s: {why}")
+
+    def expire(self) -> None:
+        """Kill the workers whose running task is past the guard; the task then fails."""
+        for wid, m in self.sched.expired(now()):
+            if wid in self.pool.actors:
+                self.remove(wid, "dead", keep=m)  # its ref now fails with RayActorError
+
+    def save(self, every: float) -> None:
+        if now() - self.last_save > every:
+            self.state.save(self.job.store.backend)
+            self.last_save = now()
+
+    def close(self) -> None:
+        self.bar.close()
+        for wid in list(self.pool.actors):
+            self.pool.remove(wid, "stopped")
+        self.state.save(self.job.store.backend)

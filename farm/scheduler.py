@@ -1,0 +1,166 @@
+"""The farm's scheduling policy, as plain data and decisions: no Ray, no clock of its own.
+
+A task is one material (all its suns), named by its material index. The scheduler holds the
+queue (in shard order, so shards complete one after another and driver memory stays bounded),
+each worker's assigned tasks, every attempt's error, backoff deadlines and per-worker failure
+counts. The driver asks it what to hand to which worker and tells it what happened; every
+method takes the current time ``now`` (seconds), so tests drive it with a fake clock.
+
+Rules:
+
+* **Pipelining.** A worker holds up to ``pipeline`` tasks: the first runs, the others wait in
+  its actor's queue, so it never idles while the driver handles a result. Extra tasks are only
+  given while the queue outnumbers the usable workers (at a job's end: one each), and every
+  worker gets its first task before any gets a second.
+* **Retry.** A failed task goes back to the queue's end after a backoff of
+  ``backoff_s * 2**(attempt - 1)``, and is given to a worker that has not failed it, unless
+  every known worker has. After ``max_attempts`` failures it is final.
+* **Blocklist.** A worker with ``blocklist_after`` failures is to be removed (the driver
+  replaces it).
+* **Removal.** A removed worker gives the tasks it holds back to the queue's front, uncounted
+  (they never ran there), but for the one whose failure removed it, which fails on its own.
+* **Timeout.** A running task past ``timeout_s`` is reported by :meth:`Scheduler.expired`; the
+  driver kills its worker, and the failure that follows is reported as a timeout.
+"""
+
+from __future__ import annotations
+
+import collections
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+
+@dataclass
+class Assigned:
+    """A task handed to a worker; ``started`` is when it began running (or was queued there)."""
+
+    task: int
+    started: float
+
+
+@dataclass
+class Outcome:
+    """What a failure means: ``final`` (no attempts left), ``blocklist`` (remove the worker)."""
+
+    final: bool
+    blocklist: bool
+    attempts: int
+
+
+@dataclass
+class Scheduler:
+    tasks: Iterable[int]
+    max_attempts: int = 3
+    backoff_s: float = 5.0
+    blocklist_after: int = 3
+    timeout_s: float = float("inf")
+    pipeline: int = 2
+    queue: collections.deque = field(init=False)
+    assigned: dict[str, list[Assigned]] = field(default_factory=dict, init=False)
+    attempts: collections.Counter = field(default_factory=collections.Counter, init=False)
+    errors: dict[int, list[dict]] = field(default_factory=dict, init=False)
+    failed_on: dict[int, set[str]] = field(default_factory=dict, init=False)
+    not_before: dict[int, float] = field(default_factory=dict, init=False)
+    worker_failures: collections.Counter = field(default_factory=collections.Counter, init=False)
+    final: dict[int, str] = field(default_factory=dict, init=False)  # task -> last error
+    timed_out: set[int] = field(default_factory=set, init=False)
+
+    def __post_init__(self) -> None:
+        self.queue = collections.deque(self.tasks)
+
+    @property
+    def finished(self) -> bool:
+        """Nothing queued and nothing assigned: every task is done or final."""
+        return not self.queue and not any(self.assigned.values())
+
+    def running(self, worker: str) -> int | None:
+        held = self.assigned.get(worker)
+        return held[0].task if held else None
+
+    def dispatch(self, usable: list[str], known: Iterable[str], now: float) -> list[tuple]:
+        """``(worker, task)`` pairs to hand out now to the ``usable`` workers (placed and
+        alive), in order. ``known``: every worker that exists, starting ones too (a retry may
+        wait for one that has not failed it)."""
+        known = set(known)
+        depth = self.pipeline if len(self.queue) > len(usable) else 1
+        out = []
+        for k in range(depth):
+            for worker in usable:
+                if len(self.assigned.get(worker, ())) > k:
+                    continue
+                task = self._pick(worker, known, now)
+                if task is not None:
+                    self.queue.remove(task)
+                    self.assigned.setdefault(worker, []).append(Assigned(task, now))
+                    out.append((worker, task))
+        return out
+
+    def _pick(self, worker: str, known: set[str], now: float) -> int | None:
+        for task in self.queue:
+            if self.not_before.get(task, 0.0) > now:
+                continue
+            tried = self.failed_on.get(task, set())
+            if worker not in tried or known <= tried:
+                return task
+        return None
+
+    def _release(self, worker: str, task: int, now: float) -> None:
+        """``task`` has left ``worker``; the next task waiting there starts running now."""
+        held = self.assigned.get(worker, [])
+        for i, a in enumerate(held):
+            if a.task == task:
+                del held[i]
+                if i == 0 and held:
+                    held[0].started = now
+                return
+
+    def completed(self, worker: str, task: int, now: float) -> None:
+        self._release(worker, task, now)
+
+    def failed(self, worker: str, task: int, error: str, now: float) -> Outcome:
+        """Record a failed attempt; requeue it with backoff or make it final."""
+        self._release(worker, task, now)
+        self.timed_out.discard(task)
+        self.attempts[task] += 1
+        self.failed_on.setdefault(task, set()).add(worker)
+        self.errors.setdefault(task, []).append({"worker": worker, "error": error, "at": now})
+        self.worker_failures[worker] += 1
+        n = self.attempts[task]
+        final = n >= self.max_attempts
+        if final:
+            self.final[task] = error
+        else:
+            self.not_before[task] = now + self.backoff_s * 2 ** (n - 1)
+            self.queue.append(task)
+        return Outcome(final, self.worker_failures[worker] >= self.blocklist_after, n)
+
+    def remove_worker(self, worker: str, keep: int | None = None) -> list[int]:
+        """``worker`` is being removed: every task it holds but ``keep`` (one that is to fail
+        on its own) goes back to the queue's front, uncounted, since it never ran there; those
+        tasks are returned."""
+        held = self.assigned.get(worker, [])
+        back = [a.task for a in held if a.task != keep]
+        self.assigned[worker] = [a for a in held if a.task == keep]
+        self.queue.extendleft(reversed(back))
+        return back
+
+    def started_at(self, worker: str, task: int) -> float | None:
+        for a in self.assigned.get(worker, []):
+            if a.task == task:
+                return a.started
+        return None
+
+    def expired(self, now: float) -> list[tuple[str, int]]:
+        """``(worker, task)`` for each running task past ``timeout_s``, newly marked as timed
+        out; the caller kills the worker (and removes it)."""
+        out = []
+        for worker, held in self.assigned.items():
+            if not held or held[0].task in self.timed_out:
+                continue
+            if now - held[0].started > self.timeout_s:
+                self.timed_out.add(held[0].task)
+                out.append((worker, held[0].task))
+        return out
+
+    def total_failures(self) -> int:
+        return sum(self.attempts.values())

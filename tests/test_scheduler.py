@@ -1,0 +1,107 @@
+"""The farm's scheduling policy and shard assembly alone: no Ray, a fake clock, made-up workers."""
+
+from __future__ import annotations
+
+import pytest
+
+from farm.assembly import ShardAssembly
+from farm.scheduler import Scheduler
+from storage.schema import Layout
+
+
+def sched(n: int = 6, **kw) -> Scheduler:
+    kw = {"max_attempts": 3, "backoff_s": 10.0, "blocklist_after": 3, "timeout_s": 100.0} | kw
+    return Scheduler(range(n), **kw)
+
+
+def test_every_worker_gets_one_task_before_any_gets_a_second():
+    s = sched(6)
+    assert s.dispatch(["a", "b"], ["a", "b"], 0.0) == [("a", 0), ("b", 1), ("a", 2), ("b", 3)]
+    assert s.running("a") == 0 and [x.task for x in s.assigned["a"]] == [0, 2]
+    assert list(s.queue) == [4, 5]
+    assert s.dispatch(["a", "b"], ["a", "b"], 1.0) == []  # both full
+
+
+def test_no_second_task_when_the_queue_is_not_longer_than_the_workers():
+    s = sched(2)
+    assert s.dispatch(["a", "b", "c"], ["a", "b", "c"], 0.0) == [("a", 0), ("b", 1)]
+    s = sched(3)
+    assert s.dispatch(["a", "b"], ["a", "b"], 0.0) == [("a", 0), ("b", 1), ("a", 2)]
+
+
+def test_a_failed_task_waits_its_backoff_then_goes_to_another_worker():
+    s = sched(1)
+    assert s.dispatch(["a", "b"], ["a", "b"], 0.0) == [("a", 0)]
+    out = s.failed("a", 0, "RenderError: boom", 5.0)
+    assert (out.final, out.blocklist, out.attempts) == (False, False, 1)
+    assert s.dispatch(["a", "b"], ["a", "b"], 14.9) == []  # backoff 10 s from t = 5
+    assert s.dispatch(["a", "b"], ["a", "b"], 15.1) == [("b", 0)]  # not a, which failed it
+    s.failed("b", 0, "again", 16.0)
+    assert s.not_before[0] == pytest.approx(36.0)  # 10 * 2**1
+    # every known worker has failed it: any may retry it
+    assert s.dispatch(["a"], ["a", "b"], 40.0) == [("a", 0)]
+    out = s.failed("a", 0, "third", 41.0)
+    assert out.final and s.final == {0: "third"} and s.finished
+    assert [e["error"] for e in s.errors[0]] == ["RenderError: boom", "again", "third"]
+
+
+def test_a_retry_waits_for_a_starting_worker_that_has_not_failed_it():
+    s = sched(1)
+    s.dispatch(["a"], ["a"], 0.0)
+    s.failed("a", 0, "x", 0.0)
+    assert s.dispatch(["a"], ["a", "b"], 100.0) == []  # b exists but is not placed yet
+    assert s.dispatch(["a", "b"], ["a", "b"], 100.0) == [("b", 0)]
+
+
+def test_blocklist_after_a_workers_third_failure():
+    s = sched(3, max_attempts=5)
+    s.dispatch(["a"], ["a"], 0.0)
+    outs = [s.failed("a", t, "x", 1.0) for t in (0, 1)]
+    assert [o.blocklist for o in outs] == [False, False]
+    s.dispatch(["a"], ["a"], 100.0)
+    assert s.failed("a", s.running("a"), "x", 101.0).blocklist
+
+
+def test_a_removed_worker_gives_back_its_waiting_tasks_uncounted_to_the_front():
+    s = sched(5)
+    s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0, 2; b: 1, 3
+    assert s.remove_worker("a", keep=0) == [2]
+    assert list(s.queue) == [2, 4] and s.attempts[2] == 0
+    assert [x.task for x in s.assigned["a"]] == [0]  # to fail on its own
+    s.failed("a", 0, "worker died", 1.0)
+    assert s.assigned["a"] == [] and list(s.queue) == [2, 4, 0]
+    assert s.remove_worker("b") == [1, 3] and list(s.queue) == [1, 3, 2, 4, 0]
+
+
+def test_timeouts_count_from_when_a_task_starts_running():
+    s = sched(4, timeout_s=100.0)
+    s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0 then 2; b: 1 then 3
+    s.completed("a", 0, 90.0)  # 2 starts running at t = 90
+    assert s.running("a") == 2 and s.started_at("a", 2) == 90.0
+    assert s.expired(150.0) == [("b", 1)]  # b's first task ran since t = 0
+    assert s.expired(160.0) == []  # reported once
+    assert s.expired(191.0) == [("a", 2)]
+    assert 1 in s.timed_out
+    s.remove_worker("b", keep=1)
+    s.failed("b", 1, "timed out", 200.0)
+    assert 1 not in s.timed_out and s.attempts[1] == 1
+
+
+def test_finished_only_when_nothing_is_queued_or_held():
+    s = sched(1)
+    assert not s.finished
+    s.dispatch(["a"], ["a"], 0.0)
+    assert not s.finished
+    s.completed("a", 0, 1.0)
+    assert s.finished
+
+
+def test_shard_assembly_returns_a_whole_shard_in_material_order_and_drops_dead_ones():
+    layout = Layout(num_materials=6, suns_per_material=2, resolution=16, shard_size=4)
+    shards = ShardAssembly(layout)  # 2 materials a shard
+    assert shards.add(1, {"m": 1}) is None
+    assert shards.add(0, {"m": 0}) == (0, [{"m": 0}, {"m": 1}])
+    assert shards.kill(3) == 1
+    assert shards.add(2, {"m": 2}) is None and 1 not in shards.waiting
+    assert shards.add(5, {"m": 5}) is None
+    assert shards.waiting == {2: {5: {"m": 5}}}
