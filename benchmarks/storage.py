@@ -29,8 +29,8 @@ import numpy as np
 import zstandard
 
 from storage.reader import ShardStore
-from storage.schema import Layout, decode_maps
-from storage.writer import ShardPayload, create_store, write_shard
+from storage.schema import Layout, ShardPayload, decode_maps
+from storage.writer import create_store, write_shard
 
 RES = 400
 SUNS = 5

@@ -7,26 +7,21 @@ memory growth) and kill a hung render (per-sun ``timeout``) without losing the a
 GPUs, Ray sets ``CUDA_VISIBLE_DEVICES`` to the actor's one GPU, so each Blender sees only its
 own (``device`` OPTIX or CUDA).
 
-Fault injection for tests: ``SHADERBALL_FARM_FAULTS`` holds JSON with ``fail_materials``
-(raise every time), ``flaky_materials`` (raise on a worker's first try of them),
-``hang_materials`` (sleep past any timeout), ``bad_workers`` (worker ids whose every task
-raises), ``slow_s`` (sleep before each task). Unset, it does nothing.
+Tests plant failures through :mod:`farm.faults` (``SHADERBALL_FARM_FAULTS``); unset, the
+actor runs as in production.
 """
 
 from __future__ import annotations
 
-import json
 import os
 import socket
 import time
 
-from render_jobs.errors import RenderError
+from farm import faults
 from render_jobs.materials import load_maps
 from render_jobs.specs import RenderJob, RenderSettings
 from render_jobs.worker import RenderProcess
 from storage.convert import pack_material
-
-FAULTS_ENV = "SHADERBALL_FARM_FAULTS"
 
 
 class RenderWorker:
@@ -40,8 +35,7 @@ class RenderWorker:
         self.process = RenderProcess(self.settings).start()  # Blender loads with the actor
         self.renders_since_start = 0
         self.recycled = 0
-        self.faults = json.loads(os.environ.get(FAULTS_ENV, "{}") or "{}")
-        self.tried: set[int] = set()
+        self.faults = faults.from_env()
 
     def info(self) -> dict:
         return {
@@ -52,25 +46,11 @@ class RenderWorker:
             "nice": os.getpriority(os.PRIO_PROCESS, 0),
         }
 
-    def _inject(self, index: int) -> None:
-        f = self.faults
-        if not f:
-            return
-        time.sleep(float(f.get("slow_s", 0)))
-        if self.worker_id in f.get("bad_workers", []):
-            raise RenderError(f"injected fault: worker {self.worker_id} is bad")
-        if index in f.get("fail_materials", []):
-            raise RenderError(f"injected fault: material {index} always fails")
-        if index in f.get("flaky_materials", []) and index not in self.tried:
-            self.tried.add(index)
-            raise RenderError(f"injected fault: material {index} fails once")
-        if index in f.get("hang_materials", []):
-            time.sleep(3600)
-
     def render(self, job: dict, timeout_s: float) -> dict:
         """Render one material under all its suns (``job``: ``RenderJob.to_dict()``)."""
         task = RenderJob.from_dict(job)
-        self._inject(task.material_index)
+        if self.faults is not None:
+            self.faults.before_render(self.worker_id, task.material_index)
         maps = load_maps(task.material)
         t0 = time.perf_counter()
         result = self.process.render_material(

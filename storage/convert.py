@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from render_jobs.results import MaterialRender
-from storage.schema import Layout, encode_maps
-from storage.writer import ShardPayload
+from storage.schema import Layout, ShardPayload, encode_maps
 
 
 def pack_material(result: MaterialRender) -> dict:

@@ -9,7 +9,7 @@ from collections import Counter
 import numpy as np
 
 from storage.reader import ShardStore
-from storage.schema import MAPS_CHANNELS, PER_SAMPLE
+from storage.schema import PACKED_CHANNELS, PER_SAMPLE
 
 
 def list_shards(store: ShardStore) -> list[dict]:
@@ -52,7 +52,7 @@ def store_info(store: ShardStore) -> dict:
     per_sample_raw = 3 * r * r * 2 + sum(
         math.prod(t) * np.dtype(d).itemsize for t, d in PER_SAMPLE.values()
     )
-    raw = len(samples) * per_sample_raw + sum(kinds.values()) * MAPS_CHANNELS * r * r
+    raw = len(samples) * per_sample_raw + sum(kinds.values()) * PACKED_CHANNELS * r * r
     if samples:
         d = g["sun_direction"][:][samples]
         t = g["turbidity"][:][samples]

@@ -18,13 +18,17 @@ from render_jobs.specs import Sun
 from storage.backend import Backend
 from storage.chunks import ChunkReader
 from storage.errors import StoreError
-from storage.schema import ATTRS_KEY, COMMITS, PER_SAMPLE, SCHEMA_VERSION, Layout, decode_maps
-
-ARRAYS = ("maps", "renders", *PER_SAMPLE)
-
-
-def commit_key(shard: int) -> str:
-    return f"{COMMITS}/{shard:06d}.json"
+from storage.schema import (
+    ATTRS_KEY,
+    COMMITS,
+    PER_SAMPLE,
+    SCHEMA_VERSION,
+    Layout,
+    ShardPayload,
+    arrays,
+    commit_key,
+    decode_maps,
+)
 
 
 @dataclass
@@ -122,11 +126,10 @@ class ShardStore:
 
     def shard_keys(self, shard: int) -> list[str]:
         """The object keys holding ``shard`` (one per array)."""
-        keys = []
-        for name in ARRAYS:
-            ndim = 4 if name in ("maps", "renders") else 1 + len(PER_SAMPLE[name][0])
-            keys.append(f"{name}/c/" + "/".join([str(shard)] + ["0"] * (ndim - 1)))
-        return keys
+        return [
+            f"{name}/c/" + "/".join([str(shard)] + ["0"] * (len(spec.shape) - 1))
+            for name, spec in arrays(self.layout).items()
+        ]
 
     def shard_state(self, shard: int, commits: dict[int, dict] | None = None) -> str:
         """``committed``, ``pending`` (bytes but no commit record) or ``empty``."""
@@ -156,6 +159,13 @@ class ShardStore:
         if rec is None:
             raise StoreError(f"{self.url}: sample {sample} is in shard {shard}, not committed")
         return shard, rec
+
+    def forget(self, shard: int) -> None:
+        """Drop what is cached of ``shard`` (its commit record, metadata, maps): it is being
+        rewritten."""
+        self._known.pop(shard, None)
+        self._meta.pop(shard, None)
+        self._maps_cache.clear()
 
     def _shard_meta(self, shard: int) -> dict[str, np.ndarray]:
         """The small per-sample arrays of a committed shard (read once, then cached)."""
@@ -225,9 +235,7 @@ class ShardStore:
         )
 
     def read_shard(self, shard: int):
-        """The whole of a committed ``shard`` as a :class:`storage.writer.ShardPayload`."""
-        from storage.writer import ShardPayload
-
+        """The whole of a committed ``shard`` as a :class:`storage.schema.ShardPayload`."""
         rec = self.commit_record(shard)
         if rec is None:
             raise StoreError(f"{self.url}: shard {shard} is not committed")

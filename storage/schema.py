@@ -1,19 +1,25 @@
-"""Schema version 1 of the shard store: arrays, dtypes, layout, and map encoding."""
+"""Schema version 1 of the shard store: every array's name, shape, dtype and chunking, the
+layout, the commit records' keys, one shard's data, and the map encoding.
+
+This module is the one statement of the format: the writer creates and checks arrays from
+:func:`arrays`, the readers and ``shards verify`` check them against it.
+"""
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
 from render_jobs.materials.maps import linear_to_srgb, srgb_to_linear
+from render_jobs.specs import MATERIAL_KINDS
 
 SCHEMA_VERSION = 1
 ATTRS_KEY = "shaderball"
 COMMITS = "commits"
 MAP_CHANNELS = {"diffuse": 3, "specular": 3, "roughness": 1, "normal": 3, "mask": 1}
-MAPS_CHANNELS = sum(MAP_CHANNELS.values())  # 11
-KINDS = ("uniform", "procedural", "svbrdf")
+PACKED_CHANNELS = sum(MAP_CHANNELS.values())  # 11: the maps of one material, packed
+KINDS = MATERIAL_KINDS
 PER_SAMPLE = {  # name: (trailing shape, dtype)
     "material_index": ((), "int32"),
     "sun_direction": ((3,), "float32"),
@@ -78,6 +84,59 @@ class Layout:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """One array of the store: ``shape`` (whole store), ``dtype``, ``chunks`` (one read unit),
+    ``shards`` (one file; ``None``: one chunk a shard), and the shape of one shard's part."""
+
+    shape: tuple
+    dtype: str
+    chunks: tuple
+    shards: tuple | None
+    per_material: bool  # indexed by material (maps), else by sample
+
+    def part(self, count: int) -> tuple:
+        """The shape of ``count`` materials' or samples' rows of it."""
+        return (count, *self.shape[1:])
+
+
+def arrays(layout: Layout) -> dict[str, ArraySpec]:
+    """Every array of a store with ``layout``, by name."""
+    r, m, n, s = layout.resolution, layout.num_materials, layout.num_samples, layout.shard_size
+    mps = layout.materials_per_shard
+    packed = (PACKED_CHANNELS, r, r)
+    out = {
+        "maps": ArraySpec((m, *packed), "uint8", (1, *packed), (mps, *packed), True),
+        "renders": ArraySpec((n, 3, r, r), "float16", (1, 3, r, r), (s, 3, r, r), False),
+    }
+    for name, (tail, dtype) in PER_SAMPLE.items():
+        out[name] = ArraySpec((n, *tail), dtype, (s, *tail), None, False)
+    return out
+
+
+def commit_key(shard: int) -> str:
+    return f"{COMMITS}/{shard:06d}.json"
+
+
+@dataclass
+class ShardPayload:
+    """One shard's data, as ``write_shard`` takes it and ``Store.read_shard`` returns it: an
+    attribute per array of :func:`arrays`, each holding the shard's rows. ``maps`` ``(m, 11, H,
+    W) uint8`` (:func:`encode_maps`); ``renders`` ``(n, 3, H, W)`` float16 linear HDR; per
+    sample ``material_index (n,) int32``, ``sun_direction (n, 3)``, ``turbidity (n,)``, ``seed
+    (n,) int64``, ``render_seconds (n,)``. ``materials``: one dict per material (``kind``,
+    ``source_id``, ``spec``)."""
+
+    maps: np.ndarray
+    renders: np.ndarray
+    material_index: np.ndarray
+    sun_direction: np.ndarray
+    turbidity: np.ndarray
+    seed: np.ndarray
+    render_seconds: np.ndarray
+    materials: list[dict] = field(default_factory=list)
 
 
 def encode_maps(maps: dict[str, np.ndarray]) -> np.ndarray:

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from storage.reader import ShardStore
-from storage.schema import MAPS_CHANNELS, PER_SAMPLE
+from storage.schema import arrays
 
 
 @dataclass
@@ -26,21 +26,19 @@ class Report:
 
 
 def _check_arrays(store: ShardStore, report: Report) -> None:
-    lay, g = store.layout, store.group
-    r = lay.resolution
-    expected = {
-        "maps": (lay.num_materials, MAPS_CHANNELS, r, r),
-        "renders": (lay.num_samples, 3, r, r),
-        **{k: (lay.num_samples, *tail) for k, (tail, _) in PER_SAMPLE.items()},
-    }
-    for name, shape in expected.items():
+    g = store.group
+    for name, spec in arrays(store.layout).items():
         try:
-            actual = g[name].shape
+            actual = g[name]
         except KeyError:
             report.store_problems.append(f"array {name} is missing")
             continue
-        if tuple(actual) != shape:
-            report.store_problems.append(f"array {name} has shape {actual}, expected {shape}")
+        if tuple(actual.shape) != spec.shape:
+            report.store_problems.append(
+                f"array {name} has shape {actual.shape}, expected {spec.shape}"
+            )
+        elif actual.dtype != np.dtype(spec.dtype):
+            report.store_problems.append(f"array {name} is {actual.dtype}, expected {spec.dtype}")
 
 
 def _check_shard(store: ShardStore, shard: int, rec: dict, report: Report) -> None:

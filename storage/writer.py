@@ -14,21 +14,21 @@ import os
 import platform
 import socket
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
 from storage.backend import Backend
 from storage.errors import ShardCommittedError, StoreError
-from storage.reader import ShardStore, commit_key
+from storage.reader import ShardStore
 from storage.schema import (
     ATTRS_KEY,
     KINDS,
-    MAPS_CHANNELS,
-    PER_SAMPLE,
     SCHEMA_VERSION,
     Layout,
+    ShardPayload,
+    arrays,
+    commit_key,
 )
 
 ZSTD_LEVEL = 3
@@ -75,77 +75,30 @@ def create_store(
         "software": software_versions(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
-    r, m, n, s = layout.resolution, layout.num_materials, layout.num_samples, layout.shard_size
-    mps = layout.materials_per_shard
-    group.create_array(
-        "maps",
-        shape=(m, MAPS_CHANNELS, r, r),
-        dtype="uint8",
-        chunks=(1, MAPS_CHANNELS, r, r),
-        shards=(mps, MAPS_CHANNELS, r, r),
-        compressors=_compressors(),
-        fill_value=0,
-    )
-    group.create_array(
-        "renders",
-        shape=(n, 3, r, r),
-        dtype="float16",
-        chunks=(1, 3, r, r),
-        shards=(s, 3, r, r),
-        compressors=_compressors(),
-        fill_value=0,
-    )
-    for name, (tail, dtype) in PER_SAMPLE.items():
+    for name, spec in arrays(layout).items():
         group.create_array(
             name,
-            shape=(n, *tail),
-            dtype=dtype,
-            chunks=(s, *tail),
+            shape=spec.shape,
+            dtype=spec.dtype,
+            chunks=spec.chunks,
+            shards=spec.shards,
             compressors=_compressors(),
             fill_value=0,
         )
     return ShardStore(url, storage_options)
 
 
-@dataclass
-class ShardPayload:
-    """One shard's data, as ``write_shard`` takes it and ``ShardStore.read_shard`` returns it.
-
-    ``maps`` ``(m, 11, H, W) uint8`` (``schema.encode_maps``); ``renders`` ``(n, 3, H, W)``
-    float16 linear HDR; per sample: ``material_index (n,) int32``, ``sun_direction (n, 3)``,
-    ``turbidity (n,)``, ``seed (n,) int64``, ``render_seconds (n,)``; ``materials``: one dict
-    per material (``kind``, ``source_id``, ``spec``).
-    """
-
-    maps: np.ndarray
-    renders: np.ndarray
-    material_index: np.ndarray
-    sun_direction: np.ndarray
-    turbidity: np.ndarray
-    seed: np.ndarray
-    render_seconds: np.ndarray
-    materials: list[dict] = field(default_factory=list)
-
-
 def _check_payload(store: ShardStore, shard: int, p: ShardPayload) -> None:
     layout = store.layout
     samples, materials = layout.shard_samples(shard), layout.shard_materials(shard)
-    n, m, r = len(samples), len(materials), layout.resolution
-    expected = {
-        "maps": ((m, MAPS_CHANNELS, r, r), np.uint8),
-        "renders": ((n, 3, r, r), np.float16),
-        "material_index": ((n,), np.int32),
-        "sun_direction": ((n, 3), np.float32),
-        "turbidity": ((n,), np.float32),
-        "seed": ((n,), np.int64),
-        "render_seconds": ((n,), np.float32),
-    }
-    for name, (shape, dtype) in expected.items():
-        arr = getattr(p, name)
+    m = len(materials)
+    for name, spec in arrays(layout).items():
+        arr, dtype = getattr(p, name), np.dtype(spec.dtype)
+        shape = spec.part(m if spec.per_material else len(samples))
         if arr.shape != shape:
             raise StoreError(f"shard {shard}: {name} has shape {arr.shape}, expected {shape}")
         if arr.dtype != dtype:
-            raise StoreError(f"shard {shard}: {name} is {arr.dtype}, expected {np.dtype(dtype)}")
+            raise StoreError(f"shard {shard}: {name} is {arr.dtype}, expected {dtype}")
     want = np.repeat(np.asarray(materials), layout.suns_per_material)
     if not np.array_equal(p.material_index, want):
         raise StoreError(f"shard {shard}: material_index does not match the layout")
@@ -170,15 +123,12 @@ def write_shard(
                 f"{store.url}: shard {shard} is already committed (pass overwrite to replace it)"
             )
         backend.delete(commit_key(shard))  # invisible before its bytes change
-        store._known.pop(shard, None)
-        store._meta.pop(shard, None)
-        store._maps_cache.clear()
+        store.forget(shard)
     group = backend.open_group(mode="r+")
     samples, materials = store.layout.shard_samples(shard), store.layout.shard_materials(shard)
-    group["maps"][materials.start : materials.stop] = payload.maps
-    group["renders"][samples.start : samples.stop] = payload.renders
-    for name in PER_SAMPLE:
-        group[name][samples.start : samples.stop] = getattr(payload, name)
+    for name, spec in arrays(store.layout).items():
+        rows = materials if spec.per_material else samples
+        group[name][rows.start : rows.stop] = getattr(payload, name)
     keys = store.shard_keys(shard)
     backend.make_durable(keys)
     record = {

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from storage.schema import Layout
-from storage.writer import ShardPayload
+from storage.schema import Layout, ShardPayload
 
 
 def synthetic_payload(layout: Layout, shard: int, seed: int = 0) -> ShardPayload:

@@ -14,8 +14,8 @@ import pytest
 
 from storage.dataset import Dataset, split_by_material
 from storage.errors import ShardCommittedError, StoreError
-from storage.reader import ShardStore, commit_key
-from storage.schema import Layout, decode_maps, encode_maps
+from storage.reader import ShardStore
+from storage.schema import Layout, commit_key, decode_maps, encode_maps
 from storage.writer import create_store, write_shard
 from tests.storage_helpers import synthetic_payload
 

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import torch
 
+from storage.backend import write_atomic
+
 PATTERN = re.compile(r"^step-(\d{8})\.pt$")
 
 
@@ -45,12 +47,7 @@ def save(run_dir: str | os.PathLike, state: dict, keep: int = 3) -> Path:
     d = folder(run_dir)
     d.mkdir(parents=True, exist_ok=True)
     path = d / f"step-{int(state['step']):08d}.pt"
-    tmp = d / f".{path.name}.{os.getpid()}.tmp"
-    with open(tmp, "wb") as f:
-        torch.save(state, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    write_atomic(path, lambda f: torch.save(state, f))
     for old in listing(run_dir)[:-keep] if keep > 0 else []:
         old.unlink(missing_ok=True)
     return path

@@ -24,6 +24,7 @@ import itertools
 import json
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -32,19 +33,12 @@ from torch.nn.parallel import DistributedDataParallel as DDP
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from trainer import checkpoint
+from trainer import checkpoint, faults
 from trainer.config import TrainConfig
 from trainer.data import Catalog, ShardStream, steps_left
 from trainer.model import ModelConfig, NeuralRenderer
 from trainer.perceptual import RendererLoss, load_vgg
 from trainer.targets import Tonemap, model_inputs
-
-#: test hook: rank 0 of a first torchrun attempt exits abruptly after this global step
-CRASH_AT = int(os.environ.get("SHADERBALL_TRAIN_CRASH_AT", "0")) or None
-
-
-def _first_attempt() -> bool:
-    return os.environ.get("TORCHELASTIC_RESTART_COUNT") == "0"
 
 
 class TrainingDiverged(RuntimeError):
@@ -70,11 +64,8 @@ def train(cfg: TrainConfig) -> dict:
         device = torch.device("cpu")
     if distributed:
         _init_process_group("nccl" if use_cuda else "gloo", rank, world)
-    master = rank == 0
-    out = Path(cfg.out)
-
     try:
-        return _train(cfg, rank, world, device, distributed, master, out)
+        return _train(cfg, Rank(rank, world, device, distributed))
     finally:
         if distributed:
             dist.destroy_process_group()
@@ -100,15 +91,141 @@ def _init_process_group(backend: str, rank: int, world: int) -> None:
     dist.init_process_group(backend, store=prefixed, rank=rank, world_size=world)
 
 
-def _train(cfg, rank, world, device, distributed, master, out) -> dict:
-    # ---- what to train on, from scratch or from the latest checkpoint ----------------------
+@dataclass(frozen=True)
+class Rank:
+    """Where this process trains: its rank among ``world``, its device, whether under DDP."""
+
+    rank: int
+    world: int
+    device: torch.device
+    distributed: bool
+
+    @property
+    def master(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def cuda(self) -> bool:
+        return self.device.type == "cuda"
+
+    @property
+    def fmt(self) -> torch.memory_format:
+        return torch.channels_last if self.cuda else torch.contiguous_format
+
+
+@dataclass
+class Trainee:
+    """The network being trained and everything a checkpoint holds, with the run's position:
+    ``step`` (global), ``epoch``, and ``position`` (samples of the epoch already taken)."""
+
+    model: NeuralRenderer
+    net: torch.nn.Module  # the model, or DDP around it
+    opt: torch.optim.Optimizer
+    criterion: RendererLoss
+    model_cfg: ModelConfig
+    tonemap: Tonemap
+    catalog: Catalog
+    bad: torch.Tensor  # () bool: a non-finite gradient norm was seen (checked lazily)
+    step: int = 0
+    epoch: int = 0
+    position: int = 0
+
+
+def _train(cfg: TrainConfig, rk: Rank) -> dict:
+    out = Path(cfg.out)
+    state, found = _resume_state(cfg, out)
+    vgg = load_vgg(cfg.vgg_weights) if cfg.loss == "l1+vgg" else None  # fail before any work
+    catalog = _catalog(cfg, rk, state, found)
+    t = _build(cfg, rk, catalog, state, vgg)
+    faults.install(t.opt, t.step, rk.master)
+    split = catalog.split("train")
+    stream = ShardStream(
+        split, batch=cfg.batch_size, seed=cfg.seed, buffer=cfg.shuffle_buffer, world=rk.world,
+        rank=rk.rank, epochs=cfg.epochs,
+    )  # fmt: skip
+    loader = DataLoader(
+        stream,
+        batch_size=None,
+        num_workers=cfg.workers,
+        pin_memory=rk.cuda,
+        prefetch_factor=4 if cfg.workers else None,
+    )
+    log = RunLog(cfg, rk, out)
+    log.start(
+        f"training on {len(split)} samples (held-out materials: "
+        f"{sum(map(len, catalog.heldout))}), {rk.world} rank(s) x batch {cfg.batch_size} "
+        f"on {rk.device.type}, {t.model_cfg.resolution}², loss {cfg.loss}; from step {t.step}"
+    )
+    started = time.perf_counter()
+    images = 0
+    batches = None  # one iteration for the whole run: the workers read across epoch ends
+    while t.epoch < cfg.epochs and not _at_max_steps(cfg, t):
+        if batches is None:
+            stream.set_position(t.epoch, t.position)
+            batches = iter(loader)
+        mine = len(stream.batches(t.epoch, t.position))  # this rank's; one fewer on some ranks
+        total = steps_left(len(split), rk.world, cfg.batch_size, t.position)
+        bar = tqdm(total=total, desc=f"epoch {t.epoch + 1}/{cfg.epochs}", disable=not rk.master)
+        log.new_window()
+        join = t.net.join() if rk.distributed else contextlib.nullcontext()
+        with join, contextlib.closing(bar):  # the bar ends its line even on errors
+            for batch, waited in _timed(itertools.islice(batches, mine)):
+                if batch["epoch"] != t.epoch:
+                    raise RuntimeError(
+                        f"the loader is out of step: epoch {batch['epoch']} in {t.epoch}"
+                    )
+                loss = train_step(cfg, rk, t, batch)
+                t.step += 1
+                t.position = min(t.position + rk.world * cfg.batch_size, len(split))
+                images += len(batch["id"])
+                log.record(t, batch, loss, waited, bar)
+                if t.step % cfg.log_every == 0:
+                    check_finite(t, out)
+                    log.flush(t, bar)
+                if t.step % cfg.checkpoint_every == 0:
+                    save(cfg, rk, t, out, log)
+                if _at_max_steps(cfg, t):
+                    break
+        if not _at_max_steps(cfg, t):
+            t.epoch, t.position = t.epoch + 1, 0
+        save(cfg, rk, t, out, log)
+    log.close(t.model)
+    seconds = time.perf_counter() - started
+    return {
+        "steps": t.step,
+        "epoch": t.epoch,
+        "images_this_rank": images,
+        "seconds": round(seconds, 3),
+        "images_per_second": round(images * rk.world / seconds, 2) if seconds > 0 else None,
+        "checkpoint": str(log.last_checkpoint or checkpoint.latest(out) or ""),
+    }
+
+
+def _at_max_steps(cfg: TrainConfig, t: Trainee) -> bool:
+    return cfg.max_steps is not None and t.step >= cfg.max_steps
+
+
+def _timed(batches):
+    """``(batch, seconds waited for it)`` from an iterator of batches."""
+    t0 = time.perf_counter()
+    for batch in batches:
+        yield batch, time.perf_counter() - t0
+        t0 = time.perf_counter()
+
+
+def _resume_state(cfg: TrainConfig, out: Path) -> tuple[dict | None, Path | None]:
+    """The checkpoint to resume from (``None``: from scratch) and its path."""
     if not cfg.store:
         raise RunError("no store given: pass --store PATH (repeat for several)")
     found = checkpoint.latest(out)
     if found is not None and not cfg.resume:
         raise RunError(f"{out} already holds checkpoints: pass --resume, or another --out")
-    state = checkpoint.load(found) if (cfg.resume and found is not None) else None
-    vgg = load_vgg(cfg.vgg_weights) if cfg.loss == "l1+vgg" else None  # fail before any work
+    return (checkpoint.load(found) if (cfg.resume and found is not None) else None), found
+
+
+def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found) -> Catalog:
+    """The resumed run's catalog (checked against ``cfg``), or one snapshot of the stores
+    taken by rank 0 and shared with every rank (even if a farm is still writing them)."""
     if state is not None:
         catalog = Catalog.from_dict(state["catalog"])
         if [str(Path(u)) for u in cfg.store] != [str(Path(u)) for u in catalog.urls]:
@@ -121,9 +238,9 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
                 )
     else:
         snap = [None]
-        if master:  # one snapshot for all ranks, even if a farm is still writing the store
+        if rk.master:
             snap[0] = Catalog.snapshot(list(cfg.store), cfg.seed, cfg.holdout_fraction, None)
-        if distributed:
+        if rk.distributed:
             dist.broadcast_object_list(snap, src=0)
         catalog = snap[0]
     if catalog.resolution % 16:
@@ -131,182 +248,150 @@ def _train(cfg, rank, world, device, distributed, master, out) -> dict:
             f"{catalog.urls[0]}: resolution {catalog.resolution} is not divisible by 16 "
             "(the U-Net halves it four times)"
         )
+    return catalog
+
+
+def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg) -> Trainee:
+    """Model, loss and optimizer, fresh (seeded) or loaded from ``state``."""
     model_cfg = ModelConfig(catalog.resolution, cfg.width, cfg.skips, cfg.roughness_channels)
     tonemap = Tonemap(exposure=cfg.exposure)
     if state is not None:
         model_cfg = ModelConfig(**state["model_config"])
         tonemap = Tonemap.from_dict(state["tonemap"])
-
-    # ---- model, loss, optimizer -------------------------------------------------------------
     torch.manual_seed(cfg.seed)
-    cuda = device.type == "cuda"
-    fmt = torch.channels_last if cuda else torch.contiguous_format
-    model = NeuralRenderer(model_cfg).to(device, memory_format=fmt)
-    criterion = RendererLoss(vgg, cfg.perceptual_weight).to(device, memory_format=fmt)
-    if cuda:
+    model = NeuralRenderer(model_cfg).to(rk.device, memory_format=rk.fmt)
+    criterion = RendererLoss(vgg, cfg.perceptual_weight).to(rk.device, memory_format=rk.fmt)
+    if rk.cuda:
         torch.backends.cudnn.benchmark = True  # fixed shapes: let cuDNN pick its fastest convs
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
-    step, epoch, position = 0, 0, 0
+    bad = torch.zeros((), dtype=torch.bool, device=rk.device)
+    t = Trainee(model, model, opt, criterion, model_cfg, tonemap, catalog, bad)
     if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
         for group in opt.param_groups:  # a resume may lower the rate (e.g. after divergence)
             group["lr"] = cfg.lr
-        step, epoch, position = state["step"], state["epoch"], state["position"]
-    net = DDP(model, device_ids=[device.index] if cuda else None) if distributed else model
-    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if cuda else contextlib.nullcontext()
+        t.step, t.epoch, t.position = state["step"], state["epoch"], state["position"]
+    if rk.distributed:
+        t.net = DDP(model, device_ids=[rk.device.index] if rk.cuda else None)
+    return t
 
-    # ---- data ---------------------------------------------------------------------------------
-    split = catalog.split("train")
-    stream = ShardStream(
-        split, batch=cfg.batch_size, seed=cfg.seed, buffer=cfg.shuffle_buffer, world=world,
-        rank=rank, epochs=cfg.epochs,
-    )  # fmt: skip
-    loader = DataLoader(
-        stream,
-        batch_size=None,
-        num_workers=cfg.workers,
-        pin_memory=cuda,
-        prefetch_factor=4 if cfg.workers else None,
+
+def train_step(cfg: TrainConfig, rk: Rank, t: Trainee, batch: dict) -> torch.Tensor:
+    """One optimizer step on ``batch``; returns the loss (a detached tensor, not synced).
+
+    On CUDA the U-Net and VGG run in bf16 autocast, the L1 and feature MSE in fp32. A NaN or
+    infinite gradient norm is raised as :class:`TrainingDiverged` at the next check."""
+    maps = batch["maps"].to(rk.device, non_blocking=True)
+    x = model_inputs(maps, t.model_cfg.roughness_channels).contiguous(memory_format=rk.fmt)
+    light = batch["light"].to(rk.device, non_blocking=True)
+    target = t.tonemap(batch["render"].to(rk.device, non_blocking=True))
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if rk.cuda else contextlib.nullcontext()
+    with autocast:
+        loss = t.criterion(t.net(x, light), target)
+    t.opt.zero_grad(set_to_none=True)
+    loss.backward()
+    params = t.model.parameters()
+    if cfg.clip > 0:
+        norm = torch.nn.utils.clip_grad_norm_(params, cfg.clip)
+    else:
+        norm = torch.stack([p.grad.norm() for p in params]).norm()
+    t.bad |= ~torch.isfinite(norm)
+    t.opt.step()
+    return loss.detach()
+
+
+def check_finite(t: Trainee, out: Path, weights: bool = False) -> None:
+    """Raise :class:`TrainingDiverged` if a gradient norm (or, with ``weights``, a weight) has
+    been NaN or infinite. Reading ``bad`` syncs with the GPU, so it runs only at log and
+    checkpoint steps; the value is identical on every rank (gradients are all-reduced)."""
+    if weights and not all(torch.isfinite(p).all() for p in t.model.parameters()):
+        t.bad.fill_(True)
+    if t.bad.item():
+        last = checkpoint.latest(out)
+        raise TrainingDiverged(
+            f"the loss or gradients became NaN/Inf by step {t.step}; stopped. "
+            f"Last good checkpoint: {last or 'none'} (lower --lr or resume from it)"
+        )
+
+
+def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None:
+    """Rank 0 writes a checkpoint, after every rank has checked the weights are finite."""
+    check_finite(t, out, weights=True)
+    if not rk.master:
+        return
+    log.last_checkpoint = checkpoint.save(
+        out,
+        {
+            "model": t.model.state_dict(),
+            "optimizer": t.opt.state_dict(),
+            "step": t.step,
+            "epoch": t.epoch,
+            "position": t.position,
+            "config": cfg.to_dict(),
+            "model_config": t.model_cfg.to_dict(),
+            "tonemap": t.tonemap.to_dict(),
+            "catalog": t.catalog.to_dict(),
+        },
+        keep=cfg.keep,
     )
-    batches = None  # one iteration for the whole run: the workers read across epoch ends
-    per_step = world * cfg.batch_size
 
-    # ---- logs ---------------------------------------------------------------------------------
-    writer = None
-    samples_log = None
-    if master:
-        out.mkdir(parents=True, exist_ok=True)
-        from torch.utils.tensorboard import SummaryWriter
 
-        writer = SummaryWriter(str(out / "tb"))
-        (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
-        print(
-            f"training on {len(split)} samples (held-out materials: "
-            f"{sum(map(len, catalog.heldout))}), {world} rank(s) x batch {cfg.batch_size} "
-            f"on {device.type}, "
-            f"{model_cfg.resolution}², loss {cfg.loss}; from step {step}",
-            flush=True,
-        )
-    if cfg.log_samples:
-        (out / "samples").mkdir(parents=True, exist_ok=True)
-        samples_log = open(out / "samples" / f"rank-{rank}.txt", "a")  # noqa: SIM115
+class RunLog:
+    """What a run records as it goes. Rank 0: ``config.json``, ``log.jsonl`` (one line every
+    ``log_every`` steps: rank 0's mean loss, images/s over all ranks, data-wait share),
+    TensorBoard under ``tb/`` and the progress bar's postfix. Every rank, with
+    ``--log-samples``: ``samples/rank-R.txt``, the sample ids of each step and, at the end, a
+    hash of the final parameters (identical on every rank of a DDP run)."""
 
-    def save() -> Path | None:
-        """Rank 0 writes a checkpoint (after checking that the weights are still finite)."""
-        check_finite(weights=True)
-        if not master:
-            return None
-        return checkpoint.save(
-            out,
-            {
-                "model": model.state_dict(),
-                "optimizer": opt.state_dict(),
-                "step": step,
-                "epoch": epoch,
-                "position": position,
-                "config": cfg.to_dict(),
-                "model_config": model_cfg.to_dict(),
-                "tonemap": tonemap.to_dict(),
-                "catalog": catalog.to_dict(),
-            },
-            keep=cfg.keep,
-        )
+    def __init__(self, cfg: TrainConfig, rk: Rank, out: Path):
+        self.out, self.world, self.master = out, rk.world, rk.master
+        self.writer = None
+        self.samples = None
+        self.last_checkpoint: Path | None = None
+        self.window = _new_window()
+        if rk.master:
+            out.mkdir(parents=True, exist_ok=True)
+            from torch.utils.tensorboard import SummaryWriter
 
-    bad = torch.zeros((), dtype=torch.bool, device=device)
+            self.writer = SummaryWriter(str(out / "tb"))
+            (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
+        if cfg.log_samples:
+            (out / "samples").mkdir(parents=True, exist_ok=True)
+            self.samples = open(out / "samples" / f"rank-{rk.rank}.txt", "a")  # noqa: SIM115
 
-    def check_finite(weights: bool = False) -> None:
-        if weights and not all(torch.isfinite(p).all() for p in model.parameters()):
-            bad.fill_(True)
-        if bad.item():
-            last = checkpoint.latest(out)
-            raise TrainingDiverged(
-                f"the loss or gradients became NaN/Inf by step {step}; stopped. "
-                f"Last good checkpoint: {last or 'none'} (lower --lr or resume from it)"
-            )
+    def start(self, line: str) -> None:
+        if self.master:
+            print(line, flush=True)
 
-    # ---- the loop -----------------------------------------------------------------------------
-    started = time.perf_counter()
-    images = 0
-    last_ckpt = None
-    done = cfg.max_steps is not None and step >= cfg.max_steps
-    while epoch < cfg.epochs and not done:
-        if batches is None:
-            stream.set_position(epoch, position)
-            batches = iter(loader)
-        mine = len(stream.batches(epoch, position))  # this rank's; one fewer on some ranks
-        total = steps_left(len(split), world, cfg.batch_size, position)
-        bar = tqdm(total=total, desc=f"epoch {epoch + 1}/{cfg.epochs}", disable=not master)
-        window = _new_window()
-        join = net.join() if distributed else contextlib.nullcontext()
-        with join, contextlib.closing(bar):  # the bar ends its line even on errors
-            t_fetch = time.perf_counter()
-            for batch in itertools.islice(batches, mine):
-                waited = time.perf_counter() - t_fetch
-                if batch["epoch"] != epoch:
-                    raise RuntimeError(
-                        f"the loader is out of step: epoch {batch['epoch']} in {epoch}"
-                    )
-                maps = batch["maps"].to(device, non_blocking=True)
-                x = model_inputs(maps, model_cfg.roughness_channels).contiguous(memory_format=fmt)
-                light = batch["light"].to(device, non_blocking=True)
-                target = tonemap(batch["render"].to(device, non_blocking=True))
-                with autocast:  # the U-Net and VGG in bf16; L1 and feature MSE in fp32
-                    pred = net(x, light)
-                    loss = criterion(pred, target)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if cfg.clip > 0:
-                    norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
-                else:
-                    norm = torch.stack([p.grad.norm() for p in model.parameters()]).norm()
-                bad |= ~torch.isfinite(norm)
-                opt.step()
+    def new_window(self) -> None:
+        self.window = _new_window()
 
-                n = len(batch["id"])
-                step += 1
-                position = min(position + per_step, len(split))
-                images += n
-                window["wait"] += waited
-                window["images"] += n
-                window["loss"] += loss.detach()
-                window["n"] += 1
-                if samples_log is not None:
-                    ids = ",".join(str(int(i)) for i in batch["id"])
-                    samples_log.write(f"{epoch} {step} {ids}\n")
-                bar.update(1)
-                if step == CRASH_AT and master and _first_attempt():
-                    os._exit(3)  # fault injection for tests: rank 0 dies, torchrun restarts all
-                if step % cfg.log_every == 0:
-                    check_finite()
-                    if master:
-                        _log(out, writer, bar, step, epoch, window, world)
-                    window = _new_window()
-                if step % cfg.checkpoint_every == 0:
-                    last_ckpt = save() or last_ckpt
-                if cfg.max_steps is not None and step >= cfg.max_steps:
-                    done = True
-                    break
-                t_fetch = time.perf_counter()
-        if not done:
-            epoch, position = epoch + 1, 0
-        last_ckpt = save() or last_ckpt
-    if samples_log is not None:  # for tests: every rank's parameters must be identical
-        blob = b"".join(p.detach().cpu().numpy().tobytes() for p in model.parameters())
-        samples_log.write(f"params {hashlib.sha256(blob).hexdigest()}\n")
-        samples_log.close()
-    seconds = time.perf_counter() - started
-    summary = {
-        "steps": step,
-        "epoch": epoch,
-        "images_this_rank": images,
-        "seconds": round(seconds, 3),
-        "images_per_second": round(images * world / seconds, 2) if seconds > 0 else None,
-        "checkpoint": str(last_ckpt or checkpoint.latest(out) or ""),
-    }
-    if writer is not None:
-        writer.close()
-    return summary
+    def record(self, t: Trainee, batch: dict, loss: torch.Tensor, waited: float, bar) -> None:
+        """One step done: add it to the window, note its samples, move the bar."""
+        n = len(batch["id"])
+        self.window["wait"] += waited
+        self.window["images"] += n
+        self.window["loss"] += loss
+        self.window["n"] += 1
+        if self.samples is not None:
+            ids = ",".join(str(int(i)) for i in batch["id"])
+            self.samples.write(f"{t.epoch} {t.step} {ids}\n")
+        bar.update(1)
+
+    def flush(self, t: Trainee, bar) -> None:
+        """Write the window's log line (rank 0) and start a new window."""
+        if self.master:
+            _log(self.out, self.writer, bar, t.step, t.epoch, self.window, self.world)
+        self.new_window()
+
+    def close(self, model: torch.nn.Module) -> None:
+        if self.samples is not None:
+            blob = b"".join(p.detach().cpu().numpy().tobytes() for p in model.parameters())
+            self.samples.write(f"params {hashlib.sha256(blob).hexdigest()}\n")
+            self.samples.close()
+        if self.writer is not None:
+            self.writer.close()
 
 
 def _new_window() -> dict:

@@ -1,0 +1,46 @@
+"""Fault injection for the farm's tests: planted failures in the render actor.
+
+``SHADERBALL_FARM_FAULTS`` holds JSON; unset (production), :func:`from_env` returns ``None``
+and the actor never calls in here. Keys:
+
+- ``fail_materials``: material indices that raise every time;
+- ``flaky_materials``: material indices that raise on a worker's first try;
+- ``hang_materials``: material indices that sleep past any timeout;
+- ``bad_workers``: worker ids whose every task raises;
+- ``slow_s``: seconds to sleep before each task.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+from render_jobs.errors import RenderError
+
+FAULTS_ENV = "SHADERBALL_FARM_FAULTS"
+
+
+class Faults:
+    def __init__(self, plan: dict):
+        self.plan = plan
+        self.tried: set[int] = set()
+
+    def before_render(self, worker: str, material: int) -> None:
+        """Raise, sleep or hang as the plan says for ``material`` on ``worker``."""
+        f = self.plan
+        time.sleep(float(f.get("slow_s", 0)))
+        if worker in f.get("bad_workers", []):
+            raise RenderError(f"injected fault: worker {worker} is bad")
+        if material in f.get("fail_materials", []):
+            raise RenderError(f"injected fault: material {material} always fails")
+        if material in f.get("flaky_materials", []) and material not in self.tried:
+            self.tried.add(material)
+            raise RenderError(f"injected fault: material {material} fails once")
+        if material in f.get("hang_materials", []):
+            time.sleep(3600)
+
+
+def from_env() -> Faults | None:
+    plan = json.loads(os.environ.get(FAULTS_ENV, "") or "{}")
+    return Faults(plan) if plan else None
