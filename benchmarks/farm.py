@@ -29,8 +29,8 @@ import time
 from farm.driver import submit
 from farm.plan import JobConfig, material_specs, task_for
 from render_jobs.materials import load_maps
+from render_jobs.process import RenderProcess
 from render_jobs.specs import RenderSettings
-from render_jobs.worker import RenderProcess
 
 
 def standalone(cfg: JobConfig, processes: int = 1) -> tuple[float, float, int]:

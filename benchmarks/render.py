@@ -20,9 +20,9 @@ import statistics
 import time
 
 from render_jobs.materials.procedural import procedural_maps
+from render_jobs.process import RenderProcess
 from render_jobs.specs import RenderSettings
 from render_jobs.sun import sun_from_angles
-from render_jobs.worker import RenderProcess
 
 SETTINGS = [(64, 16), (256, 64), (400, 150)]
 QUICK = [(64, 16), (128, 32)]

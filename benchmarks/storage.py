@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
-from storage.reader import ShardStore
+from storage.reader import Store
 from storage.schema import Layout, ShardPayload, decode_maps
 from storage.writer import create_store, write_shard
 
@@ -44,9 +44,9 @@ def render_pool(spp: int) -> tuple[np.ndarray, np.ndarray]:
         z = np.load(path)
         return z["maps"], z["renders"]
     from render_jobs.materials.procedural import procedural_maps
+    from render_jobs.process import RenderProcess
     from render_jobs.specs import RenderSettings
     from render_jobs.sun import sun_from_angles
-    from render_jobs.worker import RenderProcess
     from storage.schema import encode_maps
 
     suns = [sun_from_angles(40, 30, 3.0), sun_from_angles(25, 200, 7.0)]
@@ -92,7 +92,7 @@ _store = None
 
 def _zarr_init(url):
     global _store
-    _store = ShardStore(url)
+    _store = Store(url)
 
 
 def _zarr_read(indices):
@@ -104,7 +104,7 @@ def _zarr_read(indices):
 
 def zarr_python_read(url: str, layout: Layout) -> float:
     """Samples/s reading each sample through zarr-python's own array API (no shortcuts)."""
-    g = ShardStore(url).group
+    g = Store(url).group
     t0 = time.perf_counter()
     for i in range(layout.num_samples):
         render = g["renders"][i]

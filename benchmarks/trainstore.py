@@ -34,11 +34,11 @@ def ensure_store(path: str = DEFAULT) -> str:
 def replicate(src: str, dst: str, copies: int) -> str:
     """Write ``dst``: ``copies`` x every shard of ``src`` (all committed, whole shards), with
     material indices renumbered; returns ``dst``. For load tests where Blender is absent."""
-    from storage.reader import ShardStore
+    from storage.reader import Store
     from storage.schema import Layout
     from storage.writer import create_store, write_shard
 
-    source = ShardStore(src)
+    source = Store(src)
     lay = source.layout
     if source.committed_shards() != list(range(lay.num_shards)) or (
         lay.num_materials % lay.materials_per_shard

@@ -1,7 +1,7 @@
 """The farm's Ray worker: one kept-loaded Blender scene, material after material.
 
 ``RenderWorker`` is a plain class that the driver wraps with ``ray.remote``. It never imports
-``bpy`` itself: it drives a ``render_jobs.worker.RenderProcess`` child, so it can recycle
+``bpy`` itself: it drives a ``render_jobs.process.RenderProcess`` child, so it can recycle
 Blender (after ``recycle_after`` renders or above ``rss_limit_mb`` resident, BlenderProc's
 memory growth) and kill a hung render (per-sun ``timeout``) without losing the actor. With
 GPUs, Ray sets ``CUDA_VISIBLE_DEVICES`` to the actor's one GPU, so each Blender sees only its
@@ -19,8 +19,8 @@ import time
 
 from farm import faults
 from render_jobs.materials import load_maps
+from render_jobs.process import RenderProcess
 from render_jobs.specs import RenderJob, RenderSettings
-from render_jobs.worker import RenderProcess
 from storage.convert import pack_material
 
 

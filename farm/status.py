@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import time
 
+from tabulate import tabulate
+
 
 def _ago(t: float) -> str:
     s = max(0, time.time() - t)
@@ -38,13 +40,11 @@ def format_status(st: dict) -> str:
                 f"  material {m:>6}  {tag:<8} attempts {f['attempts']}  "
                 f"last on {last['worker']}: {last['error']}"
             )
-    lines.append(
-        f"{'worker':<8}{'status':<12}{'frames':>7}{'s/frame':>9}{'fails':>6}"
-        f"{'recycled':>9}  last seen"
-    )
-    for w in st["workers"].values():
-        lines.append(
-            f"{w['worker']:<8}{w['status']:<12}{w['frames']:>7}{w['mean_frame_s']:>9.2f}"
-            f"{w['failures']:>6}{w['recycled']:>9}  {_ago(w['last_seen'])}"
-        )
+    workers = [
+        (w["worker"], w["status"], w["frames"], w["mean_frame_s"], w["failures"], w["recycled"])
+        + (_ago(w["last_seen"]),)
+        for w in st["workers"].values()
+    ]
+    header = ["worker", "status", "frames", "s/frame", "fails", "recycled", "last seen"]
+    lines.append(tabulate(workers, header, floatfmt=".2f"))
     return "\n".join(lines)

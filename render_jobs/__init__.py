@@ -1,13 +1,13 @@
 """Ground truth: everything that describes and runs a shaderball render in Blender Cycles.
 
-Layers (example 2 of DESIGN.md):
+Layers (a render is plain data; one Blender backend turns it into a scene):
 
 - plain data, importable anywhere, never imports ``bpy``:
   ``specs`` (frozen render specs), ``sun`` (sun sampling and the sun lamp's physics),
   ``materials`` (uniform / procedural / SVBRDF-file sources into validated maps),
   ``exr`` (multilayer EXR I/O), ``tonemap``, ``contact_sheet``;
 - ``render_jobs.blender``: the only code that imports ``bpy``, and only inside a Blender
-  worker process (``render_jobs.worker`` starts one; the farm's Ray actors are others).
+  worker process (``render_jobs.process`` starts one; the farm's Ray actors are others).
 
 Importing ``render_jobs`` (or ``farm``, ``storage``, ``trainer``) never loads Blender.
 """

@@ -25,11 +25,11 @@ from render_jobs.errors import MaterialError
 from render_jobs.exr import write_exr, write_image_exr
 from render_jobs.materials.maps import MaterialMaps
 from render_jobs.materials.sources import load_maps, make_spec
+from render_jobs.process import RenderProcess
 from render_jobs.results import MaterialRender
 from render_jobs.specs import MaterialSpec, RenderSettings, derive_seed
 from render_jobs.sun import suns_for_material
 from render_jobs.tonemap import to_uint8, tonemap
-from render_jobs.worker import RenderProcess
 
 
 @dataclass

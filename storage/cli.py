@@ -10,16 +10,17 @@ from pathlib import Path
 
 import click
 from PIL import Image
+from tabulate import tabulate
 from tqdm import tqdm
 
 from storage.errors import StoreError
 
 
 def _open(url: str):
-    from storage.reader import ShardStore
+    from storage.reader import Store
 
     try:
-        return ShardStore(url)
+        return Store(url)
     except StoreError as exc:
         raise click.ClickException(str(exc)) from None
 
@@ -58,15 +59,14 @@ def ls_cmd(store, as_json):
     Example:
       shards ls out/dataset.zarr
     """
-    from storage.inspect import list_shards
+    from storage.summary import list_shards
 
     rows = list_shards(_open(store))
     if as_json:
         click.echo(json.dumps(rows, indent=1))
         return
-    click.echo(f"{'shard':>6} {'samples':>8} {'bytes':>10}  state")
-    for r in rows:
-        click.echo(f"{r['shard']:>6} {r['samples']:>8} {_human(r['bytes']):>10}  {r['state']}")
+    table = [(r["shard"], r["samples"], _human(r["bytes"]), r["state"]) for r in rows]
+    click.echo(tabulate(table, ["shard", "samples", "bytes", "state"], colalign=("right",) * 3))
 
 
 @main.command()
@@ -79,7 +79,7 @@ def info(store, as_json):
     Example:
       shards info out/dataset.zarr
     """
-    from storage.inspect import store_info, text_histogram
+    from storage.summary import store_info, text_histogram
 
     data = store_info(_open(store))
     if as_json:

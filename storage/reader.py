@@ -47,7 +47,7 @@ class Sample:
     source_id: str
 
 
-class ShardStore:
+class Store:
     """An opened store (local path or ``s3://`` URL)."""
 
     #: bytes of packed material maps kept in memory (about 54 materials at 400²): a material's

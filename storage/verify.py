@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from storage.reader import ShardStore
+from storage.reader import Store
 from storage.schema import arrays
 
 
@@ -25,7 +25,7 @@ class Report:
         self.problems.setdefault(shard, []).append(reason)
 
 
-def _check_arrays(store: ShardStore, report: Report) -> None:
+def _check_arrays(store: Store, report: Report) -> None:
     g = store.group
     for name, spec in arrays(store.layout).items():
         try:
@@ -41,7 +41,7 @@ def _check_arrays(store: ShardStore, report: Report) -> None:
             report.store_problems.append(f"array {name} is {actual.dtype}, expected {spec.dtype}")
 
 
-def _check_shard(store: ShardStore, shard: int, rec: dict, report: Report) -> None:
+def _check_shard(store: Store, shard: int, rec: dict, report: Report) -> None:
     lay = store.layout
     samples = lay.shard_samples(shard)
     if rec.get("shard") != shard or rec.get("samples") != [samples.start, samples.stop]:
@@ -82,7 +82,7 @@ def _check_shard(store: ShardStore, shard: int, rec: dict, report: Report) -> No
         report.add(shard, "commit record lists the wrong number of materials")
 
 
-def verify(store: ShardStore, progress=None) -> Report:
+def verify(store: Store, progress=None) -> Report:
     """Check ``store``; ``progress(shard)`` is called after each shard."""
     report = Report()
     _check_arrays(store, report)

@@ -1,6 +1,6 @@
 """Creating stores and writing shards: whole shards only, then an atomic commit record.
 
-The protocol (DESIGN.md: zarr has no locks): every array is created once, full size, by
+The protocol (zarr has no locks: two writers of one shard would lose data): every array is created once, full size, by
 ``create_store``; each shard is then written whole by exactly one writer (``write_shard``),
 its files are made durable, and only then is ``commits/<shard>.json`` put atomically. A crash
 before the put leaves the shard invisible (``pending``) and re-writable; writers of different
@@ -20,7 +20,7 @@ from zarr.codecs import Crc32cCodec, ZstdCodec
 
 from storage.backend import Backend
 from storage.errors import ShardCommittedError, StoreError
-from storage.reader import ShardStore
+from storage.reader import Store
 from storage.schema import (
     ATTRS_KEY,
     KINDS,
@@ -56,7 +56,7 @@ def create_store(
     settings: dict,
     storage_options: dict | None = None,
     exist_ok: bool = False,
-) -> ShardStore:
+) -> Store:
     """Create an empty store for ``layout``; ``settings`` (render settings, camera, geometry
     hash, anything JSON) go into its attributes. With ``exist_ok``, an existing store with the
     same layout and settings is opened instead; a different one is refused, naming the field."""
@@ -64,7 +64,7 @@ def create_store(
     if backend.get("zarr.json") is not None:
         if not exist_ok:
             raise StoreError(f"{url}: a store already exists here")
-        store = ShardStore(url, storage_options)
+        store = Store(url, storage_options)
         store.check_compatible(layout, settings)
         return store
     group = backend.open_group(mode="w")
@@ -85,10 +85,10 @@ def create_store(
             compressors=_compressors(),
             fill_value=0,
         )
-    return ShardStore(url, storage_options)
+    return Store(url, storage_options)
 
 
-def _check_payload(store: ShardStore, shard: int, p: ShardPayload) -> None:
+def _check_payload(store: Store, shard: int, p: ShardPayload) -> None:
     layout = store.layout
     samples, materials = layout.shard_samples(shard), layout.shard_materials(shard)
     m = len(materials)
@@ -111,9 +111,7 @@ def _check_payload(store: ShardStore, shard: int, p: ShardPayload) -> None:
         raise StoreError(f"shard {shard}: renders hold NaN or Inf")
 
 
-def write_shard(
-    store: ShardStore, shard: int, payload: ShardPayload, overwrite: bool = False
-) -> dict:
+def write_shard(store: Store, shard: int, payload: ShardPayload, overwrite: bool = False) -> dict:
     """Write ``shard`` whole, make it durable, then commit it; returns the commit record."""
     _check_payload(store, shard, payload)
     backend = store.backend

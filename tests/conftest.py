@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from render_jobs.materials.uniform import uniform_maps
+from render_jobs.process import RenderProcess
 from render_jobs.specs import RenderSettings, UniformValues
-from render_jobs.worker import RenderProcess
 
 TINY = RenderSettings(resolution=64, samples=8, threads=2)
 BIN = Path(sys.executable).parent

@@ -124,7 +124,7 @@ def test_no_process_but_a_blender_worker_imports_bpy():
         "import sys\n"
         "import farm, farm.cli, storage, storage.cli, trainer, trainer.cli, trainer.train\n"
         "import trainer.evaluate, trainer.infer, trainer.launch\n"
-        "import render_jobs, render_jobs.materials, render_jobs.preview, render_jobs.worker\n"
+        "import render_jobs, render_jobs.materials, render_jobs.preview, render_jobs.process\n"
         "import render_jobs.geometry, render_jobs.sun, render_jobs.exr\n"
         "assert 'bpy' not in sys.modules, 'bpy was imported'\n"
         "try:\n"

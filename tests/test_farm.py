@@ -17,7 +17,7 @@ import pytest
 from farm.plan import JobConfig, material_specs, task_for
 from farm.state import LOST_AFTER_S
 from render_jobs.specs import derive_seed
-from storage.reader import ShardStore
+from storage.reader import Store
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
@@ -38,7 +38,7 @@ def farm(*args, faults=None, wait=True, timeout=300):
 
 def assert_exactly_once(path, materials: int, suns: int = 2, seed: int = 0):
     """Every sample present, once, with the seed its (material, sun) must have."""
-    store = ShardStore(str(path))
+    store = Store(str(path))
     assert store.committed_shards() == list(range(store.layout.num_shards))
     seeds = store.group["seed"][:]
     want = [derive_seed(seed, m, k) for m in range(materials) for k in range(suns)]
@@ -191,7 +191,7 @@ def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
     assert r.returncode == 1
     assert "material 1: RenderError: injected fault" in r.stderr
     assert "shards [0] are not committed" in r.stderr
-    store = ShardStore(str(out))
+    store = Store(str(out))
     assert store.committed_shards() == [1]  # the rest of the job completed
     f = job(out)["failures"]["1"]
     assert f["final"] and f["attempts"] == 3
@@ -282,7 +282,7 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
     finally:
         proc.kill()
         subprocess.run([str(BIN / "ray"), "stop", "--force"], capture_output=True)
-    done_before = len(ShardStore(str(out)).committed_shards())
+    done_before = len(Store(str(out)).committed_shards())
     assert 2 <= done_before < 5
     # the dead driver's state still says running; once it is older than LOST_AFTER_S (set
     # back here rather than waited for), `farm status` calls the job lost and says what to do

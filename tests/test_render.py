@@ -16,8 +16,8 @@ import pytest
 from render_jobs.errors import RenderError
 from render_jobs.materials.procedural import procedural_maps
 from render_jobs.materials.uniform import uniform_maps
+from render_jobs.process import RenderProcess
 from render_jobs.sun import sun_from_angles
-from render_jobs.worker import RenderProcess
 from tests.conftest import TINY, grey_uniform, inside
 
 pytestmark = pytest.mark.slow
@@ -151,7 +151,7 @@ def test_script_without_main_guard_gets_a_clear_error(tmp_path):
     script = tmp_path / "no_guard.py"
     script.write_text(
         "from render_jobs.specs import RenderSettings\n"
-        "from render_jobs.worker import RenderProcess\n"
+        "from render_jobs.process import RenderProcess\n"
         "RenderProcess(RenderSettings(resolution=32, samples=1)).start()\n"
     )
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
@@ -176,7 +176,7 @@ def cpu_seconds(pid: int) -> float:
 )
 def test_one_thread_worker_keeps_one_core_busy(grey_maps):
     """threads=1 renders use one core, not one plus spinning pool threads (see
-    render_jobs.worker.thread_pool_of), and the worker may still run on every CPU."""
+    render_jobs.process.thread_pool_of), and the worker may still run on every CPU."""
     with RenderProcess(TINY.__class__(resolution=64, samples=64, threads=1)) as w:
         render(w, grey_maps, [RIGHT])
         c0, t0 = cpu_seconds(w.pid), time.perf_counter()
@@ -187,7 +187,7 @@ def test_one_thread_worker_keeps_one_core_busy(grey_maps):
 
 
 def test_stale_scratch_of_dead_processes_is_swept(tmp_path):
-    from render_jobs.worker import SCRATCH_PREFIX, sweep_stale_scratch
+    from render_jobs.process import SCRATCH_PREFIX, sweep_stale_scratch
 
     dead = 2**22 + 17  # above the largest pid_max Linux allows: never a live process
     stale = tmp_path / f"{SCRATCH_PREFIX}{dead}-abc"

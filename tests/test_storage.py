@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from storage.dataset import Dataset, split_by_material
+from storage.catalog import Catalog, draw_heldout
 from storage.errors import ShardCommittedError, StoreError
-from storage.reader import ShardStore
+from storage.reader import Store
 from storage.schema import Layout, commit_key, decode_maps, encode_maps
 from storage.writer import create_store, write_shard
 from tests.storage_helpers import synthetic_payload
@@ -87,7 +87,7 @@ def test_map_encoding_round_trips_within_8_bit_precision():
 
 def test_round_trip_of_every_sample(tmp_path):
     store = full_store(tmp_path / "s.zarr")
-    again = ShardStore(str(tmp_path / "s.zarr"))
+    again = Store(str(tmp_path / "s.zarr"))
     assert again.committed_shards() == list(range(LAYOUT.num_shards))
     for shard in range(LAYOUT.num_shards):
         p = synthetic_payload(LAYOUT, shard)
@@ -109,20 +109,20 @@ def test_uncommitted_shard_is_invisible_and_rewritable(tmp_path):
     create_store(str(path), LAYOUT, {})
     code = (
         "import os, storage.backend as b\n"
-        "from storage.reader import ShardStore\n"
+        "from storage.reader import Store\n"
         "from storage.writer import write_shard\n"
         "from tests.storage_helpers import synthetic_payload\n"
-        f"s = ShardStore({str(path)!r})\n"
+        f"s = Store({str(path)!r})\n"
         "b.Backend.put_atomic = lambda *a, **k: os._exit(9)  # die at the commit\n"
         "write_shard(s, 1, synthetic_payload(s.layout, 1))\n"
     )
     r = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).parent.parent)
     assert r.returncode == 9
-    store = ShardStore(str(path))
+    store = Store(str(path))
     assert store.committed_shards() == [] and store.shard_state(1) == "pending"
     with pytest.raises(StoreError, match="not committed"):
         store.sample(LAYOUT.shard_samples(1).start)
-    assert Dataset([store]).refs == []
+    assert store.commits() == {}
     write_shard(store, 1, synthetic_payload(LAYOUT, 1))  # re-writable
     assert store.committed_shards() == [1]
 
@@ -164,7 +164,7 @@ def test_existing_store_with_other_settings_is_refused(tmp_path):
 
 
 def _write_shards(path: str, shards_to_write: list[int]) -> None:
-    store = ShardStore(path)
+    store = Store(path)
     for shard in shards_to_write:
         write_shard(store, shard, synthetic_payload(store.layout, shard))
 
@@ -181,7 +181,7 @@ def test_concurrent_writers_lose_nothing(tmp_path):
     for p in procs:
         p.join(60)
         assert p.exitcode == 0
-    store = ShardStore(path)
+    store = Store(path)
     assert store.committed_shards() == list(range(layout.num_shards))
     for shard in range(layout.num_shards):
         got, want = store.read_shard(shard), synthetic_payload(layout, shard)
@@ -223,7 +223,7 @@ def test_verify_finds_truncation_missing_commit_and_bad_values(tmp_path):
     f.write_bytes(f.read_bytes()[:100])  # truncated
     os.remove(path / commit_key(1))  # commit record lost: data without a commit
     rec = json.loads((path / commit_key(3)).read_text())
-    store = ShardStore(str(path))
+    store = Store(str(path))
     p = synthetic_payload(LAYOUT, 3)
     p.turbidity[:] = 42.0  # out of range, written behind the writer's back
     store.backend.open_group("r+")["turbidity"][18:21] = p.turbidity
@@ -241,22 +241,24 @@ def test_verify_finds_truncation_missing_commit_and_bad_values(tmp_path):
 # ---- datasets ------------------------------------------------------------------------------
 
 
-def test_stores_read_as_one_dataset_and_split_by_material(tmp_path):
+def test_stores_read_as_one_catalog_split_by_material(tmp_path):
     a, b = full_store(tmp_path / "a.zarr"), full_store(tmp_path / "b.zarr", seed=1)
-    ds = Dataset.open([a.url, b.url])
-    assert len(ds) == 2 * LAYOUT.num_samples
-    np.testing.assert_array_equal(ds[LAYOUT.num_samples].render, b.sample(0).render)
-    train, test = split_by_material(ds, seed=0, holdout=4)
-    assert len(test) == 4 * 3 and len(train) + len(test) == len(ds)
-    held = {ds.material_of(i) for i in test}
-    assert len(held) == 4 and held.isdisjoint({ds.material_of(i) for i in train})
-    again = split_by_material(Dataset.open([a.url, b.url]), seed=0, holdout=4)
-    np.testing.assert_array_equal(again[1], test)
-    assert not np.array_equal(split_by_material(ds, seed=1, holdout=4)[1], test)
-    _, frac = split_by_material(ds, seed=0, fraction=0.5)
-    assert len(frac) == 7 * 3
-    with pytest.raises(ValueError):
-        split_by_material(ds, seed=0, holdout=99)
+    urls = [a.url, b.url]
+    cat = Catalog.snapshot(urls, seed=0, holdout_fraction=0.25, storage_options=None)
+    train, test = cat.split("train"), cat.split("test")
+    assert len(train) + len(test) == 2 * LAYOUT.num_samples
+    held = {(int(s), LAYOUT.material_of_sample(int(k))) for s, k in test.refs}
+    trained = {(int(s), LAYOUT.material_of_sample(int(k))) for s, k in train.refs}
+    assert len(held) == round(0.25 * 2 * LAYOUT.num_materials) and held.isdisjoint(trained)
+    assert len(test) == len(held) * LAYOUT.suns_per_material  # every sun of a held material
+    assert {int(s) for s, _ in train.refs} == {0, 1}  # both stores, as one
+    again = Catalog.snapshot(urls, seed=0, holdout_fraction=0.25, storage_options=None)
+    assert again.heldout == cat.heldout
+    other = Catalog.snapshot(urls, seed=1, holdout_fraction=0.25, storage_options=None)
+    assert other.heldout != cat.heldout
+    assert Catalog.from_dict(cat.to_dict()) == cat
+    with pytest.raises(ValueError, match="cannot hold out 99 of 14"):
+        draw_heldout(list(range(14)), 99, 0)
 
 
 # ---- CLI -----------------------------------------------------------------------------------
@@ -326,7 +328,7 @@ def test_fast_reads_match_zarr_and_catch_corruption(tmp_path):
     data[40] ^= 0x10  # inside the first chunk of shard 1 (sample 6)
     f.write_bytes(bytes(data))
     with pytest.raises(StoreError, match="checksum"):
-        ShardStore(str(path)).sample(6)
+        Store(str(path)).sample(6)
     r = shards("show", path, "--sample", "6", "-o", tmp_path / "x.png")
     assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1
     assert "checksum" in r.stderr and not (tmp_path / "x.png").exists()

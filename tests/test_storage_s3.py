@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from storage.dataset import Dataset
-from storage.reader import ShardStore
+from storage.catalog import Catalog
+from storage.reader import Store
 from storage.writer import create_store, write_shard
 from tests.storage_helpers import synthetic_payload
 from tests.test_storage import LAYOUT, shards
@@ -23,13 +23,14 @@ def test_write_read_and_verify_on_s3(s3):
     store = create_store(url, LAYOUT, {"samples": 8}, storage_options=opts)
     for shard in (0, 2, 3):
         write_shard(store, shard, synthetic_payload(LAYOUT, shard))
-    reader = ShardStore(url, opts)
+    reader = Store(url, opts)
     assert reader.committed_shards() == [0, 2, 3]
     assert reader.shard_state(1) == "empty"
     np.testing.assert_array_equal(
         reader.sample(13).render, synthetic_payload(LAYOUT, 2).renders[1].astype(np.float32)
     )
-    assert len(Dataset([reader])) == 6 + 6 + 3
+    cat = Catalog.snapshot([url], seed=0, holdout_fraction=0.0, storage_options=opts)
+    assert len(cat.split("train", opts)) == 6 + 6 + 3
     write_shard(store, 1, synthetic_payload(LAYOUT, 1))  # a commit from another writer shows
     assert reader.committed_shards() == [0, 1, 2, 3]
     env = {

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import click
+from tabulate import tabulate
 
 from trainer import config as train_config
 
@@ -146,9 +147,10 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, device, as_json):
         return
     o = result["overall"]
     click.echo(f"step {result['checkpoint_step']}: {o['n']} held-out samples")
-    click.echo(f"{'kind':<12}{'n':>6}{'PSNR dB':>10}{'SSIM':>8}")
-    for kind, m in [("all", o), *result["by_kind"].items()]:
-        click.echo(f"{kind:<12}{m['n']:>6}{m['psnr']:>10.2f}{m['ssim']:>8.4f}")
+    rows = [
+        (kind, m["n"], m["psnr"], m["ssim"]) for kind, m in [("all", o), *result["by_kind"].items()]
+    ]
+    click.echo(tabulate(rows, ["kind", "n", "PSNR dB", "SSIM"], floatfmt=("", "", ".2f", ".4f")))
     if "grid" in result:
         click.echo(f"grid: {result['grid']}")
 
@@ -185,14 +187,14 @@ def render(ckpt, store, sample, sun, turbidity, output, device):
 
     from render_jobs.tonemap import to_uint8
     from storage.errors import StoreError
-    from storage.reader import ShardStore
+    from storage.reader import Store
     from trainer.checkpoint import CheckpointError
     from trainer.infer import Renderer
 
     direction = _floats(sun, 3, "--sun")
     try:
         r = Renderer.from_checkpoint(ckpt, device)
-        s = ShardStore(store)
+        s = Store(store)
         maps = s.packed_maps(s.layout.material_of_sample(sample))
         d, t = s.light(sample)
         img = r.render(maps, direction or d, t if turbidity is None else turbidity)

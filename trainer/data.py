@@ -1,9 +1,7 @@
-"""Streaming the shard stores into training: snapshot, shuffle, partition, batches.
+"""Streaming the shard stores into training: shuffle, partition, batches.
 
-A :class:`Catalog` is a snapshot of one or more stores (local or ``s3://``): the committed
-shards of each and the held-out materials, fixed when a run starts and kept in its
-checkpoints, so a store that grows while training (a farm still running) changes neither the
-order of a resumed epoch nor the split. Held-out materials are never trained on.
+The samples come from a :class:`storage.catalog.Catalog` split (a snapshot of the stores and
+the held-out materials, kept with the run). Held-out materials are never trained on.
 
 The order of an epoch and who reads what are pure functions of integers:
 
@@ -29,16 +27,16 @@ the training loop handles that with DDP's ``join``. The loader state in a checkp
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
-from storage.dataset import Dataset, split_by_material
+from storage.catalog import Catalog, Split
 from storage.errors import StoreError
-from storage.reader import ShardStore
+from storage.reader import Store
 from trainer.targets import light_vector
+
+__all__ = ["Catalog", "SampleReader", "ShardStream", "Split", "epoch_order", "rank_batches"]
 
 # ---- pure partition functions ---------------------------------------------------------------
 
@@ -88,106 +86,20 @@ def worker_batches(num_batches: int, workers: int, worker: int) -> range:
     return range(worker, num_batches, max(workers, 1))
 
 
-# ---- the snapshot ---------------------------------------------------------------------------
-
-
-@dataclass
-class Catalog:
-    """Stores, their committed shards and held-out materials, as of one moment."""
-
-    urls: list[str]
-    shards: list[list[int]]  # committed shards per store
-    heldout: list[list[int]]  # held-out material indices per store
-    resolution: int
-
-    @classmethod
-    def snapshot(
-        cls, urls: list[str], seed: int, holdout_fraction: float, storage_options: dict | None
-    ) -> Catalog:
-        """Open ``urls`` and draw the held-out materials: ``holdout_fraction`` of them (at
-        least one when there are two or more), by ``seed``."""
-        if not 0 <= holdout_fraction < 1:
-            raise ValueError(f"holdout fraction must be in [0, 1), not {holdout_fraction}")
-        stores = [ShardStore(u, storage_options) for u in urls]
-        for s in stores:
-            if not s.committed_shards():
-                raise StoreError(f"{s.url}: the store has no committed samples to train on")
-        ds = Dataset(stores)
-        num_materials = len({ds.material_of(i) for i in range(len(ds))})
-        count = round(holdout_fraction * num_materials)
-        if holdout_fraction > 0 and num_materials > 1:
-            count = max(count, 1)
-        _, test = split_by_material(ds, seed, holdout=min(count, num_materials - 1))
-        heldout: list[set[int]] = [set() for _ in urls]
-        for i in test:
-            store, material = ds.material_of(int(i))
-            heldout[store].add(material)
-        return cls(
-            urls=[s.url for s in stores],
-            shards=[s.committed_shards() for s in stores],
-            heldout=[sorted(h) for h in heldout],
-            resolution=stores[0].layout.resolution,
-        )
-
-    def to_dict(self) -> dict:
-        return {
-            "urls": list(self.urls),
-            "shards": [list(s) for s in self.shards],
-            "heldout": [list(h) for h in self.heldout],
-            "resolution": self.resolution,
-        }
-
-    @classmethod
-    def from_dict(cls, d: dict) -> Catalog:
-        return cls(**d)
-
-    def split(self, which: str, storage_options: dict | None = None) -> Split:
-        """The ``train`` or ``test`` (held-out) samples, grouped by shard."""
-        if which not in ("train", "test"):
-            raise ValueError(f"split must be train or test, not {which!r}")
-        refs, groups = [], []
-        for s, url in enumerate(self.urls):
-            layout = ShardStore(url, storage_options).layout
-            held = set(self.heldout[s])
-            for shard in self.shards[s]:
-                ids = [
-                    k
-                    for k in layout.shard_samples(shard)
-                    if (layout.material_of_sample(k) in held) == (which == "test")
-                ]
-                if ids:
-                    groups.append(np.arange(len(refs), len(refs) + len(ids)))
-                    refs += [(s, k) for k in ids]
-        return Split(self.urls, np.array(refs, np.int64).reshape(-1, 2), groups, storage_options)
-
-
-@dataclass
-class Split:
-    """Samples of a catalog: ``refs (N, 2) int64`` = (store, sample), ``groups`` = ids by shard."""
-
-    urls: list[str]
-    refs: np.ndarray
-    groups: list[np.ndarray]
-    storage_options: dict | None = None
-
-    def __len__(self) -> int:
-        return len(self.refs)
-
-
 class SampleReader:
     """Reads samples of a split into batches; opens its stores on first use (per process)."""
 
     def __init__(self, split: Split):
         self.split = split
-        self._stores: list[ShardStore] | None = None
+        self._stores: list[Store] | None = None
 
     def __getstate__(self):
         return {"split": self.split, "_stores": None}
 
     @property
-    def stores(self) -> list[ShardStore]:
+    def stores(self) -> list[Store]:
         if self._stores is None:
-            self._stores = [ShardStore(u, self.split.storage_options) for u in self.split.urls]
+            self._stores = [Store(u, self.split.storage_options) for u in self.split.urls]
         return self._stores
 
     def batch(self, ids: np.ndarray) -> dict[str, torch.Tensor]:

@@ -16,12 +16,12 @@ convolves the concatenation of that with the skip. Both steps are linear, so for
   into one input channel.
 
 The output equals the original network's up to rounding (``tests/test_trainer.py`` checks
-fp32 to 1e-5; about 1e-7 in practice) with about the same FLOPs. The high-resolution tensors that
-dominated the compiled batched forward on an H100 (``benchmarks.infer_profile``: upsampled
-features, concatenations, a 64-channel 400² input to the 3-channel output convolution) no
-longer exist. ``trainer.infer.Renderer`` runs it in fp32 (1.34x faster at batch 1 on CPU,
-``benchmarks.infer``); its GPU rows in that benchmark have not been run yet. BatchNorm must be
-folded first (:func:`trainer.model.fold_batchnorm`).
+fp32 to 1e-5; about 1e-7 in practice) with about the same FLOPs, without the high-resolution
+tensors of the original (upsampled features, concatenations, a 64-channel 400² input to the
+3-channel output convolution). ``trainer.infer.Renderer`` runs it in fp32 (1.34x faster at
+batch 1 on CPU); compiled in bf16 on an H100 it renders 1.53x the frames a second of the
+compiled original, but is slower at batch 1 (``docs/benchmarks.md``). BatchNorm must be folded
+first (:func:`trainer.model.fold_batchnorm`).
 """
 
 from __future__ import annotations
@@ -80,8 +80,9 @@ class Conv(nn.Module):
 
     ``gemm = True`` runs it as an explicit channels-last im2col matrix product instead, the
     same numbers, so that Inductor tunes it as a GEMM (its choices include split-K, which a
-    direct convolution on a small image lacks). Not measured on a GPU yet: the knob is there
-    for ``benchmarks.infer --gemm-at``; on CPU it is no faster."""
+    direct convolution on a small image lacks). A knob for ``benchmarks.infer --gemm-at``: on
+    CPU it is no faster, and on an H100 its Triton GEMM autotuning outlasted the benchmark's
+    time limit, so it has no GPU figure (``docs/benchmarks.md``)."""
 
     def __init__(self, weight, bias=None, stride: int = 1, pad: str = "zeros"):
         super().__init__()

@@ -1,5 +1,10 @@
 """The per-rank training loop (``trainer train``), top to bottom in one file.
 
+``_train`` reads in order: set-up (the checkpoint to resume, the catalog, the model as a
+:class:`Trainee`, the stream and the :class:`RunLog`), then each epoch's batches through
+:func:`train_step`, logging and :func:`save` at their intervals, and the epoch's end. Each step
+is a plain function of what it needs; nothing the loop changes hides in a closure.
+
 One process trains on CPU or one GPU. Under torchrun (``trainer launch``) every rank runs this
 same loop as one DDP job: NCCL on GPUs, gloo on CPU. Examples::
 

@@ -7,7 +7,7 @@ scratch folder (the worker process puts it in ``/dev/shm``), read back with ``Op
 
 Memory: images of a finished material are removed as the next one arrives, and orphan data
 is purged every ``PURGE_EVERY`` materials; ``rss_bytes()`` lets the caller recycle the process
-above a bound (Blender's long-run growth, see DESIGN.md).
+above a bound (Blender's memory grows over long runs of renders in one process).
 """
 
 from __future__ import annotations

@@ -8,11 +8,11 @@ from collections import Counter
 
 import numpy as np
 
-from storage.reader import ShardStore
+from storage.reader import Store
 from storage.schema import PACKED_CHANNELS, PER_SAMPLE
 
 
-def list_shards(store: ShardStore) -> list[dict]:
+def list_shards(store: Store) -> list[dict]:
     commits = store.commits()
     rows = []
     for shard in range(store.layout.num_shards):
@@ -27,7 +27,7 @@ def list_shards(store: ShardStore) -> list[dict]:
     return rows
 
 
-def disk_size(store: ShardStore) -> int:
+def disk_size(store: Store) -> int:
     b = store.backend
     if b.local:
         return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(b.root) for f in fs)
@@ -42,7 +42,7 @@ def histogram(values: np.ndarray, lo: float, hi: float, bins: int) -> list[dict]
     ]
 
 
-def store_info(store: ShardStore) -> dict:
+def store_info(store: Store) -> dict:
     lay, g = store.layout, store.group
     commits = store.commits()
     samples = [s for shard in sorted(commits) for s in lay.shard_samples(shard)]

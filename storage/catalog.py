@@ -1,0 +1,111 @@
+"""Several stores as one training set, split by material: a snapshot kept with a run.
+
+A :class:`Catalog` is a snapshot of one or more stores (local or ``s3://``): the committed
+shards of each and the held-out materials, fixed when a run starts and kept in its
+checkpoints, so a store that grows while training (a farm still running) changes neither the
+order of a resumed epoch nor the split. Whole materials (all their suns) are held out, so no
+material straddles the split. :meth:`Catalog.split` gives the ``train`` or ``test`` samples as
+``(store, sample)`` references grouped by shard, which the trainer streams.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from storage.errors import StoreError
+from storage.reader import Store
+
+
+def draw_heldout(materials: list, count: int, seed: int) -> list:
+    """``count`` of ``materials`` (a sorted list of any keys), drawn by ``seed``."""
+    if not 0 <= count <= len(materials):
+        raise ValueError(f"cannot hold out {count} of {len(materials)} materials")
+    order = np.random.default_rng(seed).permutation(len(materials))
+    return [materials[i] for i in order[:count]]
+
+
+@dataclass
+class Catalog:
+    """Stores, their committed shards and held-out materials, as of one moment."""
+
+    urls: list[str]
+    shards: list[list[int]]  # committed shards per store
+    heldout: list[list[int]]  # held-out material indices per store
+    resolution: int
+
+    @classmethod
+    def snapshot(
+        cls, urls: list[str], seed: int, holdout_fraction: float, storage_options: dict | None
+    ) -> Catalog:
+        """Open ``urls`` and draw the held-out materials: ``holdout_fraction`` of them (at
+        least one when there are two or more), by ``seed``."""
+        if not 0 <= holdout_fraction < 1:
+            raise ValueError(f"holdout fraction must be in [0, 1), not {holdout_fraction}")
+        stores = [Store(u, storage_options) for u in urls]
+        for s in stores:
+            if not s.committed_shards():
+                raise StoreError(f"{s.url}: the store has no committed samples to train on")
+        materials = [
+            (i, m)
+            for i, s in enumerate(stores)
+            for shard in s.committed_shards()
+            for m in s.layout.shard_materials(shard)
+        ]
+        count = round(holdout_fraction * len(materials))
+        if holdout_fraction > 0 and len(materials) > 1:
+            count = max(count, 1)
+        heldout: list[set[int]] = [set() for _ in urls]
+        for store, material in draw_heldout(materials, min(count, len(materials) - 1), seed):
+            heldout[store].add(material)
+        return cls(
+            urls=[s.url for s in stores],
+            shards=[s.committed_shards() for s in stores],
+            heldout=[sorted(h) for h in heldout],
+            resolution=stores[0].layout.resolution,
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "urls": list(self.urls),
+            "shards": [list(s) for s in self.shards],
+            "heldout": [list(h) for h in self.heldout],
+            "resolution": self.resolution,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Catalog:
+        return cls(**d)
+
+    def split(self, which: str, storage_options: dict | None = None) -> Split:
+        """The ``train`` or ``test`` (held-out) samples, grouped by shard."""
+        if which not in ("train", "test"):
+            raise ValueError(f"split must be train or test, not {which!r}")
+        refs, groups = [], []
+        for s, url in enumerate(self.urls):
+            layout = Store(url, storage_options).layout
+            held = set(self.heldout[s])
+            for shard in self.shards[s]:
+                ids = [
+                    k
+                    for k in layout.shard_samples(shard)
+                    if (layout.material_of_sample(k) in held) == (which == "test")
+                ]
+                if ids:
+                    groups.append(np.arange(len(refs), len(refs) + len(ids)))
+                    refs += [(s, k) for k in ids]
+        return Split(self.urls, np.array(refs, np.int64).reshape(-1, 2), groups, storage_options)
+
+
+@dataclass
+class Split:
+    """Samples of a catalog: ``refs (N, 2) int64`` = (store, sample), ``groups`` = ids by shard."""
+
+    urls: list[str]
+    refs: np.ndarray
+    groups: list[np.ndarray]
+    storage_options: dict | None = None
+
+    def __len__(self) -> int:
+        return len(self.refs)
