@@ -1,10 +1,11 @@
 """Creating stores and writing shards: whole shards only, then an atomic commit record.
 
-The protocol (zarr has no locks: two writers of one shard would lose data): every array is created once, full size, by
-``create_store``; each shard is then written whole by exactly one writer (``write_shard``),
-its files are made durable, and only then is ``commits/<shard>.json`` put atomically. A crash
-before the put leaves the shard invisible (``pending``) and re-writable; writers of different
-shards share no object, so any number of processes on any number of machines may write at once.
+The protocol (zarr has no locks: two writers of one shard would lose data): every array is
+created once, full size, by ``create_store``; each shard is then written whole by exactly one
+writer (``write_shard``), its files are made durable, and only then is
+``commits/<shard>.json`` put atomically. A crash before the put leaves the shard invisible
+(``pending``) and re-writable; writers of different shards share no object, so any number of
+processes on any number of machines may write at once.
 """
 
 from __future__ import annotations
