@@ -22,6 +22,12 @@ the maps of those materials. Chunks are one sample (one material) inside zarr's 
 codec, zstd-compressed, with crc32c on every chunk and on every shard index. A shard is written
 whole by one writer and becomes visible only with its commit record. Importing ``storage``
 never loads Blender.
+
+Modules: ``schema`` (the format, stated once), ``writer`` (create stores, write and commit
+shards), ``reader`` (``Store``: random access and whole shards), ``chunks`` (direct chunk
+reads), ``catalog`` (stores as one set, split by material), ``verify`` and ``summary`` (what
+``shards verify`` / ``ls`` / ``info`` print), ``convert`` (farm results into shards),
+``backend`` (local files or object stores, atomic writes), ``cli`` (``shards``).
 """
 
 from storage.errors import StoreError
