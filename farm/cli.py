@@ -137,10 +137,9 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
 @render_options
 @click.option(
     "--shard-size",
-    default=25,
-    show_default=True,
+    default=None,
     type=click.IntRange(1),
-    help="Samples per shard (a multiple of --suns).",
+    help="Samples per shard, a multiple of --suns [default: 5 materials, 5 x --suns].",
 )
 @click.option(
     "--workers",
@@ -254,7 +253,7 @@ def submit(
             recycle_after=recycle_after,
             rss_limit_mb=rss_limit_mb,
         )
-        if shard_size % suns:
+        if cfg.shard_size % suns:
             raise FarmError(f"--shard-size {shard_size} must be a multiple of --suns {suns}")
         summary = run(cfg, echo=click.echo)
     except (FarmError, MaterialError) as exc:

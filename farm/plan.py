@@ -22,6 +22,15 @@ from render_jobs.sun import (
 from storage.schema import Layout
 
 
+#: materials a shard holds unless --shard-size says otherwise (25 samples at 5 suns)
+MATERIALS_PER_SHARD = 5
+
+
+def default_shard_size(suns: int) -> int:
+    """Samples per shard when none is given: whole materials, so it always fits ``suns``."""
+    return MATERIALS_PER_SHARD * suns
+
+
 @dataclass(frozen=True)
 class JobConfig:
     """What defines a dataset (stored with it; a resubmit must match) plus how to run it."""
@@ -32,7 +41,7 @@ class JobConfig:
     resolution: int = 400
     samples: int = 150
     seed: int = 0
-    shard_size: int = 25
+    shard_size: int | None = None  # None: default_shard_size(suns)
     min_elevation_deg: float = DEFAULT_MIN_ELEVATION_DEG
     turbidity_range: tuple[float, float] = DEFAULT_TURBIDITY_RANGE
     map_resolution: int = DEFAULT_MAP_RESOLUTION
@@ -48,6 +57,10 @@ class JobConfig:
     task_timeout_s: float = 600.0
     backoff_s: float = 1.0
     recycle_after: int = 500
+
+    def __post_init__(self) -> None:
+        if self.shard_size is None:
+            object.__setattr__(self, "shard_size", default_shard_size(self.suns))
     rss_limit_mb: int = 4096
     placement_timeout_s: float = 300.0
 

@@ -17,6 +17,7 @@ import socket
 import time
 
 import numpy as np
+import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
 from storage.backend import Backend
@@ -125,10 +126,17 @@ def write_shard(store: Store, shard: int, payload: ShardPayload, overwrite: bool
         store.forget(shard)
     group = backend.open_group(mode="r+")
     samples, materials = store.layout.shard_samples(shard), store.layout.shard_materials(shard)
-    for name, spec in arrays(store.layout).items():
-        rows = materials if spec.per_material else samples
-        group[name][rows.start : rows.stop] = getattr(payload, name)
+    # every chunk is written, even one equal to the fill value (zarr skips those by default):
+    # a shard of material 0 alone has an all-zero material_index, and a missing file must
+    # always mean lost data, never "zeros"
+    with zarr.config.set({"array.write_empty_chunks": True}):
+        for name, spec in arrays(store.layout).items():
+            rows = materials if spec.per_material else samples
+            group[name][rows.start : rows.stop] = getattr(payload, name)
     keys = store.shard_keys(shard)
+    missing = [key for key in keys if backend.size(key) is None]
+    if missing:
+        raise StoreError(f"{store.url}: shard {shard}: {missing[0]} was not written")
     backend.make_durable(keys)
     record = {
         "shard": shard,

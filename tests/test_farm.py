@@ -15,7 +15,7 @@ import numpy as np
 import psutil
 import pytest
 
-from farm.plan import JobConfig, material_specs, task_for
+from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.state import LOST_AFTER_S
 from render_jobs.specs import derive_seed
 from storage.reader import Store
@@ -94,6 +94,20 @@ def test_submit_resume_and_refusal(tmp_path):
     assert other.returncode == 1
     assert other.stderr.strip().splitlines()[-1].startswith("Error: ")
     assert "settings.samples=2, not 8" in other.stderr
+
+
+@pytest.mark.parametrize("suns,want", [(1, 5), (3, 15), (5, 25), (7, 35)])
+def test_default_shard_size_follows_the_suns(suns, want):
+    cfg = JobConfig(sources=("uniform:2",), out="x", suns=suns)
+    assert cfg.shard_size == want and layout_for(cfg, 2).materials_per_shard == 5
+    assert JobConfig(sources=("uniform:2",), out="x", suns=3, shard_size=6).shard_size == 6
+
+
+def test_suns_without_a_shard_size_pass_the_shard_check(tmp_path):
+    """``--suns 3`` alone is valid: the run gets as far as the (missing) material folder."""
+    r = farm("submit", "-m", f"svbrdf:{tmp_path / 'none'}", "--suns", "3", "-o", tmp_path / "s")
+    assert r.returncode == 1 and "multiple of --suns" not in r.stderr
+    assert "none" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_bad_material_stops_before_anything_starts(tmp_path):

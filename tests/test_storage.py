@@ -204,6 +204,21 @@ def test_verify_passes_a_sound_store(tmp_path):
     assert r.returncode == 0 and "OK: 4 committed shard(s) checked" in r.stdout
 
 
+def test_verify_passes_shards_of_material_0_alone_and_finds_their_chunk_deleted(tmp_path):
+    """A shard of material 0 alone has an all-zero ``material_index``, zarr's fill value: the
+    chunk must still be written, so that verify neither flags it nor misses its loss."""
+    path = tmp_path / "m0.zarr"
+    full_store(path, Layout(num_materials=3, suns_per_material=2, resolution=16, shard_size=2))
+    key = Path(path) / "material_index" / "c" / "0"
+    assert key.is_file()
+    assert json.loads((path / commit_key(0)).read_text())["files"]["material_index/c/0"] > 0
+    r = shards("verify", path)
+    assert r.returncode == 0 and "OK: 3 committed shard(s) checked" in r.stdout, r.stdout
+    key.unlink()
+    r = shards("verify", path)
+    assert r.returncode == 1 and "shard 0: material_index/c/0 is missing" in r.stdout
+
+
 def test_verify_finds_a_single_flipped_byte(tmp_path):
     full_store(tmp_path / "s.zarr")
     f = shard_file(tmp_path / "s.zarr", "renders", 2)
