@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -9,8 +10,10 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
+import psutil
 import pytest
 import torch
 from click.testing import CliRunner
@@ -340,3 +343,53 @@ def test_torchrun_restart_resumes_from_the_last_checkpoint(tiny_store, tmp_path)
 
 def steps_per_epoch(n: int, world: int, batch: int) -> int:
     return -(-n // (world * batch))
+
+
+def test_launch_checks_inputs_before_torchrun_and_a_failed_rank_is_one_line(tiny_store, tmp_path):
+    """Bad input stops ``trainer launch`` before any rank starts; a rank that dies later
+    (here rank 0 at step 1, no restarts) ends it with one line naming the rank, not torchrun's
+    traceback."""
+    launch = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
+    out = tmp_path / "run"
+    missing = SimpleNamespace(url=str(tmp_path / "none.zarr"))
+    r = run_group([*launch, *argv(missing, out)])
+    assert r.returncode == 1 and r.stderr.splitlines()[-1].startswith("Error: "), r.stderr
+    assert "none.zarr: not a shard store" in r.stderr and "Traceback" not in r.stderr
+    assert "ChildFailedError" not in r.stderr and not out.exists()
+    r = run_group(
+        [*launch, *argv(tiny_store, out, epochs=1)],
+        env={**os.environ, "SHADERBALL_TRAIN_CRASH_AT": "1"},
+    )
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 1 and last.startswith(
+        "Error: rank 0 of the torchrun job failed with exit code 3"
+    ), r.stderr[-3000:]
+    # the other rank may print its own error (its peer is gone), prefixed "[rank1]:"; the
+    # launcher prints none
+    assert not any(line.startswith("Traceback") for line in r.stderr.splitlines())
+    assert "ChildFailedError" not in r.stderr
+
+
+def test_sigterm_to_the_launcher_stops_every_rank(tiny_store, tmp_path):
+    cmd = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
+    cmd += argv(tiny_store, tmp_path / "run", epochs=500)
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    try:
+        deadline = time.time() + 120
+        ranks = []
+        while time.time() < deadline and len(ranks) < 2:
+            time.sleep(0.5)
+            ranks = psutil.Process(proc.pid).children(recursive=True)
+            ranks = [p for p in ranks if "trainer.cli" in " ".join(p.cmdline())]
+        assert len(ranks) == 2, "the ranks did not start"
+        time.sleep(3)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+        gone, alive = psutil.wait_procs(ranks, timeout=10)
+        assert not alive
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)

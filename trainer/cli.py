@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import os
 import shlex
-import sys
 from pathlib import Path
 
 import click
@@ -22,6 +21,19 @@ def _make_config(kwargs: dict):
     try:
         return train_config.TrainConfig(**kwargs)
     except ValueError as exc:
+        _fail(exc)
+
+
+def _train_errors(fn, cfg):
+    """``fn(cfg)``, with the training errors a user can fix turned into one-line errors."""
+    from storage.errors import StoreError
+    from trainer.checkpoint import CheckpointError
+    from trainer.perceptual import MissingWeightsError
+    from trainer.train import RunError, TrainingDiverged
+
+    try:
+        return fn(cfg)
+    except (StoreError, CheckpointError, MissingWeightsError, RunError, TrainingDiverged) as exc:
         _fail(exc)
 
 
@@ -55,18 +67,12 @@ def train(**kwargs) -> None:
     \b
       trainer train --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
     """
-    from storage.errors import StoreError
-    from trainer.checkpoint import CheckpointError
-    from trainer.perceptual import MissingWeightsError
-    from trainer.train import RunError, TrainingDiverged, train
+    from trainer.train import train
 
     cfg = _make_config(kwargs)
     if int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0")) > 0:
         cfg.resume = True  # torchrun restarted the ranks: continue from the last checkpoint
-    try:
-        summary = train(cfg)
-    except (StoreError, CheckpointError, MissingWeightsError, RunError, TrainingDiverged) as exc:
-        _fail(exc)
+    summary = _train_errors(train, cfg)
     if int(os.environ.get("RANK", "0")) == 0:
         click.echo(
             f"done: {summary['steps']} steps, {summary['images_per_second']} images/s, "
@@ -100,7 +106,14 @@ def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_ru
       trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint node0:29400 \\
           --node-rank 0 --store s3://bucket/ds.zarr --out /shared/runs/r1
     """
-    from trainer.launch import LaunchConfig, other_node_commands, torchrun_argv
+    from trainer.launch import (
+        LaunchConfig,
+        RankFailed,
+        other_node_commands,
+        run_torchrun,
+        torchrun_argv,
+    )
+    from trainer.train import preflight
 
     cfg = _make_config(kwargs)
     try:
@@ -113,8 +126,11 @@ def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_ru
         click.echo(f"on another node: {line}", err=True)
     if dry_run:
         return
-    sys.stderr.flush()
-    os.execv(argv[0], argv)  # torchrun takes this process's place: signals reach it directly
+    _train_errors(preflight, cfg)  # bad input ends here, in one line, before any rank starts
+    try:
+        run_torchrun(argv)
+    except RankFailed as exc:
+        _fail(exc)
 
 
 @main.command("eval")

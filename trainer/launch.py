@@ -72,3 +72,28 @@ def other_node_commands(launch: LaunchConfig, cfg: TrainConfig) -> list[str]:
         args += ["--max-restarts", str(launch.max_restarts), *to_argv(cfg)]
         out.append(shlex.join(args))
     return out
+
+
+class RankFailed(RuntimeError):
+    """A rank of the torchrun job failed (after any restarts)."""
+
+
+def run_torchrun(argv: list[str]) -> None:
+    """Run the torchrun command ``argv`` (as :func:`torchrun_argv` makes it) in this process,
+    as ``python -m torch.distributed.run`` would: its elastic agent starts and watches the
+    ranks, and stops them on SIGINT / SIGTERM (this process then exits 128 + the signal). A failed job raises :class:`RankFailed` naming the
+    first failed rank, in place of torchrun's traceback; the rank printed its own error."""
+    from torch.distributed.elastic.multiprocessing.api import SignalException
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+    from torch.distributed.run import parse_args, run
+
+    try:
+        run(parse_args(argv[3:]))  # after "python -m torch.distributed.run"
+    except SignalException as exc:  # the agent has stopped the ranks; leave as the signal says
+        raise SystemExit(128 + int(exc.sigval)) from None
+    except ChildFailedError as exc:
+        rank, failure = min(exc.failures.items())
+        raise RankFailed(
+            f"rank {rank} of the torchrun job failed with exit code {failure.exitcode} "
+            f"(its error is above; {len(exc.failures)} rank(s) failed)"
+        ) from None
