@@ -13,7 +13,7 @@ attempt kept for the report, and per-worker failure counts. A task whose failure
 ``max_attempts`` leaves its shard uncommitted (a resubmit renders it again). A worker running
 one task longer than ``task_timeout_s x (suns + 1)`` is killed (the worker itself enforces the
 timeout per sun; this guards against one stuck elsewhere). Resume: committed shards are
-skipped.
+skipped. One driver at a time: :mod:`farm.lease`.
 """
 
 from __future__ import annotations
@@ -25,12 +25,14 @@ from dataclasses import dataclass
 from tqdm import tqdm
 
 from farm.assembly import ShardAssembly
+from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.pool import WorkerPool, connect, keep_ray_on_loopback
 from farm.scheduler import Scheduler
 from farm.state import JobState, now
 from render_jobs.errors import MaterialError
 from render_jobs.materials import load_maps
+from storage.backend import Backend
 from storage.convert import payload_from_packed
 from storage.writer import create_store, write_shard
 
@@ -89,15 +91,10 @@ class Job:
     state: JobState
 
 
-def prepare(cfg: JobConfig, progress: bool, echo) -> Job:
-    """Validate every source and create (or reopen, to resume) the store; nothing else runs
-    on bad input."""
+def prepare(cfg: JobConfig, specs: list, echo) -> Job:
+    """Create (or reopen, to resume) the store and see what is left to render."""
     from storage.errors import StoreError
 
-    try:
-        specs = validate(cfg, progress)
-    except MaterialError as exc:
-        raise FarmError(str(exc)) from None
     layout = layout_for(cfg, len(specs))
     settings = cfg.dataset_settings()
     try:
@@ -123,15 +120,32 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
     """Run (or resume) the job ``cfg`` to the end; see the module docstring."""
     t_start = time.perf_counter()
     keep_ray_on_loopback(cfg.address)
-    job = prepare(cfg, progress, echo)
-    if not job.todo:  # keep the finished job's state as it is
-        n = job.layout.num_samples
-        return Summary(cfg.out, n, 0, job.state.frames_skipped, {}, [], 0.0, None, 0.0, 0.0)
+    try:
+        specs = validate(cfg, progress)  # nothing is written on bad input
+    except MaterialError as exc:
+        raise FarmError(str(exc)) from None
+    try:  # before the store is created or opened for writing
+        lease = acquire(cfg.out, Backend(cfg.out))
+    except LeaseHeld as exc:
+        raise FarmError(str(exc)) from None
+    try:
+        job = prepare(cfg, specs, echo)
+        if not job.todo:  # keep the finished job's state as it is
+            n = job.layout.num_samples
+            return Summary(cfg.out, n, 0, job.state.frames_skipped, {}, [], 0.0, None, 0.0, 0.0)
+        return _run(job, lease, progress, echo, t_start)
+    finally:
+        lease.release()
+
+
+def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float) -> Summary:
+    """The job on Ray, holding the store's lease, to the end."""
     import ray
 
+    cfg = job.cfg
     job.state.dashboard = connect(cfg.address, cfg.ray_dashboard)
     echo(f"ray dashboard: {job.state.dashboard or 'off'}")
-    loop = Loop(job, progress)
+    loop = Loop(job, lease, progress)
     workers = cfg.workers or max(
         1, int(ray.cluster_resources().get("CPU", 1)) // cfg.cpus_per_worker
     )
@@ -170,9 +184,9 @@ class Loop:
     """One job's event loop over Ray: the pool, the scheduler and the shard assembly, and the
     result refs in flight (``ref -> (worker, material)``)."""
 
-    def __init__(self, job: Job, progress: bool):
+    def __init__(self, job: Job, lease: Lease, progress: bool):
         cfg, layout = job.cfg, job.layout
-        self.job, self.cfg, self.state = job, cfg, job.state
+        self.job, self.cfg, self.state, self.lease = job, cfg, job.state, lease
         self.pool = WorkerPool(cfg, job.state)
         self.sched = Scheduler(
             (m for s in job.todo for m in layout.shard_materials(s)),
@@ -334,6 +348,7 @@ class Loop:
 
     def save(self, every: float) -> None:
         if now() - self.last_save > every:
+            self.lease.renew()
             self.state.save(self.job.store.backend)
             self.last_save = now()
 

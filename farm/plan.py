@@ -21,7 +21,6 @@ from render_jobs.sun import (
 )
 from storage.schema import Layout
 
-
 #: materials a shard holds unless --shard-size says otherwise (25 samples at 5 suns)
 MATERIALS_PER_SHARD = 5
 
@@ -61,6 +60,7 @@ class JobConfig:
     def __post_init__(self) -> None:
         if self.shard_size is None:
             object.__setattr__(self, "shard_size", default_shard_size(self.suns))
+
     rss_limit_mb: int = 4096
     placement_timeout_s: float = 300.0
 

@@ -69,7 +69,7 @@ def create_store(
         store = Store(url, storage_options)
         store.check_compatible(layout, settings)
         return store
-    group = backend.open_group(mode="w")
+    group = backend.open_group(mode="a")  # creates the group; never deletes what is there
     group.attrs[ATTRS_KEY] = {
         "schema_version": SCHEMA_VERSION,
         "layout": layout.to_dict(),

@@ -15,6 +15,7 @@ import numpy as np
 import psutil
 import pytest
 
+from farm.lease import LEASE_S, holder_alive
 from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.state import LOST_AFTER_S
 from render_jobs.specs import derive_seed
@@ -108,6 +109,37 @@ def test_suns_without_a_shard_size_pass_the_shard_check(tmp_path):
     r = farm("submit", "-m", f"svbrdf:{tmp_path / 'none'}", "--suns", "3", "-o", tmp_path / "s")
     assert r.returncode == 1 and "multiple of --suns" not in r.stderr
     assert "none" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_lease_binds_while_renewed_and_its_driver_lives():
+    me = {"host": "here", "pid": os.getpid(), "started": psutil.Process().create_time()}
+    assert holder_alive({**me, "renewed": 100.0}, now=110.0, here="here")
+    assert not holder_alive({**me, "renewed": 100.0}, now=100.0 + LEASE_S + 1, here="here")
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = {"host": "here", "pid": gone.pid, "started": 0.0, "renewed": 100.0}
+    assert not holder_alive(dead, now=101.0, here="here")  # a killed driver frees it at once
+    assert holder_alive({**dead, "host": "elsewhere"}, now=101.0, here="here")  # can't tell
+
+
+def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):
+    out = tmp_path / "set.zarr"
+    args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "-o", out]
+    procs = [farm(*args, wait=False) for _ in range(2)]
+    try:
+        results = [(p.wait(240), *p.communicate()) for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+    codes = sorted(rc for rc, _, _ in results)
+    assert codes == [0, 1], results
+    _, _, err = next(r for r in results if r[0] == 1)
+    assert err.strip().splitlines()[-1].startswith("Error: ")
+    assert "another farm submit is running on this store (driver " in err
+    assert "Traceback" not in err
+    assert_exactly_once(out, 4)
+    assert not (out / "farm" / "lease.json").exists()  # released at the end
+    assert farm("submit", *args[1:]).returncode == 0  # and the store is free again
 
 
 def test_bad_material_stops_before_anything_starts(tmp_path):

@@ -1,0 +1,104 @@
+"""One live driver per store: a lease in ``<store>/farm/lease.json`` that the driver renews.
+
+A driver takes the lease before it renders and renews it with every job-state save. A second
+``farm submit`` on the store refuses while the lease is live, naming the holder (host, pid,
+last renewal). A lease is dead once it is ``LEASE_S`` old, or at once when its driver ran on
+this machine and that process is gone (a killed driver is resumed by resubmitting, as before).
+
+Taking it is write-then-read-back: the driver writes its lease, waits ``SETTLE_S`` and reads it
+back; of two drivers started together the last writer keeps it and the other refuses. That is
+not a consensus lock (a write delayed past the settle time could let both through), but the
+store itself stays safe then: shards are written whole and committed once, and a second commit
+of a shard is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+import uuid
+from dataclasses import dataclass
+
+import psutil
+
+from storage.backend import Backend
+
+LEASE_KEY = "farm/lease.json"
+#: a lease not renewed for this long is dead (the driver renews it every couple of seconds)
+LEASE_S = 30.0
+#: how long a new driver waits before reading its lease back
+SETTLE_S = 1.5
+
+
+class LeaseHeld(RuntimeError):
+    """Another driver holds the store's lease."""
+
+
+def _me() -> dict:
+    return {
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+        "started": psutil.Process().create_time(),
+    }
+
+
+def holder_alive(rec: dict, now: float, here: str | None = None) -> bool:
+    """Whether the lease ``rec`` still binds: renewed within ``LEASE_S``, and, when its
+    driver ran on this host (``here``), that very process still running."""
+    if now - rec.get("renewed", 0.0) > LEASE_S:
+        return False
+    if rec.get("host") != (here or socket.gethostname()):
+        return True
+    try:
+        return psutil.Process(rec["pid"]).create_time() == rec.get("started")
+    except (psutil.NoSuchProcess, KeyError):
+        return False
+
+
+def describe(url: str, rec: dict, now: float) -> str:
+    ago = max(now - rec.get("renewed", now), 0.0)
+    return (
+        f"{url}: another farm submit is running on this store (driver {rec.get('host')}:"
+        f"{rec.get('pid')}, lease renewed {ago:.0f} s ago); let it finish or stop it, then "
+        "run the same command again to resume"
+    )
+
+
+@dataclass
+class Lease:
+    url: str
+    backend: Backend
+    record: dict
+
+    def _read(self) -> dict | None:
+        raw = self.backend.get(LEASE_KEY)
+        return json.loads(raw) if raw else None
+
+    def _write(self) -> None:
+        self.record["renewed"] = time.time()
+        self.backend.put_atomic(LEASE_KEY, json.dumps(self.record).encode())
+
+    def renew(self) -> None:
+        self._write()
+
+    def release(self) -> None:
+        """Give the lease up, if it is still this driver's."""
+        rec = self._read()
+        if rec is not None and rec.get("token") == self.record["token"]:
+            self.backend.delete(LEASE_KEY)
+
+
+def acquire(url: str, backend: Backend, settle_s: float = SETTLE_S) -> Lease:
+    """Take the store's lease or raise :class:`LeaseHeld` naming its holder."""
+    lease = Lease(url, backend, {**_me(), "token": uuid.uuid4().hex})
+    rec = lease._read()
+    if rec is not None and holder_alive(rec, time.time()):
+        raise LeaseHeld(describe(url, rec, time.time()))
+    lease._write()
+    time.sleep(settle_s)
+    rec = lease._read()
+    if rec is None or rec.get("token") != lease.record["token"]:
+        raise LeaseHeld(describe(url, rec or {}, time.time()))
+    return lease
