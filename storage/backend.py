@@ -2,7 +2,8 @@
 
 Besides the zarr store itself, a backend gives the few raw operations the commit protocol
 needs: an atomic put (local: temp file + fsync + ``os.replace`` + directory fsync; object
-stores: one PUT, which is atomic), listing, sizes, and fsync of files zarr wrote.
+stores: one PUT, which is atomic), listing, sizes, and fsync of files zarr wrote. Each
+raw operation retries transient object-store errors (:mod:`storage.retry`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from typing import BinaryIO
 
 import zarr
 from zarr.storage import FsspecStore, LocalStore
+
+from storage.retry import retrying
 
 
 def is_remote(url: str) -> bool:
@@ -44,12 +47,14 @@ class Backend:
             self.url, storage_options=self.storage_options, read_only=read_only
         )
 
+    @retrying
     def open_group(self, mode: str = "r"):
         return zarr.open_group(self.zarr_store(read_only=mode == "r"), mode=mode, zarr_format=3)
 
     def path(self, key: str) -> str:
         return f"{self.root}/{key}"
 
+    @retrying
     def get(self, key: str) -> bytes | None:
         try:
             if self.local:
@@ -58,6 +63,7 @@ class Backend:
         except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
             return None
 
+    @retrying
     def size(self, key: str) -> int | None:
         try:
             if self.local:
@@ -66,6 +72,7 @@ class Backend:
         except (FileNotFoundError, NotADirectoryError):
             return None
 
+    @retrying
     def listdir(self, key: str) -> list[str]:
         try:
             if self.local:
@@ -75,6 +82,7 @@ class Backend:
         except (FileNotFoundError, NotADirectoryError):
             return []
 
+    @retrying
     def put_atomic(self, key: str, data: bytes) -> None:
         """Readers see the old object or the whole new one, never a part."""
         if not self.local:
@@ -82,6 +90,7 @@ class Backend:
             return
         write_atomic(self.path(key), lambda f: f.write(data))
 
+    @retrying
     def delete(self, key: str) -> None:
         if self.local:
             Path(self.path(key)).unlink(missing_ok=True)

@@ -24,6 +24,7 @@ import zstandard
 
 from storage.backend import Backend
 from storage.errors import StoreError
+from storage.retry import retrying
 
 _MISSING = 2**64 - 1
 _INDEX_CACHE = 256  # shards whose index is kept, per array
@@ -86,13 +87,16 @@ class ChunkReader:
                 start += os.fstat(fd).st_size
             data = os.pread(fd, length, start)
         else:
-            path = self.backend.path(key)
             if start < 0:
                 start += self.backend.size(key)
-            data = self.backend.fs.cat_file(path, start=start, end=start + length)
+            data = self._remote_range(key, start, length)
         if len(data) != length:
             raise StoreError(f"{self.backend.url}: {key} is truncated")
         return data
+
+    @retrying
+    def _remote_range(self, key: str, start: int, length: int) -> bytes:
+        return self.backend.fs.cat_file(self.backend.path(key), start=start, end=start + length)
 
     def index(self, shard: int) -> np.ndarray:
         """``(per_shard, 2) uint64``: (offset, nbytes) of each chunk in the shard file."""

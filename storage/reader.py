@@ -18,6 +18,7 @@ from render_jobs.specs import Sun
 from storage.backend import Backend
 from storage.chunks import ChunkReader
 from storage.errors import StoreError
+from storage.retry import retrying
 from storage.schema import (
     ATTRS_KEY,
     COMMITS,
@@ -160,6 +161,21 @@ class Store:
             raise StoreError(f"{self.url}: sample {sample} is in shard {shard}, not committed")
         return shard, rec
 
+    @retrying
+    def array(self, name: str):
+        """The zarr array ``name`` (its metadata read now); ``KeyError`` if it is missing."""
+        return self.group[name]
+
+    @retrying
+    def _read_rows(self, shard: int, names) -> dict[str, np.ndarray]:
+        """The rows of ``shard`` in the arrays ``names``, through zarr."""
+        lay, g = self.layout, self.group
+        out = {}
+        for name in names:
+            rows = lay.shard_materials(shard) if name == "maps" else lay.shard_samples(shard)
+            out[name] = g[name][rows.start : rows.stop]
+        return out
+
     def forget(self, shard: int) -> None:
         """Drop what is cached of ``shard`` (its commit record, metadata, maps): it is being
         rewritten."""
@@ -171,8 +187,7 @@ class Store:
         """The small per-sample arrays of a committed shard (read once, then cached)."""
         meta = self._meta.get(shard)
         if meta is None:
-            s = self.layout.shard_samples(shard)
-            meta = {name: self.group[name][s.start : s.stop] for name in PER_SAMPLE}
+            meta = self._read_rows(shard, PER_SAMPLE)
             self._meta[shard] = meta
             if len(self._meta) > 512:
                 self._meta.pop(next(iter(self._meta)))
@@ -239,15 +254,9 @@ class Store:
         rec = self.commit_record(shard)
         if rec is None:
             raise StoreError(f"{self.url}: shard {shard} is not committed")
-        g = self.group
-        s, m = self.layout.shard_samples(shard), self.layout.shard_materials(shard)
-        per = {name: g[name][s.start : s.stop] for name in PER_SAMPLE}
-        return ShardPayload(
-            maps=g["maps"][m.start : m.stop],
-            renders=g["renders"][s.start : s.stop],
-            materials=[{k: v for k, v in r.items() if k != "index"} for r in rec["materials"]],
-            **per,
-        )
+        rows = self._read_rows(shard, arrays(self.layout))
+        materials = [{k: v for k, v in r.items() if k != "index"} for r in rec["materials"]]
+        return ShardPayload(materials=materials, **rows)
 
     def iter_shards(self) -> Iterator[tuple[int, object]]:
         """(shard, payload) for every committed shard, in order."""

@@ -26,10 +26,9 @@ class Report:
 
 
 def _check_arrays(store: Store, report: Report) -> None:
-    g = store.group
     for name, spec in arrays(store.layout).items():
         try:
-            actual = g[name]
+            actual = store.array(name)
         except KeyError:
             report.store_problems.append(f"array {name} is missing")
             continue

@@ -23,6 +23,7 @@ from zarr.codecs import Crc32cCodec, ZstdCodec
 from storage.backend import Backend
 from storage.errors import ShardCommittedError, StoreError
 from storage.reader import Store
+from storage.retry import retrying
 from storage.schema import (
     ATTRS_KEY,
     KINDS,
@@ -113,6 +114,17 @@ def _check_payload(store: Store, shard: int, p: ShardPayload) -> None:
         raise StoreError(f"shard {shard}: renders hold NaN or Inf")
 
 
+@retrying  # rewriting a shard that is not committed yet is idempotent
+def _write_arrays(group, layout: Layout, samples: range, materials: range, p: ShardPayload):
+    # every chunk is written, even one equal to the fill value (zarr skips those by default):
+    # a shard of material 0 alone has an all-zero material_index, and a missing file must
+    # always mean lost data, never "zeros"
+    with zarr.config.set({"array.write_empty_chunks": True}):
+        for name, spec in arrays(layout).items():
+            rows = materials if spec.per_material else samples
+            group[name][rows.start : rows.stop] = getattr(p, name)
+
+
 def write_shard(store: Store, shard: int, payload: ShardPayload, overwrite: bool = False) -> dict:
     """Write ``shard`` whole, make it durable, then commit it; returns the commit record."""
     _check_payload(store, shard, payload)
@@ -126,13 +138,7 @@ def write_shard(store: Store, shard: int, payload: ShardPayload, overwrite: bool
         store.forget(shard)
     group = backend.open_group(mode="r+")
     samples, materials = store.layout.shard_samples(shard), store.layout.shard_materials(shard)
-    # every chunk is written, even one equal to the fill value (zarr skips those by default):
-    # a shard of material 0 alone has an all-zero material_index, and a missing file must
-    # always mean lost data, never "zeros"
-    with zarr.config.set({"array.write_empty_chunks": True}):
-        for name, spec in arrays(store.layout).items():
-            rows = materials if spec.per_material else samples
-            group[name][rows.start : rows.stop] = getattr(payload, name)
+    _write_arrays(group, store.layout, samples, materials, payload)
     keys = store.shard_keys(shard)
     missing = [key for key in keys if backend.size(key) is None]
     if missing:

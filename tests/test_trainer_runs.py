@@ -22,6 +22,7 @@ from torch.utils.data import DataLoader
 
 from storage.schema import Layout
 from storage.writer import create_store, write_shard
+from tests.flaky_proxy import FlakyProxy
 from tests.storage_helpers import synthetic_payload
 from tests.test_trainer import vgg_weights_file
 from trainer import checkpoint
@@ -294,26 +295,36 @@ def test_launch_commands():
     )
 
 
-def test_trains_from_an_s3_store(tiny_store, s3, tmp_path):
+@pytest.mark.parametrize("flaky", [False, True], ids=["s3", "flaky-s3"])
+def test_trains_from_an_s3_store(tiny_store, s3, tmp_path, flaky):
     """The loader streams shards from object storage (credentials and endpoint from the
-    standard AWS environment variables, as on a cluster)."""
+    standard AWS environment variables, as on a cluster), also through a proxy that answers
+    503 SlowDown or resets the connection on two requests in every 15 (botocore's own
+    retries off, so the faults reach this project's retry policy), with the same samples."""
     endpoint, opts = s3
-    url = "s3://shaderball/tiny.zarr"
+    url = f"s3://shaderball/tiny-{flaky}.zarr"
     remote = create_store(url, tiny_store.layout, tiny_store.settings, storage_options=opts)
     for shard in tiny_store.committed_shards():
         write_shard(remote, shard, tiny_store.read_shard(shard))
-    env = {
-        **os.environ,
-        "AWS_ACCESS_KEY_ID": "test",
-        "AWS_SECRET_ACCESS_KEY": "test",
-        "AWS_ENDPOINT_URL": endpoint,
-        "AWS_DEFAULT_REGION": "us-east-1",
-    }
-    out = tmp_path / "s3run"
-    cmd = [sys.executable, "-m", "trainer.cli", "train"]
-    cmd += argv(remote, out, max_steps=3, workers=2, log_samples=True)
-    r = run_group(cmd, env=env, timeout=300)
+    proxy = FlakyProxy(endpoint, every=15, stall_s=0, burst=2) if flaky else None
+    with proxy or contextlib.nullcontext():
+        env = {
+            **os.environ,
+            "AWS_ACCESS_KEY_ID": "test",
+            "AWS_SECRET_ACCESS_KEY": "test",
+            "AWS_ENDPOINT_URL": proxy.endpoint if proxy else endpoint,
+            "AWS_DEFAULT_REGION": "us-east-1",
+            "AWS_MAX_ATTEMPTS": "1",
+            "AWS_RETRY_MODE": "standard",
+        }
+        out = tmp_path / "s3run"
+        cmd = [sys.executable, "-m", "trainer.cli", "train"]
+        cmd += argv(remote, out, max_steps=3, workers=2, log_samples=True)
+        r = run_group(cmd, env=env, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
+    if proxy:
+        assert proxy.faults["503"] and proxy.faults["reset"], proxy.faults
+        assert "retry 1 in" in r.stderr  # each retry logged
     state = checkpoint.load(out)
     assert state["step"] == 3 and state["catalog"]["urls"] == [url]
     local = Catalog.from_dict({**state["catalog"], "urls": [tiny_store.url]})

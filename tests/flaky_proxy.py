@@ -1,0 +1,109 @@
+"""A fault-injecting HTTP proxy on 127.0.0.1, in front of the tests' S3 server.
+
+Every ``every``-th request gets a fault, taking turns: a 503 ``SlowDown`` answer (S3's
+throttling), a connection reset before any answer, and a stall of ``stall_s`` (longer than the
+client's read timeout) before the request goes through (``stall_s`` 0: no stalls). With
+``burst`` > 1 a 503 or reset fault also hits the ``burst - 1`` requests after it, which
+outlasts the few quick retries botocore and s3fs make themselves. All other requests are
+forwarded.
+``deny``: a path fragment answered with 403 ``AccessDenied`` every time (a permanent error).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import threading
+
+import aiohttp
+from aiohttp import web
+
+HOP = {"connection", "keep-alive", "transfer-encoding", "content-length", "host"}
+SLOW_DOWN = (
+    b'<?xml version="1.0" encoding="UTF-8"?><Error><Code>SlowDown</Code>'
+    b"<Message>Please reduce your request rate.</Message></Error>"
+)
+DENIED = (
+    b'<?xml version="1.0" encoding="UTF-8"?><Error><Code>AccessDenied</Code>'
+    b"<Message>Access Denied</Message></Error>"
+)
+
+
+class FlakyProxy:
+    def __init__(
+        self, upstream: str, every: int = 7, stall_s: float = 4.0, deny: str = "", burst: int = 1
+    ):
+        self.upstream, self.every, self.stall_s, self.deny = upstream, every, stall_s, deny
+        self.burst, self.left, self.kind = burst, 0, "503"
+        self.count = itertools.count(1)
+        self.faults = {"503": 0, "reset": 0, "stall": 0, "denied": 0}
+        self.requests = 0
+        self.loop = asyncio.new_event_loop()
+        self.port = 0
+        self._ready = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+
+    @property
+    def endpoint(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def __enter__(self) -> FlakyProxy:
+        self._thread.start()
+        self._ready.wait(10)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(10)
+
+    def _serve(self) -> None:
+        asyncio.set_event_loop(self.loop)
+        app = web.Application(client_max_size=1 << 30)
+        app.router.add_route("*", "/{tail:.*}", self._handle)
+        runner = web.AppRunner(app)
+        self.loop.run_until_complete(runner.setup())
+        site = web.TCPSite(runner, "127.0.0.1", 0)
+        self.loop.run_until_complete(site.start())
+        self.port = site._server.sockets[0].getsockname()[1]
+        self.session = self.loop.run_until_complete(self._session())
+        self._ready.set()
+        self.loop.run_forever()
+
+    async def _session(self) -> aiohttp.ClientSession:
+        return aiohttp.ClientSession(auto_decompress=False)
+
+    async def _handle(self, request: web.Request) -> web.StreamResponse:
+        n = next(self.count)
+        self.requests = n
+        body = await request.read()
+        if self.deny and self.deny in request.path:
+            self.faults["denied"] += 1
+            return web.Response(status=403, body=DENIED, content_type="application/xml")
+        kinds = ("503", "reset", "stall") if self.stall_s else ("503", "reset")
+        if self.left > 0:
+            self.left -= 1
+            kind = self.kind
+        elif n % self.every == 0:
+            kind = self.kind = kinds[(n // self.every) % len(kinds)]
+            self.left = self.burst - 1 if kind != "stall" else 0
+        else:
+            kind = None
+        if kind is not None:
+            self.faults[kind] += 1
+            if kind == "503":
+                return web.Response(status=503, body=SLOW_DOWN, content_type="application/xml")
+            if kind == "reset":
+                request.transport.abort()
+                raise asyncio.CancelledError
+            await asyncio.sleep(self.stall_s)
+        headers = {k: v for k, v in request.headers.items() if k.lower() not in HOP}
+        url = self.upstream + request.path_qs
+        async with self.session.request(
+            request.method, url, headers=headers, data=body, allow_redirects=False
+        ) as up:
+            data = await up.read()
+            out = {k: v for k, v in up.headers.items() if k.lower() not in HOP}
+            response = web.Response(status=up.status, body=data, headers=out)
+            if request.method == "HEAD" and "Content-Length" in up.headers:
+                response.headers["Content-Length"] = up.headers["Content-Length"]
+            return response

@@ -1,0 +1,122 @@
+"""The store over a flaky object store: a fault-injecting proxy (503 SlowDown, connection
+resets, stalls) in front of the tests' S3 server on 127.0.0.1; the retry policy alone."""
+
+from __future__ import annotations
+
+import errno
+import logging
+import time
+
+import numpy as np
+import pytest
+from botocore.exceptions import ClientError
+
+from storage.reader import Store
+from storage.retry import retrying, transient
+from storage.verify import verify
+from storage.writer import create_store, write_shard
+from tests.flaky_proxy import FlakyProxy
+from tests.storage_helpers import synthetic_payload
+from tests.test_storage import LAYOUT
+
+
+def client_error(code: str, status: int) -> ClientError:
+    body = {"Error": {"Code": code}, "ResponseMetadata": {"HTTPStatusCode": status}}
+    return ClientError(body, "GetObject")
+
+
+@pytest.mark.parametrize(
+    "exc,want",
+    [
+        (ConnectionResetError(104, "reset"), True),
+        (TimeoutError(), True),
+        (client_error("SlowDown", 503), True),
+        (client_error("InternalError", 500), True),
+        (OSError("An error occurred (SlowDown) when calling PutObject"), True),
+        (OSError(errno.EBUSY, "Service Unavailable"), True),
+        (client_error("AccessDenied", 403), False),
+        (client_error("NoSuchBucket", 404), False),
+        (PermissionError("Access Denied"), False),
+        (FileNotFoundError("nope"), False),
+        (ValueError("checksum"), False),
+    ],
+)
+def test_which_errors_are_transient(exc, want):
+    assert transient(exc) is want
+    try:  # the cause counts too, as s3fs re-raises
+        raise RuntimeError("wrapped") from exc
+    except RuntimeError as wrapped:
+        assert transient(wrapped) is want
+
+
+def test_transient_errors_are_retried_and_logged_permanent_ones_raised_at_once(caplog):
+    calls = []
+
+    @retrying(base_s=0.01)
+    def flaky():
+        calls.append(1)
+        if len(calls) < 3:
+            raise ConnectionResetError(104, "Connection reset by peer")
+        return "ok"
+
+    with caplog.at_level(logging.WARNING, "shaderball.storage"):
+        assert flaky() == "ok"
+    assert len(calls) == 3 and len(caplog.records) == 2
+    assert "ConnectionResetError" in caplog.records[0].getMessage()
+
+    @retrying(base_s=0.01, attempts=4)
+    def denied():
+        calls.append(1)
+        raise PermissionError("Access Denied")
+
+    calls.clear()
+    with pytest.raises(PermissionError):
+        denied()
+    assert len(calls) == 1
+
+    @retrying(base_s=0.01, attempts=4)
+    def down():
+        calls.append(1)
+        raise client_error("SlowDown", 503)
+
+    calls.clear()
+    with pytest.raises(ClientError):
+        down()
+    assert len(calls) == 4  # bounded
+
+
+def flaky_options(opts: dict, endpoint: str) -> dict:
+    """Through the proxy, with short timeouts and botocore's own retries cut to one
+    attempt, so that every fault reaches this project's policy."""
+    client = {**opts["client_kwargs"], "endpoint_url": endpoint}
+    config = {"read_timeout": 1.0, "connect_timeout": 1.0, "retries": {"max_attempts": 1}}
+    return {**opts, "client_kwargs": client, "config_kwargs": config}
+
+
+def test_a_store_written_and_read_through_faults_is_whole(s3):
+    upstream, opts = s3
+    url = "s3://shaderball/flaky.zarr"
+    with FlakyProxy(upstream, every=15, stall_s=1.5, burst=2) as proxy:
+        o = flaky_options(opts, proxy.endpoint)
+        store = create_store(url, LAYOUT, {"samples": 8}, storage_options=o)
+        for shard in range(LAYOUT.num_shards):
+            write_shard(store, shard, synthetic_payload(LAYOUT, shard))
+        reader = Store(url, o)
+        got = [reader.sample(i).render for i in range(LAYOUT.num_samples)]
+        assert verify(Store(url, o)).ok
+    assert all(proxy.faults[k] for k in ("503", "reset", "stall")), proxy.faults
+    clean = Store(url, opts)  # straight to the server: the same bytes
+    assert clean.committed_shards() == list(range(LAYOUT.num_shards))
+    for i, render in enumerate(got):
+        np.testing.assert_array_equal(render, clean.sample(i).render)
+
+
+def test_a_permanent_error_fails_at_once(s3):
+    upstream, opts = s3
+    with FlakyProxy(upstream, every=10**9, deny="/denied.zarr") as proxy:
+        o = flaky_options(opts, proxy.endpoint)
+        t0 = time.perf_counter()
+        with pytest.raises(PermissionError):
+            create_store("s3://shaderball/denied.zarr", LAYOUT, {}, storage_options=o)
+        assert time.perf_counter() - t0 < 5
+    assert proxy.faults["denied"] <= 2
