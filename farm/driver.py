@@ -128,6 +128,8 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
         lease = acquire(cfg.out, Backend(cfg.out))
     except LeaseHeld as exc:
         raise FarmError(str(exc)) from None
+    except OSError as exc:  # no such bucket, access denied, ... (transient ones were retried)
+        raise FarmError(f"{cfg.out}: {type(exc).__name__}: {exc}") from None
     try:
         job = prepare(cfg, specs, echo)
         if not job.todo:  # keep the finished job's state as it is

@@ -53,6 +53,30 @@ def software_versions() -> dict[str, str]:
     }
 
 
+@retrying  # every step rewrites the same metadata: a retry after a partial attempt is safe
+def _create(backend: Backend, layout: Layout, settings: dict) -> None:
+    """The group and its arrays; the group's attributes, which make it a shard store, last."""
+    group = backend.open_group(mode="a")  # creates the group; never deletes what is there
+    for name, spec in arrays(layout).items():
+        group.create_array(
+            name,
+            shape=spec.shape,
+            dtype=spec.dtype,
+            chunks=spec.chunks,
+            shards=spec.shards,
+            compressors=_compressors(),
+            fill_value=0,
+            overwrite=True,
+        )
+    group.attrs[ATTRS_KEY] = {
+        "schema_version": SCHEMA_VERSION,
+        "layout": layout.to_dict(),
+        "settings": settings,
+        "software": software_versions(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+
+
 def create_store(
     url: str,
     layout: Layout,
@@ -70,24 +94,7 @@ def create_store(
         store = Store(url, storage_options)
         store.check_compatible(layout, settings)
         return store
-    group = backend.open_group(mode="a")  # creates the group; never deletes what is there
-    group.attrs[ATTRS_KEY] = {
-        "schema_version": SCHEMA_VERSION,
-        "layout": layout.to_dict(),
-        "settings": settings,
-        "software": software_versions(),
-        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
-    for name, spec in arrays(layout).items():
-        group.create_array(
-            name,
-            shape=spec.shape,
-            dtype=spec.dtype,
-            chunks=spec.chunks,
-            shards=spec.shards,
-            compressors=_compressors(),
-            fill_value=0,
-        )
+    _create(backend, layout, settings)
     return Store(url, storage_options)
 
 

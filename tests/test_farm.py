@@ -20,14 +20,16 @@ from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.state import LOST_AFTER_S
 from render_jobs.specs import derive_seed
 from storage.reader import Store
+from storage.verify import verify
+from tests.flaky_proxy import FlakyProxy
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
 TINY = ["--suns", "2", "--shard-size", "4", "--resolution", "32", "--samples", "2"]
 
 
-def farm(*args, faults=None, wait=True, timeout=300):
-    env = {**os.environ, "RAY_AUTH_MODE": "disabled"}
+def farm(*args, faults=None, wait=True, timeout=300, env=None):
+    env = {**os.environ, "RAY_AUTH_MODE": "disabled", **(env or {})}
     if faults is not None:
         env["SHADERBALL_FARM_FAULTS"] = json.dumps(faults)
     cmd = [str(BIN / "farm"), *map(str, args)]
@@ -348,3 +350,37 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
     assert f"resuming: {done_before} of 5 shards already committed" in r.stdout
     assert f"{20 - 4 * done_before} rendered, {4 * done_before} already there" in r.stdout
     assert_exactly_once(out, 10)
+
+
+def test_a_farm_job_over_a_flaky_object_store_commits_every_sample_once(s3, tmp_path):
+    """``--out s3://...`` through a proxy that answers 503 SlowDown or resets the connection
+    on two requests in every 12 (botocore's own retries off): the job ends whole, with the
+    same data as the same job written locally; a bucket that denies access fails at once."""
+    endpoint, opts = s3
+    env = {
+        "AWS_ACCESS_KEY_ID": "test",
+        "AWS_SECRET_ACCESS_KEY": "test",
+        "AWS_DEFAULT_REGION": "us-east-1",
+        "AWS_MAX_ATTEMPTS": "1",
+        "AWS_RETRY_MODE": "standard",
+    }
+    args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "--no-ray-dashboard"]
+    with FlakyProxy(endpoint, every=12, stall_s=0, burst=2, deny="/denied.zarr") as proxy:
+        env["AWS_ENDPOINT_URL"] = proxy.endpoint
+        r = farm(*args, "-o", "s3://shaderball/farm.zarr", env=env)
+        assert r.returncode == 0, r.stderr[-3000:]
+        t0 = time.time()
+        denied = farm(*args, "-o", "s3://shaderball/denied.zarr", env=env)
+        assert time.time() - t0 < 60
+    assert proxy.faults["503"] and proxy.faults["reset"], proxy.faults
+    assert "retry 1 in" in r.stderr
+    assert denied.returncode == 1 and "Traceback" not in denied.stderr
+    assert denied.stderr.strip().splitlines()[-1].startswith("Error: s3://shaderball/denied.zarr")
+    local = tmp_path / "local.zarr"
+    assert farm(*args, "-o", local).returncode == 0
+    remote, here = Store("s3://shaderball/farm.zarr", opts), Store(str(local))
+    assert remote.committed_shards() == here.committed_shards() == [0, 1]
+    for name in ("seed", "material_index", "sun_direction", "turbidity"):
+        np.testing.assert_array_equal(remote.group[name][:], here.group[name][:])
+    np.testing.assert_array_equal(remote.group["maps"][:], here.group["maps"][:])
+    assert verify(remote).ok

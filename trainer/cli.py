@@ -35,6 +35,8 @@ def _train_errors(fn, cfg):
         return fn(cfg)
     except (StoreError, CheckpointError, MissingWeightsError, RunError, TrainingDiverged) as exc:
         _fail(exc)
+    except OSError as exc:  # a store or run folder out of reach (transient errors were retried)
+        _fail(f"{type(exc).__name__}: {exc}")
 
 
 device_option = click.option(

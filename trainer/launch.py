@@ -81,8 +81,9 @@ class RankFailed(RuntimeError):
 def run_torchrun(argv: list[str]) -> None:
     """Run the torchrun command ``argv`` (as :func:`torchrun_argv` makes it) in this process,
     as ``python -m torch.distributed.run`` would: its elastic agent starts and watches the
-    ranks, and stops them on SIGINT / SIGTERM (this process then exits 128 + the signal). A failed job raises :class:`RankFailed` naming the
-    first failed rank, in place of torchrun's traceback; the rank printed its own error."""
+    ranks, and stops them on SIGINT / SIGTERM (this process then exits 128 + the signal). A
+    failed job raises :class:`RankFailed` naming the first failed rank, in place of torchrun's
+    traceback; the rank printed its own error."""
     from torch.distributed.elastic.multiprocessing.api import SignalException
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.run import parse_args, run
