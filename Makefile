@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint bench-render bench-farm bench-train bench-infer bench-storage gpu-wheels clean
+.PHONY: demo demo-train test lint bench-render bench-farm bench-farm-scale bench-train bench-infer bench-storage gpu-wheels clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,10 @@ bench-render: $(BIN)/.installed
 
 bench-farm: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.farm
+
+# One driver's ceilings: its scheduling policy (1,000 workers) and its 400² shard commits.
+bench-farm-scale: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.farm_scale
 
 # Training and inference at 400² (renders out/bench-400.zarr with the farm on first use).
 bench-train: $(BIN)/.installed

@@ -53,6 +53,8 @@ class FlakyProxy:
         return self
 
     def __exit__(self, *exc) -> None:
+        closed = asyncio.run_coroutine_threadsafe(self.session.close(), self.loop)
+        closed.result(10)
         self.loop.call_soon_threadsafe(self.loop.stop)
         self._thread.join(10)
 
