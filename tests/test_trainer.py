@@ -306,3 +306,21 @@ def test_cuda_graph_path_refuses_a_cpu_model():
 
     with pytest.raises(RuntimeError, match="CUDA graphs need the model on a CUDA device"):
         GraphedRenderer(NeuralRenderer(ModelConfig(resolution=64)), 1)
+
+
+def test_inference_network_is_the_rewrite_on_cpu_and_the_folded_original_elsewhere():
+    from trainer.fastnet import SubpixelRenderer
+    from trainer.infer import inference_network
+
+    torch.manual_seed(0)
+    model = NeuralRenderer(ModelConfig(resolution=32)).eval()
+    x, light = torch.rand(2, 10, 32, 32), torch.rand(2, 4)
+    cpu = inference_network(model, torch.device("cpu"))
+    gpu = inference_network(model, torch.device("cuda"))  # chosen, not moved: runs here too
+    assert isinstance(cpu, SubpixelRenderer) and isinstance(gpu, NeuralRenderer)
+    with torch.no_grad():
+        want = model(x, light)
+        torch.testing.assert_close(
+            cpu(x.contiguous(memory_format=torch.channels_last), light), want
+        )
+        torch.testing.assert_close(gpu(x, light), want)

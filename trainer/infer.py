@@ -24,17 +24,27 @@ def pick_device(name: str = "auto") -> torch.device:
     return torch.device(name)
 
 
+def inference_network(model: NeuralRenderer, device: torch.device) -> torch.nn.Module:
+    """The fp32 network :class:`Renderer` runs on ``device``, BatchNorm folded. On CPU the
+    exact sub-pixel rewrite of :mod:`trainer.fastnet` in channels_last (1.34x faster there);
+    elsewhere the original layout, since on an H100 the uncompiled rewrite was the slower
+    (2.76 against 1.96 ms a frame at batch 1, ``docs/benchmarks.md``)."""
+    folded = fold_batchnorm(model)
+    if device.type != "cpu":
+        return folded
+    return SubpixelRenderer(folded).to(memory_format=torch.channels_last)
+
+
 class Renderer:
     """A trained model in eval mode, with the tonemap it was trained against.
 
-    It renders through the exact fp32 rewrite of :mod:`trainer.fastnet` (BatchNorm folded,
-    sub-pixel convolutions, channels_last): the same images as ``model`` to about 1e-7, about
-    1.3x faster on CPU (``benchmarks.infer``)."""
+    It renders in fp32 through :func:`inference_network`: the same images as ``model`` to
+    about 1e-7."""
 
     def __init__(self, model: NeuralRenderer, tonemap: Tonemap, device: torch.device):
         self.model = model.to(device).eval()
-        self.net = SubpixelRenderer(fold_batchnorm(self.model))
-        self.net.to(memory_format=torch.channels_last)
+        self.net = inference_network(self.model, device)
+        self.fmt = torch.channels_last if device.type == "cpu" else torch.contiguous_format
         self.tonemap = tonemap
         self.device = device
 
@@ -57,7 +67,7 @@ class Renderer:
         x = model_inputs(maps.to(self.device), self.config.roughness_channels)
         light = light.to(self.device, torch.float32)
         self.model.check_inputs(x, light)
-        return self.net(x.contiguous(memory_format=torch.channels_last), light).float()
+        return self.net(x.contiguous(memory_format=self.fmt), light).float()
 
     def render(self, maps: np.ndarray, sun_direction, turbidity) -> np.ndarray:
         """Stored maps ``(11, H, W)`` or ``(N, 11, H, W) uint8`` under one sun (or ``N`` suns:
