@@ -169,10 +169,11 @@ class Store:
     @retrying
     def _read_rows(self, shard: int, names) -> dict[str, np.ndarray]:
         """The rows of ``shard`` in the arrays ``names``, through zarr."""
-        lay, g = self.layout, self.group
+        lay, g, specs = self.layout, self.group, arrays(self.layout)
         out = {}
         for name in names:
-            rows = lay.shard_materials(shard) if name == "maps" else lay.shard_samples(shard)
+            per_material = specs[name].per_material
+            rows = lay.shard_materials(shard) if per_material else lay.shard_samples(shard)
             out[name] = g[name][rows.start : rows.stop]
         return out
 

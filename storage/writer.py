@@ -54,9 +54,8 @@ def software_versions() -> dict[str, str]:
 
 
 @retrying  # every step rewrites the same metadata: a retry after a partial attempt is safe
-def _create(backend: Backend, layout: Layout, settings: dict) -> None:
-    """The group and its arrays; the group's attributes, which make it a shard store, last."""
-    group = backend.open_group(mode="a")  # creates the group; never deletes what is there
+def _create(group, layout: Layout, settings: dict) -> None:
+    """The group's arrays, then its attributes, which make it a shard store."""
     for name, spec in arrays(layout).items():
         group.create_array(
             name,
@@ -94,7 +93,8 @@ def create_store(
         store = Store(url, storage_options)
         store.check_compatible(layout, settings)
         return store
-    _create(backend, layout, settings)
+    # mode "a" creates the group and never deletes what is there; its open retries itself
+    _create(backend.open_group(mode="a"), layout, settings)
     return Store(url, storage_options)
 
 
@@ -147,7 +147,8 @@ def write_shard(store: Store, shard: int, payload: ShardPayload, overwrite: bool
     samples, materials = store.layout.shard_samples(shard), store.layout.shard_materials(shard)
     _write_arrays(group, store.layout, samples, materials, payload)
     keys = store.shard_keys(shard)
-    missing = [key for key in keys if backend.size(key) is None]
+    sizes = {key: backend.size(key) for key in keys}
+    missing = [key for key, size in sizes.items() if size is None]
     if missing:
         raise StoreError(f"{store.url}: shard {shard}: {missing[0]} was not written")
     backend.make_durable(keys)
@@ -157,7 +158,7 @@ def write_shard(store: Store, shard: int, payload: ShardPayload, overwrite: bool
         "materials": [
             {"index": i, **rec} for i, rec in zip(materials, payload.materials, strict=True)
         ],
-        "files": {key: backend.size(key) for key in keys},
+        "files": sizes,
         "written_by": f"{socket.gethostname()}:{os.getpid()}",
         "committed": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
