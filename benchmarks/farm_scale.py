@@ -1,8 +1,10 @@
-"""How far one farm driver scales: its scheduling policy and its shard commits, without Ray.
+"""How far one farm driver scales: its scheduling policy, the cost of writing shards in it,
+and the real driver over Ray with simulated workers.
 
     .venv/bin/python -m benchmarks.farm_scale [--workers 1000] [--events 20000] [--shards 40]
+                                              [--sim-workers 8] [--sim-materials 400]
 
-Two ceilings of the driver process, each measured alone on this machine:
+Three measurements of the driver process, each alone on this machine:
 
 * **scheduling**: :class:`farm.scheduler.Scheduler` with ``--workers`` made-up workers, every
   one holding two tasks; each event is one result (``completed``) and the ``dispatch`` that
@@ -12,13 +14,20 @@ Two ceilings of the driver process, each measured alone on this machine:
   ``payload_from_packed`` and ``write_shard`` into a local store (zstd + crc32c, fsync,
   commit record). Frames/s, the driver's CPU seconds a frame and stored bytes a frame.
 
-Not measured here: Ray's own cost per result (``ray.wait`` / ``ray.get`` of a 3.6 MB result),
-which a simulated farm on a Ray cluster would add.
+* **simulated farm**: the real driver (``farm.driver.submit``) on a local Ray cluster of
+  ``--sim-workers`` actors (:class:`SimWorker`) that answer each material at once with the
+  benchmark store's real 400² results, 5 suns a material, 25 frames a shard; shards are
+  written by the commit tasks (:mod:`farm.commit`). The driver's CPU seconds a frame give its
+  ceiling, ``1 / (CPU s a frame)`` frames/s: over the whole run (start-up included), and at
+  the margin, from a second run with a fifth of the materials (the slope, which is what a
+  long job costs). The runs' own frames/s is bounded by this machine's cores, which the
+  actors, the commit tasks and Ray share.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import tempfile
 import time
@@ -101,24 +110,104 @@ def commits(src: Store, shards: int) -> tuple[float, float, float]:
     return frames / seconds, cpu / frames, size / frames
 
 
+class SimWorker:
+    """A render actor without Blender (the methods of ``farm.actor.RenderWorker``): each
+    material's result is a stored material's real arrays, renumbered, at once."""
+
+    store = DEFAULT  # read by each actor at start
+
+    def __init__(self, worker_id: str, settings: dict, recycle_after: int, rss_limit_mb: int):
+        self.worker_id = worker_id
+        self.results = templates(Store(self.store))
+
+    def info(self) -> dict:
+        import socket
+
+        return {"worker": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
+                "blender_pid": 0, "nice": os.getpriority(os.PRIO_PROCESS, 0)}  # fmt: skip
+
+    def render(self, job: dict, timeout_s: float) -> tuple[dict, dict]:
+        m, suns = job["material_index"], len(job["suns"])
+        arrays = dict(self.results[m % len(self.results)])
+        for key in ("renders", "sun_direction", "turbidity", "seed", "seconds"):
+            arrays[key] = arrays[key][:suns]
+        report = {"material_index": m, "seconds": arrays["seconds"].tolist(), "wall_s": 0.0,
+                  "rss_mb": 0.0, "recycled": False, "geometry_hash": "", **self.info()}  # fmt: skip
+        return report, arrays
+
+    def close(self) -> None:
+        pass
+
+
+def simulated(store: str, workers: int, materials: int) -> dict:
+    """The real driver over a local Ray cluster of ``workers`` :class:`SimWorker` actors."""
+    from farm.pool import keep_ray_on_loopback
+
+    keep_ray_on_loopback("127.0.0.1")  # before Ray is imported
+    from ray.cluster_utils import Cluster
+
+    from farm.driver import submit
+    from farm.plan import JobConfig
+
+    os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+    SimWorker.store = os.path.abspath(store)
+    loopback = {"node_ip_address": "127.0.0.1", "include_dashboard": False}
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": workers, **loopback})
+    tmp = tempfile.mkdtemp(prefix="farm-sim-")
+    try:
+        cfg = JobConfig(sources=(f"uniform:{materials}",), out=f"{tmp}/sim.zarr", suns=5,
+                        resolution=400, workers=workers, address=cluster.address,
+                        ray_dashboard=False)  # fmt: skip
+        me = psutil.Process()
+        cpu0, t0 = sum(me.cpu_times()[:2]), time.perf_counter()
+        summary = submit(cfg, progress=False, echo=lambda *_: None, actor_cls=SimWorker)
+        seconds, cpu = time.perf_counter() - t0, sum(me.cpu_times()[:2]) - cpu0
+        if not summary.ok:
+            raise RuntimeError(f"simulated job failed: {summary}")
+        frames = summary.frames_rendered
+        return {"frames": frames, "fps": frames / summary.render_end_s,
+                "cpu_per_frame": cpu / frames, "wall_s": seconds,
+                "rss_mb": me.memory_info().rss / 2**20}  # fmt: skip
+    finally:
+        cluster.shutdown()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--store", default=DEFAULT)
     ap.add_argument("--workers", type=int, default=1000)
     ap.add_argument("--events", type=int, default=20000)
     ap.add_argument("--shards", type=int, default=40)
+    ap.add_argument("--sim-workers", type=int, default=8)
+    ap.add_argument("--sim-materials", type=int, default=400)
     args = ap.parse_args()
-    if min(args.workers, args.events, args.shards) < 1:
-        ap.error("--workers, --events and --shards must be at least 1")
+    if min(args.workers, args.events, args.shards, args.sim_workers, args.sim_materials) < 1:
+        ap.error("--workers, --events, --shards, --sim-workers, --sim-materials must be >= 1")
+    store = ensure_store(args.store)
     events_s = scheduling(args.workers, args.events)
-    fps, cpu, size = commits(Store(ensure_store(args.store)), args.shards)
+    fps, cpu, size = commits(Store(store), args.shards)
+    small = simulated(store, args.sim_workers, max(1, args.sim_materials // 5))
+    sim = simulated(store, args.sim_workers, args.sim_materials)
+    sim_cpu = sim["cpu_per_frame"]
+    slope = (sim_cpu * sim["frames"] - small["cpu_per_frame"] * small["frames"]) / max(
+        1, sim["frames"] - small["frames"]
+    )
     rows = [
-        (f"scheduling, {args.workers} workers x 2 tasks", f"{events_s:,.0f} results/s", "-", "-"),
-        (f"commits at 400², {args.shards} shards, local", f"{fps:,.1f} frames/s",
-         f"{cpu * 1e3:.1f}", f"{size / 1e6:.3f}"),
+        (f"scheduling, {args.workers} workers x 2 tasks", f"{events_s:,.0f} results/s", "-", "-",
+         "-"),
+        (f"shards written in the driver, 400², {args.shards} shards, local",
+         f"{fps:,.1f} frames/s", f"{cpu * 1e3:.1f}", f"{1 / cpu:,.0f}", f"{size / 1e6:.3f}"),
+        (f"driver over Ray, {args.sim_workers} simulated workers, {sim['frames']} frames at "
+         f"400², shards written by commit tasks", f"{sim['fps']:,.1f} frames/s",
+         f"{sim_cpu * 1e3:.2f}", f"{1 / sim_cpu:,.0f}", "-"),
+        (f"the same at the margin ({small['frames']} to {sim['frames']} frames)", "-",
+         f"{slope * 1e3:.2f}", f"{1 / slope:,.0f}" if slope > 0 else "-", "-"),
     ]  # fmt: skip
-    head = ["part of the driver", "rate", "CPU ms / frame", "MB stored / frame"]
+    head = ["part of the driver", "rate here", "driver CPU ms / frame", "driver ceiling, frames/s",
+            "MB stored / frame"]  # fmt: skip
     print(tabulate(rows, head, disable_numparse=True))
+    print(f"driver RSS at the end of the simulated run: {sim['rss_mb']:.0f} MB")
 
 
 if __name__ == "__main__":

@@ -25,7 +25,8 @@ from storage.convert import pack_material
 
 
 class RenderWorker:
-    """Renders :class:`RenderJob`\\ s; returns packed, store-ready results."""
+    """Renders :class:`RenderJob`\\ s; each result is a small report for the driver and the
+    packed, store-ready arrays, which go to the shard's commit (:mod:`farm.commit`)."""
 
     def __init__(self, worker_id: str, settings: dict, recycle_after: int, rss_limit_mb: int):
         self.worker_id = worker_id
@@ -46,8 +47,9 @@ class RenderWorker:
             "nice": os.getpriority(os.PRIO_PROCESS, 0),
         }
 
-    def render(self, job: dict, timeout_s: float) -> dict:
-        """Render one material under all its suns (``job``: ``RenderJob.to_dict()``)."""
+    def render(self, job: dict, timeout_s: float) -> tuple[dict, dict]:
+        """Render one material under all its suns (``job``: ``RenderJob.to_dict()``); returns
+        ``(report, arrays)``, two Ray objects when called with ``num_returns=2``."""
         task = RenderJob.from_dict(job)
         if self.faults is not None:
             self.faults.before_render(self.worker_id, task.material_index)
@@ -64,15 +66,17 @@ class RenderWorker:
             self.renders_since_start = 0
             self.recycled += 1
             recycled = True
-        return {
+        arrays = pack_material(result)
+        report = {
             "material_index": task.material_index,
-            **pack_material(result),
+            "seconds": arrays["seconds"].tolist(),
             "wall_s": wall,
             "rss_mb": result.rss_bytes / 2**20,
             "recycled": recycled,
             "geometry_hash": result.geometry_hash,
             **self.info(),
         }
+        return report, arrays
 
     def close(self) -> None:
         self.process.close()

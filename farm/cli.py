@@ -271,9 +271,12 @@ def submit(
     if not summary.ok:
         for m, err in sorted(summary.failed_materials.items()):
             click.echo(f"FAILED    material {m}: {err}", err=True)
+        for shard, err in sorted(summary.failed_commits.items()):
+            click.echo(f"FAILED    commit of shard {shard}: {err}", err=True)
         click.echo(
-            f"{len(summary.failed_materials)} material(s) failed; shards "
-            f"{summary.failed_shards} are not committed. Run the same command to retry.",
+            f"{len(summary.failed_materials)} material(s) and {len(summary.failed_commits)} "
+            f"commit(s) failed; shards {summary.failed_shards} are not committed. Run the same "
+            "command to retry.",
             err=True,
         )
         sys.exit(1)

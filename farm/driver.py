@@ -1,29 +1,36 @@
-"""The farm driver: plan, start Ray workers, hand out tasks, commit shards, report.
+"""The farm driver: plan, start Ray workers, hand out tasks, have shards committed, report.
 
-Three parts, each its own module: :mod:`farm.scheduler` decides what each worker gets, when a
+Its parts, each its own module: :mod:`farm.scheduler` decides what each worker gets, when a
 failed task is retried and where, when a worker is blocklisted and when a task has timed out
 (pure policy, tested with a fake clock); :mod:`farm.pool` starts, answers for and kills the Ray
-actors; :mod:`farm.assembly` keeps results until their shard is whole. This module is the loop
-between them: dispatch, wait for one Ray event, feed it to the scheduler, write complete
-shards, persist the job state.
+actors; :mod:`farm.assembly` keeps the refs of results until their shard is whole;
+:mod:`farm.commit` writes a whole shard as a Ray task near its data, so no render's bytes pass
+through this process. This module is the loop between them: dispatch, wait for one Ray event,
+feed it to the scheduler, start commits (at most ``max(2, workers // 8)`` at once), persist
+the job state.
 
 Failure handling is the driver's own, not Ray's task retries, because it needs what Ray's
 retries do not give: a retry on *another* worker, exponential backoff, the error of every
 attempt kept for the report, and per-worker failure counts. A task whose failures reach
 ``max_attempts`` leaves its shard uncommitted (a resubmit renders it again). A worker running
 one task longer than ``task_timeout_s x (suns + 1)`` is killed (the worker itself enforces the
-timeout per sun; this guards against one stuck elsewhere). Resume: committed shards are
-skipped. One driver at a time: :mod:`farm.lease`.
+timeout per sun; this guards against one stuck elsewhere). A commit whose results were lost
+(their node went away first) sends the shard's materials back to the queue; one that fails
+otherwise leaves the shard uncommitted and is reported. Resume: committed shards are skipped.
+One driver at a time: :mod:`farm.lease`.
 """
 
 from __future__ import annotations
 
+import collections
+import logging
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from tqdm import tqdm
 
+from farm.actor import RenderWorker
 from farm.assembly import ShardAssembly
 from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
@@ -33,9 +40,9 @@ from farm.state import JobState, now
 from render_jobs.errors import MaterialError
 from render_jobs.materials import load_maps
 from storage.backend import Backend
-from storage.convert import payload_from_packed
-from storage.writer import create_store, write_shard
+from storage.writer import create_store
 
+log = logging.getLogger("shaderball.farm")
 STATE_EVERY_S = 2.0
 #: tasks a worker may hold (:mod:`farm.scheduler`, pipelining)
 PIPELINE = 2
@@ -57,10 +64,11 @@ class Summary:
     dashboard: str | None
     startup_s: float
     render_end_s: float  # from the start to the last result (before workers and Ray stop)
+    failed_commits: dict[int, str] = field(default_factory=dict)  # shard -> error
 
     @property
     def ok(self) -> bool:
-        return not self.failed_materials
+        return not self.failed_materials and not self.failed_commits
 
 
 def validate(cfg: JobConfig, progress: bool = True):
@@ -116,8 +124,11 @@ def prepare(cfg: JobConfig, specs: list, echo) -> Job:
     return Job(cfg, specs, layout, store, todo, state)
 
 
-def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
-    """Run (or resume) the job ``cfg`` to the end; see the module docstring."""
+def submit(
+    cfg: JobConfig, progress: bool = True, echo=print, actor_cls: type = RenderWorker
+) -> Summary:
+    """Run (or resume) the job ``cfg`` to the end; see the module docstring. ``actor_cls``:
+    the render actor (a benchmark's simulated one; :class:`farm.pool.WorkerPool`)."""
     t_start = time.perf_counter()
     keep_ray_on_loopback(cfg.address)
     try:
@@ -135,32 +146,32 @@ def submit(cfg: JobConfig, progress: bool = True, echo=print) -> Summary:
         if not job.todo:  # keep the finished job's state as it is
             n = job.layout.num_samples
             return Summary(cfg.out, n, 0, job.state.frames_skipped, {}, [], 0.0, None, 0.0, 0.0)
-        return _run(job, lease, progress, echo, t_start)
+        return _run(job, lease, progress, echo, t_start, actor_cls)
     finally:
         lease.release()
 
 
-def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float) -> Summary:
+def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls) -> Summary:
     """The job on Ray, holding the store's lease, to the end."""
     import ray
 
     cfg = job.cfg
     job.state.dashboard = connect(cfg.address, cfg.ray_dashboard)
     echo(f"ray dashboard: {job.state.dashboard or 'off'}")
-    loop = Loop(job, lease, progress)
     workers = cfg.workers or max(
         1, int(ray.cluster_resources().get("CPU", 1)) // cfg.cpus_per_worker
     )
+    loop = Loop(job, lease, progress, actor_cls, max_commits=max(2, workers // 8))
     try:
         loop.start(workers, t_start)
-        while not loop.sched.finished:
+        while not loop.finished:
             loop.dispatch()
             for ref in loop.wait():
                 loop.handle(ref)
             loop.check_placement()
             loop.expire()
             loop.save(every=STATE_EVERY_S)
-        job.state.status = "failed" if loop.sched.final else "done"
+        job.state.status = "failed" if loop.sched.final or loop.failed_commits else "done"
         render_end = time.perf_counter() - t_start
     except BaseException:
         job.state.status = "interrupted"
@@ -179,17 +190,19 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float) -> Summar
         dashboard=job.state.dashboard,
         startup_s=loop.startup_s if loop.startup_s is not None else time.perf_counter() - t_start,
         render_end_s=render_end,
+        failed_commits=dict(loop.failed_commits),
     )
 
 
 class Loop:
-    """One job's event loop over Ray: the pool, the scheduler and the shard assembly, and the
-    result refs in flight (``ref -> (worker, material)``)."""
+    """One job's event loop over Ray: the pool, the scheduler and the shard assembly; the
+    tasks in flight (``report ref -> (worker, material, arrays ref)``), the whole shards
+    waiting for a commit slot and the commits in flight (``ref -> shard``)."""
 
-    def __init__(self, job: Job, lease: Lease, progress: bool):
+    def __init__(self, job: Job, lease: Lease, progress: bool, actor_cls, max_commits: int):
         cfg, layout = job.cfg, job.layout
         self.job, self.cfg, self.state, self.lease = job, cfg, job.state, lease
-        self.pool = WorkerPool(cfg, job.state)
+        self.pool = WorkerPool(cfg, job.state, actor_cls)
         self.sched = Scheduler(
             (m for s in job.todo for m in layout.shard_materials(s)),
             max_attempts=cfg.max_attempts,
@@ -199,7 +212,11 @@ class Loop:
             pipeline=PIPELINE,
         )
         self.shards = ShardAssembly(layout)
-        self.refs: dict[object, tuple[str, int]] = {}
+        self.refs: dict[object, tuple[str, int, object]] = {}
+        self.whole: collections.deque = collections.deque()  # (shard, arrays refs)
+        self.commits: dict[object, int] = {}
+        self.max_commits = max_commits
+        self.failed_commits: dict[int, str] = {}
         self.first: set[str] = set()
         self.startup_s: float | None = None  # until the first workers answer
         self.t_start = 0.0
@@ -214,6 +231,11 @@ class Loop:
             smoothing=0.1,
         )
 
+    @property
+    def finished(self) -> bool:
+        """Every task done or final, and every whole shard's commit ended."""
+        return self.sched.finished and not self.whole and not self.commits
+
     def start(self, workers: int, t_start: float) -> None:
         self.t_start = t_start
         self.first = {self.pool.start() for _ in range(workers)}
@@ -221,7 +243,8 @@ class Loop:
     def dispatch(self) -> None:
         for wid, m in self.sched.dispatch(self.pool.usable(), self.pool.actors, now()):
             task = task_for(self.cfg, m, self.job.specs[m]).to_dict()
-            self.refs[self.pool.submit(wid, task, self.cfg.task_timeout_s)] = (wid, m)
+            report, arrays = self.pool.submit(wid, task, self.cfg.task_timeout_s)
+            self.refs[report] = (wid, m, arrays)
             w = self.state.workers[wid]
             if w.status == "idle":
                 w.status, w.current = "busy", m
@@ -229,23 +252,33 @@ class Loop:
     def wait(self) -> list:
         import ray
 
-        waiting = list(self.refs) + list(self.pool.starting)
+        waiting = [*self.refs, *self.pool.starting, *self.commits]
         if not waiting:
             time.sleep(0.05)
             return []
-        return ray.wait(waiting, num_returns=1, timeout=0.25)[0]
+        # every event that is ready, in one pass when several are; nothing is fetched here
+        # (the small reports are read by ``handle``, the arrays never come to this process)
+        ready = ray.wait(waiting, num_returns=1, timeout=0.25, fetch_local=False)[0]
+        if ready and len(waiting) > 1:
+            ready = ray.wait(waiting, num_returns=len(waiting), timeout=0, fetch_local=False)[0]
+        return ready
 
     def handle(self, ref) -> None:
-        """A worker answered its start, or a task ended (result or error)."""
+        """A worker answered its start, a task ended (result or error), or a commit did."""
         import ray
         from ray.exceptions import RayActorError, RayTaskError
 
+        if ref in self.commits:
+            self.committed(ref)
+            return
         if ref in self.pool.starting:
             self.pool.ready(ref)
             if self.startup_s is None and self.first.isdisjoint(self.pool.starting.values()):
                 self.startup_s = time.perf_counter() - self.t_start
             return
-        wid, m = self.refs.pop(ref)
+        if ref not in self.refs:  # dropped by an earlier event of the same batch (removal)
+            return
+        wid, m, arrays = self.refs.pop(ref)
         w = self.state.workers[wid]
         w.last_seen, w.current = now(), None
         try:
@@ -266,7 +299,7 @@ class Loop:
             return
         self.sched.completed(wid, m, now())
         self.settle(wid)
-        self.completed(wid, m, res)
+        self.completed(wid, m, res, arrays)
 
     def settle(self, wid: str) -> None:
         """The worker's status after a task left it: busy with its next one, or idle."""
@@ -278,7 +311,7 @@ class Loop:
     def remove(self, wid: str, status: str, keep: int | None = None) -> None:
         """Take ``wid`` out (its other tasks back to the queue) and start a replacement."""
         back = set(self.sched.remove_worker(wid, keep))
-        for r, (q, m) in list(self.refs.items()):
+        for r, (q, m, _) in list(self.refs.items()):
             if q == wid and m in back:
                 del self.refs[r]
         self.pool.replace(wid, status)
@@ -298,7 +331,7 @@ class Loop:
             self.remove(wid, "blocklisted")
         self.postfix()
 
-    def completed(self, wid: str, m: int, res: dict) -> None:
+    def completed(self, wid: str, m: int, res: dict, arrays) -> None:
         w = self.state.workers[wid]
         w.frames += len(res["seconds"])
         w.materials += 1
@@ -308,19 +341,50 @@ class Loop:
         self.bar.update(len(res["seconds"]))  # rendered; state.frames_done counts committed ones
         if str(m) in self.state.failures:  # an earlier failure was retried successfully
             self.state.failures[str(m)]["recovered"] = True
-        whole = self.shards.add(m, res)
+        whole = self.shards.add(m, arrays)
         if whole is not None:
-            self.commit(*whole)
+            self.whole.append(whole)
+        self.start_commits()
 
-    def commit(self, shard: int, packed: list[dict]) -> None:
+    def start_commits(self) -> None:
+        """Start the waiting shards' commits, up to ``max_commits`` in flight."""
         layout, specs = self.job.layout, self.job.specs
-        records = [
-            {"kind": specs[i].kind, "source_id": specs[i].source_id, "spec": specs[i].to_dict()}
-            for i in layout.shard_materials(shard)
-        ]
-        write_shard(self.job.store, shard, payload_from_packed(layout, shard, packed, records))
-        self.state.shards_committed += 1
-        self.state.frames_done += len(layout.shard_samples(shard))
+        while self.whole and len(self.commits) < self.max_commits:
+            shard, arrays = self.whole.popleft()
+            records = [
+                {"kind": specs[i].kind, "source_id": specs[i].source_id, "spec": specs[i].to_dict()}
+                for i in layout.shard_materials(shard)
+            ]
+            self.commits[self.pool.commit(shard, records, arrays)] = shard
+
+    def committed(self, ref) -> None:
+        """A commit ended: count the shard, or send its materials back, or record why not."""
+        import ray
+        from ray.exceptions import ObjectLostError, RayError
+
+        shard = self.commits.pop(ref)
+        layout = self.job.layout
+        try:
+            report = ray.get(ref)
+        except ObjectLostError as exc:  # its results' node went away: render them again
+            materials = layout.shard_materials(shard)
+            why = type(exc).__name__
+            log.warning("shard %d: its results were lost (%s); rendering it again", shard, why)
+            self.sched.requeue(materials)
+            self.bar.total += len(layout.shard_samples(shard))
+        except RayError as exc:
+            cause = getattr(exc, "cause", None) or exc
+            error = f"{type(cause).__name__}: {str(cause).splitlines()[0] if str(cause) else ''}"
+            self.failed_commits[shard] = error
+            self.shards.dead.add(shard)
+            self.state.shards_failed = sorted(self.shards.dead)
+            self.state.commit_failures[str(shard)] = error
+        else:
+            for line in report["retries"]:
+                log.warning("shard %d, written on %s: %s", shard, report["host"], line)
+            self.state.shards_committed += 1
+            self.state.frames_done += len(layout.shard_samples(shard))
+        self.start_commits()
         self.postfix()
 
     def postfix(self) -> None:
@@ -333,7 +397,7 @@ class Loop:
     def check_placement(self) -> None:
         """Stop when no worker has been alive for ``placement_timeout_s``."""
         cfg = self.cfg
-        if self.pool.usable() or self.refs:
+        if self.pool.usable() or self.refs or self.commits:
             self.last_live = now()
         elif now() - self.last_live > cfg.placement_timeout_s:
             why = "; ".join(self.pool.start_failures[-3:]) or (

@@ -56,13 +56,12 @@ class JobConfig:
     task_timeout_s: float = 600.0
     backoff_s: float = 1.0
     recycle_after: int = 500
+    rss_limit_mb: int = 4096
+    placement_timeout_s: float = 300.0
 
     def __post_init__(self) -> None:
         if self.shard_size is None:
             object.__setattr__(self, "shard_size", default_shard_size(self.suns))
-
-    rss_limit_mb: int = 4096
-    placement_timeout_s: float = 300.0
 
     def dataset_settings(self) -> dict:
         """The settings that define the dataset: stored in the store, checked on resubmit."""

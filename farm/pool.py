@@ -1,7 +1,9 @@
-"""The Ray side of the farm: joining or starting Ray, and the pool of render actors.
+"""The Ray side of the farm: joining or starting Ray, the pool of render actors, and the
+shard commit tasks.
 
 Nothing here decides what runs where (that is :mod:`farm.scheduler`); this module creates,
-answers for and kills :class:`farm.actor.RenderWorker` actors and submits tasks to them.
+answers for and kills :class:`farm.actor.RenderWorker` actors, submits tasks to them, and
+starts :func:`farm.commit.commit_shard` tasks where :func:`farm.commit.placement` allows.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ import os
 import sys
 
 from farm.actor import RenderWorker
+from farm.commit import commit_shard, placement
 from farm.plan import JobConfig
 from farm.state import JobState, WorkerStats, now
 from render_jobs.specs import RenderSettings
@@ -59,7 +62,9 @@ def connect(address: str | None, dashboard: bool = True) -> str | None:
 class WorkerPool:
     """The live Ray actors, by worker id."""
 
-    def __init__(self, cfg: JobConfig, state: JobState):
+    def __init__(self, cfg: JobConfig, state: JobState, actor_cls: type = RenderWorker):
+        """``actor_cls``: the actor's class (:class:`RenderWorker`; a benchmark gives a
+        simulated one with the same methods)."""
         import ray
 
         self.ray, self.cfg, self.state = ray, cfg, state
@@ -71,7 +76,7 @@ class WorkerPool:
             texture_tiling=cfg.texture_tiling,
         ).to_dict()
         self.settings = settings
-        self.cls = ray.remote(RenderWorker).options(
+        self.cls = ray.remote(actor_cls).options(
             num_cpus=cfg.cpus_per_worker,
             num_gpus=cfg.gpus_per_worker,
             max_restarts=0,
@@ -81,6 +86,18 @@ class WorkerPool:
         self.starting: dict[object, str] = {}  # readiness ref -> worker id
         self.start_failures: list[str] = []
         self.count = 0
+        self.commit_fn = ray.remote(commit_shard).options(**self._commit_options())
+
+    def _commit_options(self) -> dict:
+        # no CPU reserved: the render actors hold the CPUs, a commit is mostly compression
+        # and I/O; Ray re-runs it if its process dies (farm.commit: exactly once)
+        opts = {"num_cpus": 0, "max_retries": 3}
+        if placement(self.cfg.out) == "driver":
+            from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+            here = self.ray.get_runtime_context().get_node_id()
+            opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(here, soft=False)
+        return opts
 
     def start(self) -> str:
         """Create a worker; it gets tasks once Ray has placed it and it answers (``ready``)."""
@@ -121,9 +138,13 @@ class WorkerPool:
         """Workers that are placed, alive and not being removed, in start order."""
         return [w for w in self.actors if self.state.workers[w].status in USABLE]
 
-    def submit(self, wid: str, task: dict, timeout_s: float):
-        """Queue ``task`` at worker ``wid``; returns its result ref."""
-        return self.actors[wid].render.remote(task, timeout_s)
+    def submit(self, wid: str, task: dict, timeout_s: float) -> tuple:
+        """Queue ``task`` at worker ``wid``; returns the refs of its report and its arrays."""
+        return tuple(self.actors[wid].render.options(num_returns=2).remote(task, timeout_s))
+
+    def commit(self, shard: int, records: list[dict], arrays: list):
+        """Start writing ``shard`` from its materials' array refs; returns the report's ref."""
+        return self.commit_fn.remote(self.cfg.out, None, shard, records, *arrays)
 
     def replace(self, wid: str, status: str) -> None:
         """Remove ``wid`` (``dead`` or ``blocklisted``) and start a worker in its place."""

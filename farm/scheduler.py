@@ -17,6 +17,8 @@ Rules:
   every known worker has. After ``max_attempts`` failures it is final.
 * **Blocklist.** A worker with ``blocklist_after`` failures is to be removed (the driver
   replaces it).
+* **Lost results.** Completed tasks whose results were lost before their shard was written
+  go back to the queue's front, uncounted (:meth:`Scheduler.requeue`).
 * **Removal.** A removed worker gives the tasks it holds back to the queue's front, uncounted
   (they never ran there), but for the one whose failure removed it, which fails on its own.
 * **Timeout.** A running task past ``timeout_s`` is reported by :meth:`Scheduler.expired`; the
@@ -143,6 +145,11 @@ class Scheduler:
         self.assigned[worker] = [a for a in held if a.task == keep]
         self.queue.extendleft(reversed(back))
         return back
+
+    def requeue(self, tasks: Iterable[int]) -> None:
+        """Completed ``tasks`` whose results were lost before they were stored (the node that
+        held them went away): back to the queue's front, uncounted."""
+        self.queue.extendleft(reversed(list(tasks)))
 
     def started_at(self, worker: str, task: int) -> float | None:
         for a in self.assigned.get(worker, []):

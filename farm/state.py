@@ -58,6 +58,7 @@ class JobState:
     shards_committed: int = 0
     shards_failed: list[int] = field(default_factory=list)
     failures: dict[str, dict] = field(default_factory=dict)  # material -> {attempts, errors, final}
+    commit_failures: dict[str, str] = field(default_factory=dict)  # shard -> error
     workers: dict[str, WorkerStats] = field(default_factory=dict)
     dashboard: str | None = None
 

@@ -31,7 +31,7 @@ def format_status(st: dict) -> str:
         + (f", failed: {st['shards_failed']}" if st["shards_failed"] else ""),
         f"dashboard {st.get('dashboard') or '-'}",
     ]
-    if st["failures"]:
+    if st["failures"] or st.get("commit_failures"):
         lines.append("failures")
         for m, f in sorted(st["failures"].items(), key=lambda kv: int(kv[0])):
             last = f["errors"][-1] if f["errors"] else {"worker": "-", "error": "-"}
@@ -40,6 +40,8 @@ def format_status(st: dict) -> str:
                 f"  material {m:>6}  {tag:<8} attempts {f['attempts']}  "
                 f"last on {last['worker']}: {last['error']}"
             )
+    for shard, error in sorted(st.get("commit_failures", {}).items(), key=lambda kv: int(kv[0])):
+        lines.append(f"  shard {shard:>9}  FAILED   commit: {error}")
     workers = [
         (w["worker"], w["status"], w["frames"], w["mean_frame_s"], w["failures"], w["recycled"])
         + (_ago(w["last_seen"]),)

@@ -73,6 +73,15 @@ def test_a_removed_worker_gives_back_its_waiting_tasks_uncounted_to_the_front():
     assert s.remove_worker("b") == [1, 3] and list(s.queue) == [1, 3, 2, 4, 0]
 
 
+def test_lost_results_go_back_to_the_front_uncounted_and_the_job_is_not_finished():
+    s = sched(4)
+    s.dispatch(["a"], ["a"], 0.0)  # a: 0, 1
+    s.completed("a", 0, 1.0)
+    s.completed("a", 1, 2.0)
+    s.requeue([0, 1])  # their shard's commit found the results gone
+    assert list(s.queue) == [0, 1, 2, 3] and s.attempts[0] == 0 and not s.finished
+
+
 def test_timeouts_count_from_when_a_task_starts_running():
     s = sched(4, timeout_s=100.0)
     s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0 then 2; b: 1 then 3

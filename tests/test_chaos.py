@@ -1,0 +1,116 @@
+"""Chaos: one farm job through every fault at once, and nothing lost or written twice.
+
+A three-node Ray cluster on this machine, the store on the local S3 server behind the flaky
+proxy (503s and reset connections), slow renders so that faults land mid-job; then, in turn:
+a render actor's process killed, a whole node removed, the driver killed. The same `farm
+submit` run again finishes the job on what is left, and the store is whole: every sample
+once, with the seed its (material, sun) must have, and `shards verify` clean.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+
+import numpy as np
+import psutil
+import pytest
+
+from farm.state import load_state
+from render_jobs.specs import derive_seed
+from storage.reader import Store
+from tests.flaky_proxy import FlakyProxy
+from tests.test_farm import BIN, TINY, farm
+
+pytestmark = pytest.mark.slow
+URL = "s3://shaderball/chaos.zarr"
+MATERIALS = 18  # 9 shards of 2 materials x 2 suns
+SHARDS = MATERIALS // 2
+
+
+def committed(opts: dict) -> int:
+    try:
+        return len(Store(URL, opts).committed_shards())
+    except Exception:  # noqa: BLE001 - the store may not exist yet
+        return 0
+
+
+def dead_workers(opts: dict) -> int:
+    """Workers the running driver has recorded as dead (its job state)."""
+    state = load_state(URL, opts)
+    return sum(w["status"] == "dead" for w in state["workers"].values()) if state else 0
+
+
+def wait_until(test, timeout: float = 180) -> None:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if test():
+            return
+        time.sleep(0.3)
+    raise AssertionError("timed out waiting for the job")
+
+
+def render_actors() -> list[psutil.Process]:
+    return [
+        p
+        for p in psutil.process_iter(["cmdline"])
+        if "ray::RenderWorker" in " ".join(p.info["cmdline"] or [])
+    ]
+
+
+def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, monkeypatch):
+    from ray.cluster_utils import Cluster
+
+    endpoint, opts = s3
+    env = {
+        "RAY_AUTH_MODE": "disabled",
+        "AWS_ACCESS_KEY_ID": "test",
+        "AWS_SECRET_ACCESS_KEY": "test",
+        "AWS_DEFAULT_REGION": "us-east-1",
+        "AWS_MAX_ATTEMPTS": "1",  # every fault reaches the project's own retries
+        "SHADERBALL_FARM_FAULTS": '{"slow_s": 1.5}',
+    }
+    args = ["submit", "-m", f"uniform:{MATERIALS}", *TINY, "--workers", "3"]
+    with FlakyProxy(endpoint, every=25, stall_s=0, burst=2) as proxy:
+        env["AWS_ENDPOINT_URL"] = proxy.endpoint
+        for k, v in env.items():  # the nodes' workers (and commit tasks) inherit these
+            monkeypatch.setenv(k, v)
+        loopback = {"node_ip_address": "127.0.0.1"}
+        cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, **loopback})
+        cluster.add_node(num_cpus=1, **loopback)
+        doomed = cluster.add_node(num_cpus=1, **loopback)
+        try:
+            cluster.wait_for_nodes()
+            argv = [*args, "--address", cluster.address, "--no-ray-dashboard", "-o", URL]
+            first = farm(*argv, env=env, wait=False)
+            try:
+                wait_until(lambda: committed(opts) >= 1)
+                wait_until(lambda: len(render_actors()) >= 3)
+                render_actors()[0].send_signal(signal.SIGKILL)  # a render actor dies
+                wait_until(lambda: dead_workers(opts) >= 1)  # the driver saw it
+                cluster.remove_node(doomed)  # a machine of the farm goes away
+                wait_until(lambda: dead_workers(opts) >= 2)
+                wait_until(lambda: committed(opts) >= 3)
+                first.send_signal(signal.SIGKILL)  # and the driver itself
+                first.wait(30)
+            finally:
+                first.kill()
+            before = committed(opts)
+            assert 3 <= before < SHARDS  # the driver was killed mid-job
+            second = farm(*argv, env=env, timeout=300)
+        finally:
+            cluster.shutdown()
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert f"resuming: {before} of {SHARDS} shards already committed" in second.stdout
+    assert proxy.faults["503"] and proxy.faults["reset"], proxy.faults
+    store = Store(URL, opts)
+    assert store.committed_shards() == list(range(SHARDS))
+    want = [derive_seed(0, m, k) for m in range(MATERIALS) for k in range(2)]
+    np.testing.assert_array_equal(store.group["seed"][:], want)
+    np.testing.assert_array_equal(store.group["material_index"][:], np.repeat(range(MATERIALS), 2))
+    check = {**env, "AWS_ENDPOINT_URL": endpoint, "AWS_MAX_ATTEMPTS": "3"}
+    r = subprocess.run(
+        [str(BIN / "shards"), "verify", URL], capture_output=True, text=True, env=check
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
