@@ -61,7 +61,8 @@ def main() -> None:
     "-m",
     required=True,
     metavar="uniform|procedural|PATH",
-    help="A random uniform or procedural material, a 5-panel SVBRDF PNG, or a per-map folder.",
+    help="A random uniform or procedural material, a 5-panel SVBRDF PNG, or a per-map folder "
+    "(any library's naming; `farm materials svbrdf:PATH` shows how it is read).",
 )
 @click.option("--out", "-o", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @render_options
@@ -279,6 +280,38 @@ def submit(
             "command to retry.",
             err=True,
         )
+        sys.exit(1)
+
+
+@main.command()
+@click.argument("sources", nargs=-1, required=True, metavar="SOURCE...")
+@click.option("--seed", default=0, show_default=True, help="Dataset seed (as farm submit).")
+@click.option("--json", "as_json", is_flag=True, help="Print the dry run as JSON.")
+def materials(sources, seed, as_json):
+    """Dry run of --materials: every material found, without Ray or Blender.
+
+    SOURCE is what farm submit -m takes: uniform:N, procedural:N or svbrdf:PATH (a 5-panel
+    PNG, a per-map folder of any library's naming, or a folder of either). For each file
+    material it prints the file used for each map (size, bit depth), the workflow
+    (spec-gloss or metal-rough), the conversions applied and the files ignored; for each
+    material that cannot be used, its one-line error. Exit 1 when any cannot be used.
+
+    \b
+    Examples:
+      farm materials svbrdf:textures/ambientcg
+      farm materials svbrdf:textures/polyhaven/brick_wall_001 --json
+      farm materials uniform:10 svbrdf:data/deschaintre
+    """
+    from farm.materials import dry_run, format_dry_run
+
+    def progress(items):
+        return tqdm(
+            items, desc="reading", unit="material", file=sys.stderr, leave=False, disable=None
+        )
+
+    run = dry_run(list(sources), seed, progress=None if as_json else progress)
+    click.echo(json.dumps(run.to_dict(), indent=1) if as_json else format_dry_run(run))
+    if run.failed:
         sys.exit(1)
 
 

@@ -6,7 +6,8 @@ Source strings (the farm's ``--materials``, the preview's ``--material``):
 - ``procedural:N``: N procedural SVBRDFs (noise, cells, tiles, scratches; ``procedural``);
 - ``svbrdf:DIR`` (or a PATH): every 5-panel PNG in DIR (Deschaintre et al. 2018: photo, normal,
   diffuse, roughness, specular side by side; the photo is ignored) and every sub-folder of
-  per-map files (names containing diffuse/basecolor/albedo, specular, roughness, normal).
+  per-map files, spec-gloss or metal-rough, named as material libraries name them
+  (``library``: which file is which map; ``files``: reading and converting them).
 
 ``load_maps(spec)`` validates as it loads and raises :class:`MaterialError` with one line that
 names the file and the problem; nothing is rendered from a bad material.

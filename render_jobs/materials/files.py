@@ -1,203 +1,244 @@
-"""SVBRDF maps from files, validated: 5-panel PNGs and folders of per-map images.
+"""SVBRDF maps from files, validated: 5-panel PNGs and per-map folders of any library.
 
 A 5-panel PNG (Deschaintre et al. 2018) is W = 5 x H: photo | normal | diffuse | roughness |
-specular; the photo is ignored. A folder holds one file per map, found by name: diffuse
-(``diffuse``, ``basecolor``, ``base_color``, ``albedo``), ``specular``, ``roughness``, ``normal``.
-Images must be 8-bit (PNG, JPEG, TIFF, BMP, TGA) or 32-bit float TIFF with values in [0, 1].
-Every problem raises :class:`MaterialError` as ``"<file>: <problem>"``.
+specular; the photo is ignored. A per-map folder is read as :mod:`render_jobs.materials.library`
+plans it (which file is which map, spec-gloss or metal-rough), then converted here into this
+renderer's maps, every step recorded in a :class:`Reading` for ``farm materials``:
+
+- colour maps (diffuse, base colour, specular) in 8/16-bit files are sRGB-encoded, as every
+  library ships them; in float files (EXR) they are linear and are encoded here. Data maps
+  (roughness, glossiness, metallic, normal) are linear in every format;
+- grey maps saved as RGB are read from their (equal) channels; a coloured one is an error;
+- glossiness becomes roughness ``1 - g``; a packed ARM/ORM map gives roughness (G) and
+  metallic (B); a DirectX normal map gets its green channel flipped (OpenGL, +Y up);
+- metal-rough becomes diffuse/specular as glTF 2.0 defines its BRDF (specification, Appendix
+  B): ``diffuse = base * (1 - metallic)``, ``specular = lerp(0.04, base, metallic)``, in
+  linear colour;
+- maps of different sizes are resampled (bilinear) to the largest.
+
+Every problem raises :class:`MaterialError` as ``"<file or folder>: <problem>"``.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from render_jobs.errors import MaterialError
-from render_jobs.materials.maps import MaterialMaps
+from render_jobs.materials import images
+from render_jobs.materials.library import FolderPlan, looks_like_material, plan_folder
+from render_jobs.materials.maps import MaterialMaps, linear_to_srgb, srgb_to_linear
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".tga")
 PANELS = ("photo", "normal", "diffuse", "roughness", "specular")
-MAP_NAME_TOKENS = {
-    "diffuse": ("diffuse", "basecolor", "base_color", "albedo"),
-    "specular": ("specular",),
-    "roughness": ("roughness",),
-    "normal": ("normal",),
-}
-_GREY_TOLERANCE = 2.0 / 255.0
+#: how far a grey map's R, G and B may differ (JPEG noise) before it counts as coloured
+GREY_TOLERANCE = 6.0 / 255.0
+#: float data maps may overshoot [0, 1] by this much (rounding) and are clipped
+FLOAT_SLACK = 1e-3
+DIELECTRIC_F0 = 0.04
 
 
-def read_image(path: Path) -> np.ndarray:
-    """An image file as ``(H, W, C) float32`` in [0, 1] (C = 1, 3 or 4)."""
-    try:
-        with Image.open(path) as img:
-            img.load()
-            mode = img.mode
-            if mode.startswith("I;16") or mode == "I":
-                raise MaterialError(f"{path}: 16-bit images are not supported (save it as 8-bit)")
-            if mode == "P":
-                img = img.convert("RGBA" if "transparency" in img.info else "RGB")
-                mode = img.mode
-            if mode == "1":
-                img = img.convert("L")
-                mode = "L"
-            if mode == "F":
-                arr = np.asarray(img, dtype=np.float32)[..., None]
-                if not np.all(np.isfinite(arr)):
-                    raise MaterialError(f"{path}: holds NaN or Inf values")
-                if arr.min() < 0.0 or arr.max() > 1.0:
-                    raise MaterialError(
-                        f"{path}: float values must lie in [0, 1], "
-                        f"got [{arr.min():.3g}, {arr.max():.3g}]"
-                    )
-                return arr
-            if mode not in ("L", "LA", "RGB", "RGBA"):
-                raise MaterialError(f"{path}: unsupported image mode {mode!r} (use 8-bit RGB)")
-            arr = np.asarray(img, dtype=np.uint8)
-    except FileNotFoundError:
-        raise MaterialError(f"{path}: file not found") from None
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        if isinstance(exc, MaterialError):
-            raise
-        raise MaterialError(f"{path}: not a readable image ({exc})") from None
-    if arr.ndim == 2:
-        arr = arr[..., None]
-    if arr.shape[0] == 0 or arr.shape[1] == 0:
-        raise MaterialError(f"{path}: image is empty")
-    return arr.astype(np.float32) / 255.0
+@dataclass
+class Reading:
+    """How one material was read: for the dry run and the errors."""
+
+    source: str
+    workflow: str  # "5-panel", "spec-gloss" or "metal-rough"
+    files: dict[str, str] = field(default_factory=dict)  # map -> file name (and how)
+    conversions: list[str] = field(default_factory=list)
+    ignored: list[tuple[str, str]] = field(default_factory=list)
 
 
-def _colour(arr: np.ndarray, path: Path, name: str) -> np.ndarray:
-    c = arr.shape[2]
-    if c in (3, 4):
-        return np.ascontiguousarray(arr[..., :3])
-    if c == 1:
-        return np.repeat(arr, 3, axis=2)
-    raise MaterialError(f"{path}: {name} map must have 1, 3 or 4 channels, got {c}")
+def _colour(img: images.Image, name: str) -> np.ndarray:
+    """A colour map as sRGB-encoded ``(H, W, 3)``."""
+    px = img.pixels
+    if px.shape[2] == 1:
+        px = np.repeat(px, 3, axis=2)
+    px = px[..., :3]
+    if img.is_float:
+        _check_range(img, px, name)
+        px = linear_to_srgb(np.clip(px, 0.0, 1.0))
+    return np.ascontiguousarray(px, dtype=np.float32)
 
 
-def _normal(arr: np.ndarray, path: Path) -> np.ndarray:
-    if arr.shape[2] not in (3, 4):
-        raise MaterialError(f"{path}: normal map must have 3 channels (RGB), got {arr.shape[2]}")
-    return np.ascontiguousarray(arr[..., :3])
+def _check_range(img: images.Image, px: np.ndarray, name: str) -> None:
+    lo, hi = float(px.min()), float(px.max())
+    if lo < -FLOAT_SLACK or hi > 1.0 + FLOAT_SLACK:
+        raise MaterialError(
+            f"{img.path}: {name} map values must lie in [0, 1], got [{lo:.3g}, {hi:.3g}]"
+        )
 
 
-def _grey(arr: np.ndarray, path: Path, name: str) -> np.ndarray:
-    c = arr.shape[2]
-    if c == 1:
-        return arr
-    if c not in (3, 4):
-        raise MaterialError(f"{path}: {name} map must have 1 or 3 channels, got {c}")
-    rgb = arr[..., :3]
-    if np.abs(rgb - rgb[..., :1]).max() > _GREY_TOLERANCE:
-        raise MaterialError(f"{path}: {name} map is not greyscale (its R, G, B differ)")
-    return np.ascontiguousarray(rgb[..., :1])
+def _grey(img: images.Image, name: str) -> np.ndarray:
+    """A grey map as ``(H, W, 1)`` in [0, 1]."""
+    px = img.pixels
+    if px.shape[2] >= 3:
+        rgb = px[..., :3]
+        if np.abs(rgb - rgb.mean(axis=2, keepdims=True)).max() > GREY_TOLERANCE:
+            raise MaterialError(f"{img.path}: {name} map is not greyscale (its R, G, B differ)")
+        px = rgb.mean(axis=2, keepdims=True)
+    if img.is_float:
+        _check_range(img, px, name)
+    return np.ascontiguousarray(np.clip(px, 0.0, 1.0), dtype=np.float32)
+
+
+def _normal(img: images.Image) -> np.ndarray:
+    px = img.pixels
+    if px.shape[2] < 3:
+        raise MaterialError(f"{img.path}: normal map must have 3 channels (RGB), got 1")
+    px = px[..., :3]
+    if img.is_float and px.min() < -FLOAT_SLACK:  # stored as vectors in [-1, 1]
+        px = (px + 1.0) * 0.5
+    if img.is_float:
+        _check_range(img, px, "normal")
+    return np.ascontiguousarray(np.clip(px, 0.0, 1.0), dtype=np.float32)
+
+
+def _resize(px: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    out = cv2.resize(px, (size[1], size[0]), interpolation=cv2.INTER_LINEAR)
+    return out.reshape(size[0], size[1], px.shape[2]).astype(np.float32)
 
 
 def load_panel_png(path: Path) -> MaterialMaps:
     """A Deschaintre-style 5-panel PNG as maps."""
-    arr = read_image(path)
+    img = images.read(path)
+    arr = img.pixels
     h, w, c = arr.shape
     if w != 5 * h:
-        panels = w / h
         raise MaterialError(
             f"{path}: expected 5 square panels side by side (width = 5 x height), "
-            f"got {w}x{h} ({panels:.2f} panels)"
+            f"got {w}x{h} ({w / h:.2f} panels)"
         )
     if c not in (3, 4):
         raise MaterialError(f"{path}: expected an RGB image, got {c} channel(s)")
     panel = {name: arr[:, i * h : (i + 1) * h, :3] for i, name in enumerate(PANELS)}
+    rough = images.Image(path, np.ascontiguousarray(panel["roughness"]), img.bits)
     return MaterialMaps(
         diffuse=np.ascontiguousarray(panel["diffuse"]),
         specular=np.ascontiguousarray(panel["specular"]),
-        roughness=_grey(panel["roughness"], path, "roughness panel of"),
+        roughness=_grey(rough, "roughness panel"),
         normal=np.ascontiguousarray(panel["normal"]),
         source_id=path.name,
     )
 
 
-def find_map_files(folder: Path) -> dict[str, Path]:
-    """The file of each map in ``folder``, by name; raises when one is missing or ambiguous."""
-    files = sorted(
-        p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-    )
-    found: dict[str, Path] = {}
-    for name, tokens in MAP_NAME_TOKENS.items():
-        hits = [p for p in files if any(t in p.stem.lower() for t in tokens)]
-        if not hits:
-            raise MaterialError(
-                f"{folder}: no {name} map (expected an image whose name contains "
-                f"{' or '.join(repr(t) for t in tokens)})"
+def read_map_folder(folder: Path) -> tuple[MaterialMaps, Reading]:
+    """A per-map folder as maps, and how it was read."""
+    plan = plan_folder(folder)
+    reading = Reading(str(folder), plan.workflow, ignored=list(plan.ignored))
+    reading.conversions.extend(plan.notes)
+    imgs = {role: images.read(path) for role, path in plan.files.items()}
+    size = max((img.size for img in imgs.values()), key=lambda s: s[0] * s[1])
+    for role, img in imgs.items():
+        reading.files[role] = f"{img.path.name} ({img.describe()})"
+        if img.size != size:
+            reading.conversions.append(
+                f"{img.path.name} resampled from {img.size[1]}x{img.size[0]} to {size[1]}x{size[0]}"
             )
-        if len(hits) > 1:
-            names = ", ".join(p.name for p in hits)
-            raise MaterialError(f"{folder}: ambiguous {name} map: {names}")
-        found[name] = hits[0]
-    return found
+            imgs[role] = images.Image(img.path, _resize(img.pixels, size), img.bits)
+    maps = _convert(plan, imgs, size, reading)
+    return MaterialMaps(**maps, source_id=folder.name), reading
 
 
-def load_map_folder(folder: Path) -> MaterialMaps:
-    """A folder of per-map images as maps (all maps must share one size)."""
-    paths = find_map_files(folder)
-    arrays = {name: read_image(p) for name, p in paths.items()}
-    ref_name = "diffuse"
-    ref = arrays[ref_name].shape[:2]
-    for name, arr in arrays.items():
-        if arr.shape[:2] != ref:
-            raise MaterialError(
-                f"{paths[name]}: mismatched sizes: {name} is {arr.shape[1]}x{arr.shape[0]} "
-                f"but {ref_name} is {ref[1]}x{ref[0]}"
-            )
-    return MaterialMaps(
-        diffuse=_colour(arrays["diffuse"], paths["diffuse"], "diffuse"),
-        specular=_colour(arrays["specular"], paths["specular"], "specular"),
-        roughness=_grey(arrays["roughness"], paths["roughness"], "roughness"),
-        normal=_normal(arrays["normal"], paths["normal"]),
-        source_id=folder.name,
+def _convert(plan: FolderPlan, imgs: dict, size: tuple[int, int], reading: Reading) -> dict:
+    """The plan's images as this renderer's four maps."""
+    packed = imgs.get("packed")
+    if packed is not None and packed.pixels.shape[2] < 3:
+        raise MaterialError(f"{packed.path}: a packed ARM/ORM map needs 3 channels")
+    if plan.roughness_from == "packed":
+        rough = np.clip(packed.pixels[..., 1:2], 0.0, 1.0)
+        reading.conversions.append(f"roughness from the green channel of {packed.path.name}")
+    elif plan.roughness_from == "glossiness":
+        rough = 1.0 - _grey(imgs["glossiness"], "glossiness")
+        reading.conversions.append("roughness = 1 - glossiness")
+    else:
+        rough = _grey(imgs["roughness"], "roughness")
+    if "normal" in imgs:
+        normal = _normal(imgs["normal"])
+        if plan.normal_from == "normal_dx":
+            normal = normal.copy()
+            normal[..., 1] = 1.0 - normal[..., 1]
+            reading.conversions.append("DirectX normal map: green flipped to OpenGL")
+        elif plan.normal_from == "normal":
+            reading.conversions.append("normal map taken as OpenGL (its name does not say)")
+    else:
+        normal = np.broadcast_to(np.array([0.5, 0.5, 1.0], np.float32), (*size, 3)).copy()
+    if plan.workflow == "spec-gloss":
+        diffuse = _colour(imgs["diffuse"], "diffuse")
+        specular = _colour(imgs["specular"], "specular")
+    else:
+        diffuse, specular = _metal_rough(plan, imgs, size, reading)
+    return {"diffuse": diffuse, "specular": specular, "roughness": rough, "normal": normal}
+
+
+def _metal_rough(plan: FolderPlan, imgs: dict, size: tuple[int, int], reading: Reading):
+    base = srgb_to_linear(_colour(imgs["basecolor"], "base colour"))
+    if plan.metallic_from == "packed":
+        metal = np.clip(imgs["packed"].pixels[..., 2:3], 0.0, 1.0)
+        reading.conversions.append(f"metallic from the blue channel of {imgs['packed'].path.name}")
+    elif plan.metallic_from == "metallic":
+        metal = _grey(imgs["metallic"], "metallic")
+    else:
+        metal = np.zeros((*size, 1), np.float32)
+    diffuse, specular = metal_rough_to_spec_gloss(base, metal)
+    reading.conversions.append(
+        "metal-rough to diffuse/specular (glTF 2.0): diffuse = base x (1 - metallic), "
+        "specular = lerp(0.04, base, metallic)"
     )
+    return linear_to_srgb(diffuse), linear_to_srgb(specular)
+
+
+def metal_rough_to_spec_gloss(base: np.ndarray, metallic: np.ndarray):
+    """Linear base colour ``(..., 3)`` and metallic ``(..., 1)`` → linear (diffuse,
+    specular), as glTF 2.0 (Appendix B) mixes its dielectric and metal BRDFs."""
+    diffuse = base * (1.0 - metallic)
+    specular = DIELECTRIC_F0 * (1.0 - metallic) + base * metallic
+    return diffuse.astype(np.float32), specular.astype(np.float32)
+
+
+def read_svbrdf(path: Path) -> tuple[MaterialMaps, Reading]:
+    """A 5-panel image file or a per-map folder, and how it was read."""
+    if path.is_dir():
+        if not looks_like_material(path) and any(
+            p.suffix.lower() == ".png" for p in path.iterdir()
+        ):
+            raise MaterialError(
+                f"{path}: a folder of materials (5-panel PNGs), not one material; "
+                "name one file, or give the folder to farm submit / farm materials"
+            )
+        return read_map_folder(path)
+    if not path.exists():
+        raise MaterialError(f"{path}: file not found")
+    maps = load_panel_png(path)
+    return maps, Reading(str(path), "5-panel", files={"panels": path.name})
 
 
 def load_svbrdf(path: Path) -> MaterialMaps:
     """A 5-panel image file or a per-map folder."""
-    if path.is_dir():
-        return load_map_folder(path)
-    if not path.exists():
-        raise MaterialError(f"{path}: file not found")
-    return load_panel_png(path)
-
-
-def looks_like_map_folder(folder: Path) -> bool:
-    """True when the image names in ``folder`` name at least two different maps."""
-    stems = [
-        p.stem.lower()
-        for p in folder.iterdir()
-        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-    ]
-    kinds = {
-        name for name, tokens in MAP_NAME_TOKENS.items() for t in tokens for s in stems if t in s
-    }
-    return len(kinds) >= 2
+    return read_svbrdf(path)[0]
 
 
 def scan_svbrdf_dir(folder: Path) -> list[Path]:
     """The materials under ``folder``, sorted.
 
-    A per-map folder (``looks_like_map_folder``) is one material; otherwise every ``.png`` in
-    it is a 5-panel material and every per-map sub-folder is one material. A file is itself.
+    A per-map folder (:func:`library.looks_like_material`) is one material; otherwise every
+    ``.png`` in it is a 5-panel material and every per-map sub-folder is one material. A file
+    is itself.
     """
     if not folder.exists():
         raise MaterialError(f"{folder}: no such directory")
     if not folder.is_dir():
         return [folder]
-    if looks_like_map_folder(folder):
+    if looks_like_material(folder):
         return [folder]
-    entries = []
-    for p in sorted(folder.iterdir()):
-        if (p.is_file() and p.suffix.lower() == ".png") or (
-            p.is_dir() and looks_like_map_folder(p)
-        ):
-            entries.append(p)
+    entries = [
+        p
+        for p in sorted(folder.iterdir())
+        if (p.is_file() and p.suffix.lower() == ".png") or (p.is_dir() and looks_like_material(p))
+    ]
     if not entries:
         raise MaterialError(
             f"{folder}: no materials found (expected 5-panel PNGs or folders of per-map images)"

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from render_jobs.errors import MaterialError
-from render_jobs.materials.files import load_svbrdf, scan_svbrdf_dir
+from render_jobs.materials.files import Reading, read_svbrdf, scan_svbrdf_dir
 from render_jobs.materials.maps import MaterialMaps
 from render_jobs.materials.procedural import DEFAULT_MAP_RESOLUTION, procedural_maps
 from render_jobs.materials.uniform import sample_uniform, uniform_maps
@@ -75,14 +75,21 @@ def specs_from_sources(
 
 def load_maps(spec: MaterialSpec) -> MaterialMaps:
     """The validated maps of ``spec`` (raises :class:`MaterialError` naming the culprit)."""
+    return read_material(spec)[0]
+
+
+def read_material(spec: MaterialSpec) -> tuple[MaterialMaps, Reading]:
+    """The validated maps of ``spec`` and how they were read (files, workflow, conversions,
+    files ignored); raises :class:`MaterialError` naming the culprit."""
     if spec.kind == "uniform":
         if spec.uniform is None:
             raise MaterialError(f"{spec.source_id}: uniform material has no values")
-        return uniform_maps(spec.uniform, spec.source_id)
+        return uniform_maps(spec.uniform, spec.source_id), Reading(spec.source_id, "uniform")
     if spec.kind == "procedural":
         if spec.seed is None:
             raise MaterialError(f"{spec.source_id}: procedural material has no seed")
-        return procedural_maps(spec.seed, spec.map_resolution)
+        maps = procedural_maps(spec.seed, spec.map_resolution)
+        return maps, Reading(spec.source_id, "procedural")
     if spec.path is None:
         raise MaterialError(f"{spec.source_id}: svbrdf material has no path")
-    return load_svbrdf(Path(spec.path))
+    return read_svbrdf(Path(spec.path))
