@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint bench-render bench-farm bench-farm-scale bench-train bench-infer bench-storage gpu-wheels clean
+.PHONY: demo demo-train test lint chromium bench-dashboard bench-render bench-farm bench-farm-scale bench-train bench-infer bench-storage gpu-wheels clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,8 +25,15 @@ demo-train: $(BIN)/.installed
 	$(BIN)/trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out out/runs/demo
 	$(BIN)/trainer eval --checkpoint out/runs/demo
 
-test: $(BIN)/.installed lint
+test: $(BIN)/.installed lint chromium
 	$(BIN)/pytest -q
+
+# The page tests drive Debian's Chromium (headless, through Playwright); CI runs as root.
+# When it cannot be installed, those tests fail saying so; the rest still run.
+chromium:
+	@test -x /usr/bin/chromium || (apt-get update -qq && DEBIAN_FRONTEND=noninteractive \
+		apt-get install -y -qq chromium >/dev/null) || \
+		echo "could not install Debian's chromium package: the browser tests will fail"
 
 lint: $(BIN)/.installed
 	$(BIN)/ruff check .
@@ -39,6 +46,9 @@ bench-farm: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.farm
 
 # One driver's ceilings: its scheduling policy (1,000 workers) and its 400² shard commits.
+bench-dashboard: $(BIN)/.installed chromium
+	$(BIN)/python -m benchmarks.dashboard
+
 bench-farm-scale: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.farm_scale
 

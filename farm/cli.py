@@ -269,6 +269,9 @@ def submit(
         f"{summary.startup_s:.1f} s)"
     )
     click.echo(f"store     {summary.store}   (inspect: shards info {summary.store})")
+    if summary.cancelled:
+        click.echo("cancelled: every whole shard is committed; run the same command to resume")
+        return
     if not summary.ok:
         for m, err in sorted(summary.failed_materials.items()):
             click.echo(f"FAILED    material {m}: {err}", err=True)
@@ -313,6 +316,69 @@ def materials(sources, seed, as_json):
     click.echo(json.dumps(run.to_dict(), indent=1) if as_json else format_dry_run(run))
     if run.failed:
         sys.exit(1)
+
+
+@main.command()
+@click.argument("roots", nargs=-1, metavar="ROOT...")
+@click.option("--runs", "run_dirs", multiple=True, metavar="DIR",
+              help="A trainer run folder, or a folder of them (repeatable).")  # fmt: skip
+@click.option("--host", default="127.0.0.1", show_default=True,
+              help="Address to bind; any other than loopback needs a token.")  # fmt: skip
+@click.option("--port", default=8266, show_default=True, type=click.IntRange(0, 65535))
+@click.option(
+    "--token",
+    envvar="SHADERBALL_TOKEN",
+    default=None,
+    help="Token every request must carry (generated off loopback when not given).",
+)
+def dashboard(roots, run_dirs, host, port, token):
+    """Serve the farm dashboard: jobs, shards, failures, workers, renders, runs, metrics.
+
+    A ROOT is a store, a folder of stores or an s3:// prefix of stores (default: out).
+    It reads only what farm submit and trainer write, so it shows running, finished and
+    lost jobs, with or without Ray. /metrics is in the Prometheus text format.
+
+    \b
+    Examples:
+      farm dashboard out --runs runs                  # http://127.0.0.1:8266
+      farm dashboard s3://bucket/sets --host 0.0.0.0  # prints a token; needed by every request
+    """
+    from aiohttp import web
+
+    from farm.dashboard.app import Dashboard, make_app
+    from farm.web import token_for
+
+    token = token_for(host, token, echo=click.echo)
+    app = make_app(Dashboard(list(roots) or ["out"], list(run_dirs)), token)
+    shown = f"[{host}]" if ":" in host else host
+    click.echo(f"dashboard: http://{shown}:{port}/", err=True)
+    web.run_app(app, host=host, port=port, print=None, access_log=None)
+
+
+@main.command()
+@click.argument("store")
+def cancel(store):
+    """Ask the running job on STORE to stop.
+
+    Its driver (within a few seconds) stops handing out tasks, lets the ones in flight
+    finish, commits every whole shard, records the job as cancelled and exits 0. Nothing
+    committed is lost; running the same farm submit again resumes.
+
+    \b
+    Example:
+      farm cancel out/set.zarr
+    """
+    from farm.cancel import request_cancel
+    from farm.state import load_state
+    from storage.backend import Backend
+
+    state = load_state(store)
+    if state is None:
+        raise click.ClickException(f"{store}: no farm job state (was it made by farm submit?)")
+    if state["effective_status"] != "running":
+        raise click.ClickException(f"{store}: the job is {state['effective_status']}, not running")
+    request_cancel(Backend(store), by="farm cancel")
+    click.echo(f"cancel requested: driver {state['driver']} stops within a few seconds")
 
 
 @main.command()

@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from farm.actor import RenderWorker
 from farm.assembly import ShardAssembly
+from farm.cancel import cancel_requested, clear_cancel
 from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.pool import WorkerPool, connect, keep_ray_on_loopback
@@ -65,6 +66,7 @@ class Summary:
     startup_s: float
     render_end_s: float  # from the start to the last result (before workers and Ray stop)
     failed_commits: dict[int, str] = field(default_factory=dict)  # shard -> error
+    cancelled: bool = False  # stopped by farm cancel; the same command resumes
 
     @property
     def ok(self) -> bool:
@@ -142,6 +144,7 @@ def submit(
     except OSError as exc:  # no such bucket, access denied, ... (transient ones were retried)
         raise FarmError(f"{cfg.out}: {type(exc).__name__}: {exc}") from None
     try:
+        clear_cancel(lease.backend)  # a new submit supersedes an old cancel request
         job = prepare(cfg, specs, echo)
         if not job.todo:  # keep the finished job's state as it is
             n = job.layout.num_samples
@@ -171,7 +174,10 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
             loop.check_placement()
             loop.expire()
             loop.save(every=STATE_EVERY_S)
-        job.state.status = "failed" if loop.sched.final or loop.failed_commits else "done"
+        if loop.cancelled:
+            job.state.status = "cancelled"
+        else:
+            job.state.status = "failed" if loop.sched.final or loop.failed_commits else "done"
         render_end = time.perf_counter() - t_start
     except BaseException:
         job.state.status = "interrupted"
@@ -191,6 +197,7 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
         startup_s=loop.startup_s if loop.startup_s is not None else time.perf_counter() - t_start,
         render_end_s=render_end,
         failed_commits=dict(loop.failed_commits),
+        cancelled=loop.cancelled,
     )
 
 
@@ -217,6 +224,7 @@ class Loop:
         self.commits: dict[object, int] = {}
         self.max_commits = max_commits
         self.failed_commits: dict[int, str] = {}
+        self.cancelled = False  # a cancel request was seen: dispatch nothing more
         self.first: set[str] = set()
         self.startup_s: float | None = None  # until the first workers answer
         self.t_start = 0.0
@@ -233,14 +241,18 @@ class Loop:
 
     @property
     def finished(self) -> bool:
-        """Every task done or final, and every whole shard's commit ended."""
-        return self.sched.finished and not self.whole and not self.commits
+        """Every task done or final (or, cancelled, every task in flight ended), and every
+        whole shard's commit ended."""
+        tasks_over = not self.refs if self.cancelled else self.sched.finished
+        return tasks_over and not self.whole and not self.commits
 
     def start(self, workers: int, t_start: float) -> None:
         self.t_start = t_start
         self.first = {self.pool.start() for _ in range(workers)}
 
     def dispatch(self) -> None:
+        if self.cancelled:
+            return
         for wid, m in self.sched.dispatch(self.pool.usable(), self.pool.actors, now()):
             task = task_for(self.cfg, m, self.job.specs[m]).to_dict()
             report, arrays = self.pool.submit(wid, task, self.cfg.task_timeout_s)
@@ -414,6 +426,9 @@ class Loop:
 
     def save(self, every: float) -> None:
         if now() - self.last_save > every:
+            if not self.cancelled and cancel_requested(self.lease.backend):
+                self.cancelled = True
+                self.bar.write("cancel requested: finishing the tasks in flight")
             self.lease.renew()
             self.state.save(self.job.store.backend)
             self.last_save = now()

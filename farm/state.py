@@ -17,6 +17,9 @@ from dataclasses import asdict, dataclass, field
 from storage.backend import Backend
 
 STATE_KEY = "farm/job.json"
+#: progress points kept for the dashboard's frames/s chart: halved when full, so a month-long
+#: job keeps its whole life at a coarser step
+HISTORY_POINTS = 720
 
 
 def now() -> float:
@@ -49,7 +52,7 @@ class JobState:
     settings: dict
     frames_total: int
     shards_total: int
-    status: str = "running"  # running | done | failed | interrupted
+    status: str = "running"  # running | done | failed | cancelled | interrupted
     driver: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
     started: float = field(default_factory=now)
     updated: float = field(default_factory=now)
@@ -61,6 +64,7 @@ class JobState:
     commit_failures: dict[str, str] = field(default_factory=dict)  # shard -> error
     workers: dict[str, WorkerStats] = field(default_factory=dict)
     dashboard: str | None = None
+    history: list[list[float]] = field(default_factory=list)  # [time, frames done], bounded
 
     def to_json(self) -> bytes:
         data = asdict(self)
@@ -75,7 +79,17 @@ class JobState:
 
     def save(self, backend: Backend) -> None:
         self.updated = now()
+        self.history = add_point(self.history, self.updated, self.frames_done)
         backend.put_atomic(STATE_KEY, self.to_json())
+
+
+def add_point(history: list, t: float, frames: int, limit: int = HISTORY_POINTS) -> list:
+    """``history`` with ``[t, frames]`` appended; past ``limit`` points every other older
+    point is dropped (the first and the newest are kept), so its size stays bounded."""
+    out = [*history, [round(t, 2), frames]]
+    if len(out) > limit:
+        out = out[:-1:2] + [out[-1]]
+    return out
 
 
 #: a running driver rewrites the state every few seconds; this long without, it is gone

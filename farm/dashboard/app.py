@@ -1,0 +1,220 @@
+"""``farm dashboard``: the web server over the farm's stores and the trainer's runs.
+
+Routes: ``/`` (jobs, ``?status=`` filters), ``/job/<name>`` (``?fragment=1``: the part that
+refreshes), ``/thumb/<name>?sample=i`` (a tonemapped render, as ``shards show``),
+``/sheet/<name>?sample=i`` (its contact sheet), ``POST /cancel/<name>``, ``/runs``,
+``/runfile/<name>?file=eval.png``, ``/metrics``, ``/api/job/<name>`` (JSON). A store's
+``<name>`` is ``<root index>[/<path below the root>]``. Reads are blocking (zarr, fsspec) and
+run in a thread pool so one slow store does not hold the others.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import io
+import json
+import time
+from pathlib import Path
+
+from aiohttp import web
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
+
+from farm.cancel import request_cancel
+from farm.dashboard import jobs, pages, runs
+from farm.dashboard.metrics import Collector
+from farm.web import Refused, application, confine
+from storage.reader import Store
+
+THUMB_CACHE = 256
+
+
+class Dashboard:
+    def __init__(self, roots: list[str], run_dirs: list[str]):
+        self.roots = [jobs.Root(i, r) for i, r in enumerate(roots)]
+        self.run_dirs = [Path(r) for r in run_dirs]
+        self._seconds: dict[str, tuple[int, object]] = {}
+
+    # ---- names ----------------------------------------------------------------------------
+
+    def store_url(self, name: str) -> str:
+        index, _, rel = name.partition("/")
+        if not index.isdigit() or int(index) >= len(self.roots):
+            raise Refused(name)
+        return self.roots[int(index)].store_url(rel or ".")
+
+    def run_path(self, name: str) -> Path:
+        index, _, rel = name.partition("/")
+        if not index.isdigit() or int(index) >= len(self.run_dirs):
+            raise Refused(name)
+        return confine(self.run_dirs[int(index)], rel or ".")
+
+    # ---- data -----------------------------------------------------------------------------
+
+    def job_rows(self) -> list[dict]:
+        rows = []
+        for root in self.roots:
+            try:
+                names = root.find()
+            except Exception as exc:  # noqa: BLE001 - an unreachable root shows as a row
+                rows.append({"name": str(root.index), "error": f"{root.url}: {exc}"})
+                continue
+            for rel in names:
+                name = str(root.index) if rel == "." else f"{root.index}/{rel}"
+                try:
+                    url = root.store_url(rel)
+                except Refused:  # a symlink that leads outside the root: not served
+                    continue
+                rows.append(jobs.job_row(name, url))
+        rows.sort(key=lambda r: -(r.get("started") or 0))
+        return rows
+
+    def run_rows(self) -> list[dict]:
+        out = []
+        for i, base in enumerate(self.run_dirs):
+            for rel in runs.find_runs(base):
+                name = str(i) if rel == "." else f"{i}/{rel}"
+                out.append(runs.run_summary(name, self.run_path(name)))
+        return out
+
+    def frame_seconds(self, row: dict):
+        """Render seconds of the committed frames, cached until the commit count changes."""
+        try:
+            store = Store(row["url"])
+            times = jobs.commit_times(store.backend)
+        except Exception:  # noqa: BLE001 - no histogram for a store that cannot be read
+            return None
+        cached = self._seconds.get(row["url"])
+        if cached is not None and cached[0] == len(times):
+            return cached[1]
+        samples = [s for sh in sorted(times) for s in store.layout.shard_samples(sh)]
+        seconds = store.group["render_seconds"][:][samples] if samples else []
+        import numpy as np
+
+        arr = np.asarray(seconds, dtype=np.float64)
+        self._seconds[row["url"]] = (len(times), arr)
+        return arr
+
+    def job_context(self, name: str) -> dict:
+        url = self.store_url(name)
+        row = jobs.job_row(name, url)
+        ctx = {"row": row, "title": name, "state": row.get("state")}
+        if row["error"]:
+            return ctx
+        store = Store(url)
+        times = jobs.commit_times(store.backend)
+        state = row.get("state")
+        settings = [("url", url), *sorted(store.layout.to_dict().items())]
+        shown = {"sources", *store.layout.to_dict()}
+        settings += [(k, v) for k, v in sorted(store.settings.items()) if k not in shown]
+        settings.append(("sources", ", ".join(store.settings.get("sources", []))))
+        ctx.update(
+            committed=len(times),
+            chart=pages.line_chart(jobs.rates(state.get("history", [])) if state else []),
+            shard_map=pages.shard_map(jobs.shard_states(store, set(times), state)),
+            thumbs=jobs.newest_samples(store, times),
+            failures=jobs.failures_table(state) if state else [],
+            workers=jobs.workers_table(state) if state else [],
+            settings=settings,
+            hists=[(k, pages.bar_chart(v)) for k, v in jobs.histograms(store, set(times)).items()],
+        )
+        return ctx
+
+    @functools.lru_cache(maxsize=THUMB_CACHE)  # noqa: B019 - one dashboard per process
+    def picture(self, url: str, sample: int, sheet: bool) -> bytes:
+        from PIL import Image
+
+        from render_jobs.contact_sheet import contact_sheet
+        from render_jobs.results import ScreenMaps
+        from render_jobs.tonemap import to_uint8, tonemap
+
+        s = Store(url).sample(sample)
+        if sheet:
+            title = f"sample {s.index}  material {s.material_index} ({s.kind}: {s.source_id})"
+            img = contact_sheet(ScreenMaps(**s.maps), [(s.render, s.sun.label())], title)
+        else:
+            img = Image.fromarray(to_uint8(tonemap(s.render)))
+        buf = io.BytesIO()
+        img.save(buf, format="PNG")
+        return buf.getvalue()
+
+
+def _blocking(fn, *args):
+    return asyncio.get_running_loop().run_in_executor(None, functools.partial(fn, *args))
+
+
+def make_app(dash: Dashboard, token: str | None) -> web.Application:
+    app, secret = application(token)
+    html = functools.partial(web.Response, content_type="text/html")
+
+    async def index(request):
+        rows = await _blocking(dash.job_rows)
+        want = request.query.get("status")
+        if want:
+            rows = [r for r in rows if r.get("status") == want]
+        return html(text=pages.render("jobs", rows=rows, statuses=jobs.STATUSES, secret=secret,
+                                      title="jobs"))  # fmt: skip
+
+    async def job(request):
+        ctx = await _blocking(dash.job_context, request.match_info["name"])
+        name = "job_live" if request.query.get("fragment") else "job"
+        return html(text=pages.render(name, secret=secret, **ctx))
+
+    async def api_job(request):
+        row = await _blocking(jobs.job_row, request.match_info["name"],
+                              dash.store_url(request.match_info["name"]))  # fmt: skip
+        return web.json_response(row, dumps=lambda o: json.dumps(o, default=str))
+
+    async def picture(request, sheet: bool):
+        url = dash.store_url(request.match_info["name"])
+        try:
+            sample = int(request.query.get("sample", ""))
+            body = await _blocking(dash.picture, url, sample, sheet)
+        except (ValueError, IndexError, KeyError) as exc:
+            return web.Response(status=404, text=f"404: {exc}\n")
+        return web.Response(body=body, content_type="image/png")
+
+    async def cancel(request):
+        from storage.backend import Backend
+
+        url = dash.store_url(request.match_info["name"])
+        st = (await _blocking(jobs.job_row, request.match_info["name"], url)).get("status")
+        if st != "running":
+            return web.Response(status=409, text=f"the job is {st}, not running")
+        await _blocking(request_cancel, Backend(url), "dashboard")
+        return web.Response(text="cancel requested: the driver stops within a few seconds")
+
+    async def runs_page(request):
+        rows = await _blocking(dash.run_rows)
+        for r in rows:
+            r["curves"] = [
+                (k, pages.line_chart([(x["step"], x[k]) for x in r["log"] if k in x]))
+                for k in ("loss", "images_per_second", "data_wait")
+            ]
+        return html(text=pages.render("runs", runs=rows, secret=secret, title="runs"))
+
+    async def run_file(request):
+        if request.query.get("file") not in ("eval.png",):
+            return web.Response(status=404, text="404\n")
+        path = dash.run_path(request.match_info["name"]) / "eval.png"
+        if not path.is_file():
+            return web.Response(status=404, text="404\n")
+        return web.FileResponse(path)
+
+    async def metrics(request):
+        registry = CollectorRegistry()
+        registry.register(Collector(dash.job_rows, dash.run_rows, dash.frame_seconds))
+        body = await _blocking(generate_latest, registry)
+        return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE_LATEST})
+
+    app.router.add_get("/", index)
+    app.router.add_get("/job/{name:.+}", job)
+    app.router.add_get("/api/job/{name:.+}", api_job)
+    app.router.add_get("/thumb/{name:.+}", functools.partial(picture, sheet=False))
+    app.router.add_get("/sheet/{name:.+}", functools.partial(picture, sheet=True))
+    app.router.add_post("/cancel/{name:.+}", cancel)
+    app.router.add_get("/runs", runs_page)
+    app.router.add_get("/runfile/{name:.+}", run_file)
+    app.router.add_get("/metrics", metrics)
+    app["started"] = time.time()
+    return app

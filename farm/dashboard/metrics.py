@@ -1,0 +1,101 @@
+"""``/metrics``: the farm's jobs and the trainer's runs in the Prometheus text format.
+
+Names follow Prometheus conventions: a ``shaderball_`` prefix, base units (seconds),
+``_total`` for counters; labels are few and bounded (``store``, ``run``, a worker
+``status``), never a material. Values are read at scrape time from what the farm and trainer
+persist (:mod:`farm.dashboard.jobs`, :mod:`farm.dashboard.runs`).
+
+=============================================  ====================================================
+``shaderball_farm_frames_committed_total``     frames in committed shards (resumed ones included)
+``shaderball_farm_frames_planned``             frames in the dataset
+``shaderball_farm_failures_total``             failed render attempts
+``shaderball_farm_materials_failed``           materials that failed for good
+``shaderball_farm_workers{status}``            workers by status (idle, busy, dead, ...)
+``shaderball_farm_shards_committed_total``     committed shards
+``shaderball_farm_eta_seconds``                the running job's estimated time left
+``shaderball_farm_frame_seconds``              histogram of committed frames' render times
+``shaderball_farm_job_running``                1 while the job runs
+``shaderball_train_step``                      the run's last logged step
+``shaderball_train_loss``                      its loss
+``shaderball_train_images_per_second``         its throughput
+``shaderball_train_data_wait_ratio``           its share of time waiting for data
+=============================================  ====================================================
+"""
+
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+)
+
+FRAME_BUCKETS = (0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300, 600)
+
+
+def frame_histogram(seconds: np.ndarray) -> tuple[list[tuple[str, float]], float]:
+    """Cumulative Prometheus buckets of ``seconds`` and their sum."""
+    buckets = [(str(b), float(np.sum(seconds <= b))) for b in FRAME_BUCKETS]
+    buckets.append(("+Inf", float(len(seconds))))
+    return buckets, float(np.sum(seconds))
+
+
+class Collector:
+    """Reads job rows and run summaries at each scrape (``jobs()``, ``runs()`` callables)."""
+
+    def __init__(self, jobs, runs, frame_seconds):
+        self.jobs, self.runs, self.frame_seconds = jobs, runs, frame_seconds
+
+    def collect(self):
+        f = "shaderball_farm_"
+        committed = CounterMetricFamily(f + "frames_committed", "Frames in committed shards",
+                                        labels=["store"])  # fmt: skip
+        planned = GaugeMetricFamily(f + "frames_planned", "Frames in the dataset", labels=["store"])
+        failures = CounterMetricFamily(f + "failures", "Failed render attempts", labels=["store"])
+        final = GaugeMetricFamily(f + "materials_failed", "Materials failed for good",
+                                  labels=["store"])  # fmt: skip
+        workers = GaugeMetricFamily(f + "workers", "Workers by status", labels=["store", "status"])
+        shards = CounterMetricFamily(f + "shards_committed", "Committed shards", labels=["store"])
+        eta = GaugeMetricFamily(f + "eta_seconds", "Estimated time left", labels=["store"])
+        running = GaugeMetricFamily(f + "job_running", "1 while the job runs", labels=["store"])
+        hist = HistogramMetricFamily(f + "frame_seconds", "Render time of committed frames",
+                                     labels=["store"], unit="")  # fmt: skip
+        for row in self.jobs():
+            if row.get("error"):
+                continue
+            name = row["name"]
+            planned.add_metric([name], row["frames_total"])
+            committed.add_metric([name], row["frames_done"])
+            running.add_metric([name], 1.0 if row["status"] == "running" else 0.0)
+            st = row.get("state")
+            if st is not None:
+                failures.add_metric([name], sum(x["attempts"] for x in st["failures"].values()))
+                final.add_metric([name], row["failed"])
+                shards.add_metric([name], st["shards_committed"])
+                by = collections.Counter(w["status"] for w in st["workers"].values())
+                for status, n in sorted(by.items()):
+                    workers.add_metric([name, status], n)
+                if row["eta_s"] is not None:
+                    eta.add_metric([name], row["eta_s"])
+            seconds = self.frame_seconds(row)
+            if seconds is not None:
+                buckets, total = frame_histogram(seconds)
+                hist.add_metric([name], buckets, total)
+        yield from (committed, planned, failures, final, workers, shards, eta, running, hist)
+        t = "shaderball_train_"
+        step = GaugeMetricFamily(t + "step", "Last logged step", labels=["run"])
+        loss = GaugeMetricFamily(t + "loss", "Loss at the last logged step", labels=["run"])
+        ips = GaugeMetricFamily(t + "images_per_second", "Training throughput", labels=["run"])
+        wait = GaugeMetricFamily(t + "data_wait_ratio", "Share of time waiting for data",
+                                 labels=["run"])  # fmt: skip
+        for run in self.runs():
+            if run["step"] is None:
+                continue
+            step.add_metric([run["name"]], run["step"])
+            loss.add_metric([run["name"]], run["loss"])
+            ips.add_metric([run["name"]], run["images_per_second"])
+            wait.add_metric([run["name"]], run["data_wait"])
+        yield from (step, loss, ips, wait)

@@ -1,0 +1,216 @@
+"""The dashboard's HTML: Jinja2 templates (autoescaped) and server-drawn SVG charts. The CSS
+and the few lines of JavaScript (live refresh, the cancel button) are written here; nothing
+is loaded from elsewhere."""
+
+from __future__ import annotations
+
+import datetime as dt
+
+from jinja2 import DictLoader, Environment, select_autoescape
+from markupsafe import Markup
+
+CSS = """
+body{font:14px/1.4 system-ui,sans-serif;margin:0;background:#f6f7f9;color:#1d2330}
+header{background:#1d2330;color:#fff;padding:10px 20px;display:flex;gap:24px;align-items:center}
+header a{color:#cfe0ff;text-decoration:none} main{padding:16px 20px}
+h1{font-size:18px;margin:0} h2{font-size:15px;margin:22px 0 8px}
+table{border-collapse:collapse;background:#fff;font-size:13px}
+td,th{border-bottom:1px solid #e3e6eb;padding:4px 10px;text-align:left;vertical-align:top}
+th{background:#eef1f5} .num{text-align:right;font-variant-numeric:tabular-nums}
+.s-running{color:#0b6bcb;font-weight:600}.s-done{color:#1a7f37}.s-failed,.s-lost{color:#c62828}
+.s-cancelled,.s-interrupted{color:#8a6d00} .err{color:#c62828} .stale{color:#c62828}
+.cards{display:flex;gap:12px;flex-wrap:wrap} .card{background:#fff;padding:8px 14px;
+border:1px solid #e3e6eb;border-radius:6px} .card b{display:block;font-size:20px}
+.thumbs img{width:128px;height:128px;margin:0 6px 6px 0;border:1px solid #ccd;image-rendering:auto}
+button{background:#c62828;color:#fff;border:0;padding:6px 14px;border-radius:4px;cursor:pointer}
+.grid{display:flex;gap:24px;flex-wrap:wrap} svg text{font-size:11px;fill:#555}
+"""
+
+JS = """
+async function refresh() {
+  const live = document.getElementById('live');
+  if (!live || live.dataset.live !== '1') return;
+  try {
+    const q = location.search ? '&' + location.search.slice(1) : '';
+    const r = await fetch(location.pathname + '?fragment=1' + q);
+    if (r.ok) { live.outerHTML = await r.text(); }
+  } finally { setTimeout(refresh, 2500); }
+}
+setTimeout(refresh, 2500);
+async function cancelJob(url) {
+  if (!confirm('Cancel this job? Tasks in flight finish; whole shards are committed.')) return;
+  const secret = document.querySelector('meta[name=secret]').content;
+  const r = await fetch(url, {method: 'POST', headers: {'X-Shaderball-Secret': secret}});
+  document.getElementById('cancel-msg').textContent = await r.text();
+}
+"""
+
+BASE = """<!doctype html><html><head><meta charset="utf-8"><title>{{ title }} - shaderball</title>
+<meta name="secret" content="{{ secret }}"><style>{{ css }}</style></head><body>
+<header><h1>shaderball farm</h1><a href="/">jobs</a><a href="/runs">runs</a>
+<a href="/metrics">metrics</a></header><main>{% block main %}{% endblock %}</main>
+<script>{{ js }}</script></body></html>"""
+
+JOBS = """{% extends "base" %}{% block main %}
+<p>Filter: <a href="/">all</a>{% for s in statuses %} · <a href="/?status={{ s }}">{{ s }}</a>
+{% endfor %}</p>
+<table id="jobs"><tr><th>store</th><th>status</th><th class="num">frames</th><th class="num">
+frames/s</th><th class="num">ETA</th><th class="num">failed materials</th><th class="num">workers
+</th><th class="num">age</th></tr>
+{% for r in rows %}<tr>{% if r.error %}<td>{{ r.name }}</td><td class="err" colspan="7">
+{{ r.error }}</td>{% else %}<td><a href="/job/{{ r.name }}">{{ r.name }}</a></td>
+<td class="s-{{ r.status }}">{{ r.status }}</td>
+<td class="num">{{ r.frames_done }}/{{ r.frames_total }}</td>
+<td class="num">{{ "%.2f"|format(r.frames_per_s) }}</td><td class="num">{{ r.eta_s|dur }}</td>
+<td class="num">{{ r.failed }}</td><td class="num">{{ r.workers }}</td>
+<td class="num">{{ r.age_s|dur }}</td>{% endif %}</tr>{% endfor %}</table>
+{% if not rows %}<p>No stores found under the roots.</p>{% endif %}{% endblock %}"""
+
+JOB = """{% extends "base" %}{% block main %}{% include "job_live" %}{% endblock %}"""
+
+JOB_LIVE = """<div id="live" data-live="{{ 1 if row.status == 'running' else 0 }}">
+<h2 style="margin-top:0">{{ row.name }} <span class="s-{{ row.status }}">{{ row.status }}</span>
+{% if row.status == 'running' %}
+<button onclick="cancelJob('/cancel/{{ row.name }}')">cancel</button>{% endif %}
+<span id="cancel-msg"></span></h2>
+{% if row.error %}<p class="err">{{ row.error }}</p>{% else %}
+<div class="cards">
+<div class="card">frames<b id="frames">{{ row.frames_done }}/{{ row.frames_total }}</b></div>
+<div class="card">progress<b>{{ "%.1f"|format(100 * row.frames_done / row.frames_total) }} %
+</b></div>
+<div class="card">frames/s<b id="fps">{{ "%.2f"|format(row.frames_per_s) }}</b></div>
+<div class="card">ETA<b>{{ row.eta_s|dur }}</b></div>
+<div class="card">shards<b id="shards">{{ committed }}/{{ row.shards_total }}</b></div>
+<div class="card">failed materials<b id="failed">{{ row.failed }}</b></div>
+<div class="card">workers<b>{{ row.workers }}</b></div></div>
+<p>{% if state %}driver {{ state.driver }} · started {{ state.started|when }} · updated
+{{ state.updated|when }}{% endif %}{% if state and state.dashboard %} ·
+<a href="{{ state.dashboard }}">Ray dashboard</a>{% endif %}</p>
+<h2>Frames per second</h2>{{ chart }}
+<h2>Shards</h2>{{ shard_map }}
+<h2>Newest renders</h2><div class="thumbs" id="thumbs">{% for s in thumbs %}
+<a href="/sheet/{{ row.name }}?sample={{ s }}">
+<img alt="sample {{ s }}" src="/thumb/{{ row.name }}?sample={{ s }}"></a>{% endfor %}
+{% if not thumbs %}none committed yet{% endif %}</div>
+<h2>Failures</h2>{% if failures %}<table><tr><th>material</th><th>outcome</th><th>attempts</th>
+<th>worker: error</th></tr>{% for f in failures %}<tr><td>{{ f.material if f.material is not none
+else "shard %d commit"|format(f.shard) }}</td><td>{{ f.outcome }}</td><td class="num">{{ f.count
+}}</td><td>{% for a in f.attempts %}{{ a.worker }}: {{ a.error }}<br>{% endfor %}</td></tr>
+{% endfor %}</table>{% else %}<p>none</p>{% endif %}
+<h2>Workers</h2>{% if workers %}<table><tr><th>worker</th><th>host</th><th>pid</th><th>status
+</th><th class="num">frames</th><th class="num">s/frame</th><th class="num">failures</th><th
+class="num">recycles</th><th>last seen</th></tr>{% for w in workers %}<tr><td>{{ w.worker }}</td>
+<td>{{ w.host }}</td><td>{{ w.pid }}</td><td>{{ w.status }}{% if w.stale %} <span class="stale">
+(stale)</span>{% endif %}</td><td class="num">{{ w.frames }}</td><td class="num">
+{{ "%.2f"|format(w.mean_frame_s) }}</td><td class="num">{{ w.failures }}</td><td class="num">
+{{ w.recycled }}</td><td>{{ w.last_seen|when }}</td></tr>{% endfor %}</table>
+{% else %}<p>none</p>{% endif %}
+<h2>Store</h2><div class="grid"><table>{% for k, v in settings %}<tr><th>{{ k }}</th><td>{{ v }}
+</td></tr>{% endfor %}</table>{% for name, svg in hists %}<div><b>{{ name }}</b><br>{{ svg }}</div>
+{% endfor %}</div>{% endif %}</div>"""
+
+RUNS = """{% extends "base" %}{% block main %}
+{% for r in runs %}<h2>{{ r.name }} <small>{{ r.path }}</small></h2>
+<div class="cards"><div class="card">step<b>{{ r.step }}</b></div><div class="card">epoch<b>
+{{ r.epoch }}</b></div><div class="card">loss<b>{{ r.loss }}</b></div><div class="card">images/s
+<b>{{ r.images_per_second }}</b></div><div class="card">data wait<b>{{ r.data_wait }}</b></div>
+</div><div class="grid">{% for name, svg in r.curves %}<div><b>{{ name }}</b><br>{{ svg }}</div>
+{% endfor %}</div>
+<p>checkpoints: {% for c in r.checkpoints %}{{ c.name }} ({{ (c.bytes / 1e6)|round(1) }} MB) {%
+else %}none{% endfor %}</p>{% if r.eval %}<p>eval at step {{ r.eval.checkpoint_step }}: PSNR
+{{ "%.2f"|format(r.eval.overall.psnr) }} dB, SSIM {{ "%.4f"|format(r.eval.overall.ssim) }} on
+{{ r.eval.overall.n }} held-out samples</p>{% endif %}{% if r.eval_grid %}<img alt="eval grid"
+style="max-width:100%" src="/runfile/{{ r.name }}?file=eval.png">{% endif %}
+{% else %}<p>No runs (start with --runs DIR).</p>{% endfor %}{% endblock %}"""
+
+
+def _dur(s) -> str:
+    if s is None:
+        return "-"
+    s = float(s)
+    if s < 120:
+        return f"{s:.0f} s"
+    if s < 7200:
+        return f"{s / 60:.0f} min"
+    return f"{s / 3600:.1f} h"
+
+
+def _when(t) -> str:
+    return dt.datetime.fromtimestamp(float(t)).strftime("%Y-%m-%d %H:%M:%S") if t else "-"
+
+
+ENV = Environment(
+    loader=DictLoader({"base": BASE, "jobs": JOBS, "job": JOB, "job_live": JOB_LIVE, "runs": RUNS}),
+    autoescape=select_autoescape(default=True, default_for_string=True),
+)
+ENV.filters["dur"] = _dur
+ENV.filters["when"] = _when
+
+
+def render(name: str, **ctx) -> str:
+    return ENV.get_template(name).render(css=Markup(CSS), js=Markup(JS), **ctx)
+
+
+def line_chart(points: list[tuple[float, float]], w: int = 640, h: int = 160, t0=None) -> Markup:
+    """An SVG line of ``(x, y)`` points with its y range and x span labelled."""
+    if len(points) < 2:
+        return Markup("<p>not enough progress points yet</p>")
+    xs = [p[0] for p in points]
+    ys = [p[1] for p in points]
+    x0, x1 = min(xs), max(xs)
+    y1 = max(max(ys), 1e-9)
+    pad = 30
+    coords = " ".join(
+        f"{pad + (x - x0) / max(x1 - x0, 1e-9) * (w - pad - 5):.1f},"
+        f"{h - 15 - y / y1 * (h - 25):.1f}"
+        for x, y in points
+    )
+    span = _dur(x1 - x0)
+    return Markup(
+        f'<svg class="chart" width="{w}" height="{h}" viewBox="0 0 {w} {h}" '
+        f'style="background:#fff;border:1px solid #e3e6eb">'
+        f'<polyline fill="none" stroke="#0b6bcb" stroke-width="1.5" points="{coords}"/>'
+        f'<text x="2" y="12">{y1:.3g}</text><text x="2" y="{h - 15}">0</text>'
+        f'<text x="{pad}" y="{h - 2}">{span} shown</text></svg>'
+    )
+
+
+COLOURS = {"committed": "#1a7f37", "pending": "#c9d3e0", "failed": "#c62828", "empty": "#eceff3"}
+
+
+def shard_map(states: list[str], cell: int = 10, per_row: int = 80) -> Markup:
+    """One square per shard, coloured by state, with a legend; a single SVG path per state
+    keeps a map of thousands of shards small and fast to draw."""
+    paths: dict[str, list[str]] = {k: [] for k in COLOURS}
+    for i, st in enumerate(states):
+        x, y = (i % per_row) * cell, (i // per_row) * cell
+        paths[st].append(f"M{x} {y}h{cell - 1}v{cell - 1}h-{cell - 1}z")
+    rows = -(-len(states) // per_row)
+    w, h = per_row * cell, rows * cell
+    body = "".join(
+        f'<path fill="{COLOURS[k]}" d="{"".join(v)}"><title>{k}</title></path>'
+        for k, v in paths.items()
+        if v
+    )
+    counts = " · ".join(f'<span style="color:{COLOURS[k]}">■</span> {k} {states.count(k)}'
+                        for k in COLOURS if k in states)  # fmt: skip
+    return Markup(f'<svg id="shardmap" width="{w}" height="{h}">{body}</svg><p>{counts}</p>')
+
+
+def bar_chart(bins: list[tuple[float, float, int]], w: int = 240, h: int = 110) -> Markup:
+    if not bins:
+        return Markup("<p>no samples yet</p>")
+    peak = max(c for _, _, c in bins) or 1
+    bw = w / len(bins)
+    bars = "".join(
+        f'<rect x="{i * bw + 1:.1f}" y="{h - 15 - c / peak * (h - 25):.1f}" width="{bw - 2:.1f}" '
+        f'height="{c / peak * (h - 25):.1f}" fill="#0b6bcb"><title>{a:.3g}-{b:.3g}: {c}</title>'
+        "</rect>"
+        for i, (a, b, c) in enumerate(bins)
+    )
+    lo, hi = bins[0][0], bins[-1][1]
+    return Markup(
+        f'<svg width="{w}" height="{h}" style="background:#fff">{bars}'
+        f'<text x="0" y="{h - 2}">{lo:.3g}</text><text x="{w - 20}" y="{h - 2}">{hi:.3g}</text>'
+        "</svg>"
+    )

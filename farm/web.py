@@ -1,0 +1,110 @@
+"""The small web layer of this project's servers (the farm dashboard; the trainer's viewer
+can share it): aiohttp, bound to 127.0.0.1 unless told otherwise, a token on any other
+address, a per-server secret on every POST, and files served only from inside given roots.
+
+Rules every server built on it follows:
+
+* **Binding.** ``--host`` defaults to 127.0.0.1. A non-loopback host needs a token: the one
+  given, or one generated here and printed once. With a token, every request without it (as
+  ``Authorization: Bearer``, the ``shaderball_token`` cookie, or ``?token=``, which sets the
+  cookie) gets 401.
+* **POST.** A request that changes anything is a POST carrying the server's secret in the
+  ``X-Shaderball-Secret`` header; the pages embed it. Another site's form cannot send it.
+* **Files.** A path from a request names something under a root with :func:`confine`:
+  absolute paths, ``..`` (after URL decoding) and symlinks that lead outside are refused.
+"""
+
+from __future__ import annotations
+
+import hmac
+import ipaddress
+import secrets
+from pathlib import Path
+
+from aiohttp import web
+
+TOKEN_COOKIE = "shaderball_token"
+SECRET_HEADER = "X-Shaderball-Secret"
+
+
+class Refused(ValueError):
+    """A request path that would leave its root."""
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def token_for(host: str, given: str | None, echo=print) -> str | None:
+    """The token the server will require: ``given``; else, off loopback, a new one (printed
+    once); else none."""
+    if given:
+        return given
+    if is_loopback(host):
+        return None
+    token = secrets.token_urlsafe(24)
+    echo(f"token (needed by every request from another machine): {token}")
+    return token
+
+
+def confine(root: Path, rel: str) -> Path:
+    """``root / rel``, refused when ``rel`` is absolute, climbs with ``..``, or resolves
+    (through symlinks) outside ``root``."""
+    if rel.startswith(("/", "\\")) or "\\" in rel or "\x00" in rel:
+        raise Refused(rel)
+    if any(part == ".." for part in rel.split("/")):
+        raise Refused(rel)
+    base = root.resolve()
+    path = (base / rel).resolve()
+    if path != base and not path.is_relative_to(base):
+        raise Refused(rel)
+    return path
+
+
+def confine_key(rel: str) -> str:
+    """An object-store key below a prefix (``.``: the prefix itself), refused as
+    :func:`confine` refuses paths."""
+    if rel == ".":
+        return rel
+    if rel.startswith("/") or "\\" in rel or any(p in ("", "..") for p in rel.split("/")):
+        raise Refused(rel)
+    return rel
+
+
+def guard(token: str | None, secret: str):
+    """Middleware: the token (when there is one) on every request, the secret on POSTs."""
+
+    @web.middleware
+    async def middleware(request: web.Request, handler):
+        if token is not None:
+            given = request.query.get("token") or request.cookies.get(TOKEN_COOKIE) or ""
+            auth = request.headers.get("Authorization", "")
+            if auth.startswith("Bearer "):
+                given = auth[7:]
+            if not hmac.compare_digest(given.encode(), token.encode()):
+                return web.Response(status=401, text="401: a token is needed (?token=...)\n")
+        if request.method == "POST":
+            sent = request.headers.get(SECRET_HEADER, "")
+            if not hmac.compare_digest(sent.encode(), secret.encode()):
+                return web.Response(status=403, text="403: missing or wrong secret\n")
+        try:
+            response = await handler(request)
+        except Refused:
+            return web.Response(status=404, text="404: outside the served folders\n")
+        if token is not None and request.query.get("token") == token:
+            response.set_cookie(TOKEN_COOKIE, token, httponly=True, samesite="Strict")
+        return response
+
+    return middleware
+
+
+def application(token: str | None) -> tuple[web.Application, str]:
+    """A guarded app and its POST secret."""
+    secret = secrets.token_urlsafe(16)
+    app = web.Application(middlewares=[guard(token, secret)])
+    return app, secret

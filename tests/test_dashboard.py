@@ -1,0 +1,268 @@
+"""The farm dashboard: a real `farm dashboard` server over real stores; its security, its
+metrics, and (slow) the pages in headless Chromium while a real farm job runs and is
+cancelled from the page."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import pytest
+from prometheus_client.parser import text_string_to_metric_families
+
+from farm.state import JobState, WorkerStats, add_point
+from storage.backend import Backend
+from storage.schema import Layout
+from storage.writer import create_store, write_shard
+from tests.conftest import free_port
+from tests.storage_helpers import synthetic_payload
+from tests.test_farm import BIN, TINY, assert_exactly_once, farm, wait_for_commits
+
+ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
+LAYOUT = Layout(num_materials=6, suns_per_material=2, resolution=16, shard_size=4)
+
+
+def synthetic_job(path: Path, committed=(0, 1), status="running") -> JobState:
+    """A store with some shards committed and a job state as a driver leaves it."""
+    store = create_store(str(path), LAYOUT, {"samples": 4, "sources": ["uniform:6"]})
+    for shard in committed:
+        write_shard(store, shard, synthetic_payload(LAYOUT, shard))
+    st = JobState(str(path), {}, LAYOUT.num_samples, LAYOUT.num_shards, status=status)
+    st.frames_done = 4 * len(committed)
+    st.shards_committed = len(committed)
+    st.failures = {"5": {"attempts": 2, "errors": [{"worker": "w1", "error": "boom", "at": 0}],
+                         "final": True}}  # fmt: skip
+    st.workers = {"w0": WorkerStats("w0", "busy", "vm", 10, frames=8, frame_seconds=4.0,
+                                    last_seen=time.time()),
+                  "w1": WorkerStats("w1", "dead", "vm", 11, failures=2)}  # fmt: skip
+    st.started = time.time() - 100
+    st.history = add_point(add_point([], time.time() - 90, 0), time.time() - 50, 4)
+    st.save(Backend(str(path)))
+    return st
+
+
+class Server:
+    """``farm dashboard`` in a subprocess on a free port."""
+
+    def __init__(self, *args, host="127.0.0.1"):
+        self.port = free_port()
+        self.base = f"http://127.0.0.1:{self.port}"
+        cmd = [str(BIN / "farm"), "dashboard", *map(str, args), "--host", host,
+               "--port", str(self.port)]  # fmt: skip
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True)  # fmt: skip
+        deadline = time.time() + 30
+        while time.time() < deadline:
+            try:
+                urllib.request.urlopen(self.base + "/metrics", timeout=2)
+                return
+            except urllib.error.HTTPError:
+                return  # up (and asking for a token)
+            except OSError:
+                time.sleep(0.2)
+        self.stop()
+        raise AssertionError(f"the dashboard did not start: {self.proc.stderr.read()}")
+
+    def get(self, path: str, headers: dict | None = None, method="GET") -> tuple[int, bytes]:
+        req = urllib.request.Request(self.base + path, headers=headers or {}, method=method)
+        try:
+            with urllib.request.urlopen(req, timeout=30) as r:
+                return r.status, r.read()
+        except urllib.error.HTTPError as e:
+            return e.code, e.read()
+
+    def stop(self) -> str:
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            out, _ = self.proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _ = self.proc.communicate()
+        return out
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+def raw_get(port: int, path: str) -> int:
+    """A request sent with its path exactly as given (no client-side normalising)."""
+    import http.client
+
+    c = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    c.request("GET", path)
+    return c.getresponse().status
+
+
+@pytest.fixture(scope="module")
+def sets(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("sets")
+    synthetic_job(root / "a.zarr")
+    (root / "broken.zarr").mkdir()
+    (root / "broken.zarr" / "zarr.json").write_text("{not json")
+    secret = tmp_path_factory.mktemp("outside")
+    (secret / "zarr.json").write_text("{}")
+    os.symlink(secret, root / "escape")
+    return root
+
+
+def test_pages_errors_and_paths_that_leave_the_roots(sets):
+    with Server(sets) as s:
+        code, body = s.get("/")
+        page = body.decode()
+        assert code == 200 and 'href="/job/0/a.zarr"' in page
+        assert "broken.zarr" in page and "not valid JSON" in page  # an error row, a page
+        code, body = s.get("/job/0/a.zarr")
+        assert code == 200 and b"shardmap" in body and b"boom" in body and b"(stale)" not in body
+        assert s.get("/thumb/0/a.zarr?sample=0")[1][:4] == b"\x89PNG"
+        assert s.get("/sheet/0/a.zarr?sample=5")[1][:4] == b"\x89PNG"
+        assert s.get("/thumb/0/a.zarr?sample=9")[0] == 404  # shard 2 is not committed
+        for path in ("/job/0/../../etc", "/job/0/%2e%2e/%2e%2e/etc", "/job/0/%2E%2E%2Fx",
+                     "/job/0//etc", "/job/0/escape", "/job/7/a.zarr", "/thumb/0/escape?sample=0",
+                     "/runfile/0/..?file=eval.png", "/job/0/..%2f..%2fetc"):  # fmt: skip
+            assert raw_get(s.port, path) in (400, 404), path
+        # a POST needs the page's secret: another site's form cannot cancel a job
+        assert s.get("/cancel/0/a.zarr", method="POST")[0] == 403
+
+
+def test_a_non_loopback_host_needs_a_token(sets):
+    with Server(sets, host="0.0.0.0") as s:
+        deadline = time.time() + 10
+        while time.time() < deadline and s.get("/")[0] != 401:
+            time.sleep(0.2)
+        assert s.get("/")[0] == 401 and s.get("/metrics")[0] == 401
+        assert s.get("/job/0/a.zarr?token=wrong")[0] == 401
+        out = s.stop()
+    token = out.split("token (needed by every request from another machine): ")[1].split()[0]
+    with Server(sets, "--token", token, host="0.0.0.0") as s:
+        assert s.get(f"/?token={token}")[0] == 200
+        assert s.get("/", {"Authorization": f"Bearer {token}"})[0] == 200
+        assert s.get("/")[0] == 401
+
+
+def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
+    runs = tmp_path / "runs" / "r1"
+    runs.mkdir(parents=True)
+    lines = [
+        {"step": s, "epoch": 0, "loss": 1 / s, "images_per_second": 50.0, "data_wait": 0.01,
+         "time": time.time()}
+        for s in (10, 20)
+    ]  # fmt: skip
+    (runs / "log.jsonl").write_text("\n".join(json.dumps(x) for x in lines))
+    with Server(sets, "--runs", tmp_path / "runs") as s:
+        code, body = s.get("/metrics")
+        families = {f.name: f for f in text_string_to_metric_families(body.decode())}
+        runs_page = s.get("/runs")[1].decode()
+    assert code == 200
+    value = {
+        (x.name, tuple(sorted(x.labels.items()))): x.value
+        for f in families.values()
+        for x in f.samples
+    }
+    store = (("store", "0/a.zarr"),)
+    assert value[("shaderball_farm_frames_committed_total", store)] == 8
+    assert value[("shaderball_farm_frames_planned", store)] == 12
+    assert value[("shaderball_farm_failures_total", store)] == 2
+    assert value[("shaderball_farm_materials_failed", store)] == 1
+    assert value[("shaderball_farm_workers", (("status", "busy"), *store))] == 1
+    assert value[("shaderball_farm_shards_committed_total", store)] == 2
+    assert value[("shaderball_farm_frame_seconds_count", store)] == 8
+    assert value[("shaderball_train_step", (("run", "0/r1"),))] == 20
+    assert value[("shaderball_train_loss", (("run", "0/r1"),))] == pytest.approx(0.05)
+    assert not any("material=" in str(k) for k in value)  # never a material label
+    assert "0/r1" in runs_page and "<svg" in runs_page
+
+
+@pytest.mark.slow
+def test_the_job_page_in_chromium_follows_a_running_job_and_cancels_it(tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    out = tmp_path / "live.zarr"
+    args = ["submit", "-m", "uniform:30", *TINY, "--workers", "2", "--no-ray-dashboard", "-o", out]
+    job = farm(*args, faults={"slow_s": 2.0}, wait=False)
+    try:
+        wait_for_commits(out, 1)
+        with Server(tmp_path) as s, sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1200, "height": 900})
+            page.goto(s.base + "/")
+            row = page.locator("#jobs tr", has_text="live.zarr")
+            assert "running" in row.inner_text()
+            page.goto(s.base + "/job/0/live.zarr")
+            first = page.locator("#frames").inner_text()
+            page.wait_for_function(  # the page refreshes itself as the job goes on
+                f"document.getElementById('frames').textContent.trim() !== '{first}'",
+                timeout=60_000,
+            )
+            page.wait_for_selector("svg.chart", timeout=30_000)
+            page.wait_for_function(
+                "[...document.querySelectorAll('#thumbs img')].some(i => i.naturalWidth > 0)"
+            )
+            status = json.loads(farm("status", out, "--json").stdout)
+            done, total = page.locator("#frames").inner_text().split("/")
+            assert int(total) == status["frames_total"]
+            assert int(done) <= status["frames_done"] + status["frames_skipped"]
+            ARTIFACTS.mkdir(exist_ok=True)
+            page.screenshot(path=str(ARTIFACTS / "dashboard-job.png"), full_page=True)
+            page.on("dialog", lambda d: d.accept())
+            page.click("button:has-text('cancel')")
+            page.wait_for_function(
+                "document.getElementById('cancel-msg') === null || "
+                "document.getElementById('cancel-msg').textContent.includes('requested')"
+            )
+            stdout, stderr = job.communicate(timeout=120)
+            assert job.returncode == 0, stderr[-2000:]
+            assert "cancelled" in stdout
+            page.wait_for_function(  # the page sees the end by itself
+                "document.querySelector('#live .s-cancelled') !== null", timeout=30_000
+            )
+            final = json.loads(farm("status", out, "--json").stdout)
+            done, total = page.locator("#frames").inner_text().split("/")
+            assert int(done) == final["frames_done"] + final["frames_skipped"] < int(total)
+            browser.close()
+    finally:
+        job.kill()
+    assert final["status"] == "cancelled"
+    r = farm(*args)  # the same command resumes and completes it
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "resuming:" in r.stdout
+    assert_exactly_once(out, 30)
+
+
+def chromium() -> str:
+    """Debian's Chromium (the test command installs it); fail in one line without it."""
+    for path in ("/usr/bin/chromium", "/usr/bin/chromium-browser"):
+        if Path(path).exists():
+            return path
+    pytest.fail("no Chromium at /usr/bin/chromium: run `make test`, which installs it", False)
+
+
+def test_the_progress_history_stays_bounded_over_a_long_job():
+    history: list = []
+    for k in range(10_000):
+        history = add_point(history, float(k), k * 5, limit=100)
+    assert len(history) <= 100
+    assert history[0] == [0.0, 0] and history[-1] == [9999.0, 49995]
+    times = [t for t, _ in history]
+    assert times == sorted(times) and times[len(times) // 2] > 2000  # spread over the life
+
+
+def test_farm_cancel_asks_a_running_job_and_refuses_others(tmp_path):
+    synthetic_job(tmp_path / "run.zarr")
+    synthetic_job(tmp_path / "done.zarr", status="done")
+    r = farm("cancel", tmp_path / "run.zarr")
+    assert r.returncode == 0 and "cancel requested" in r.stdout
+    assert json.loads((tmp_path / "run.zarr" / "farm" / "cancel.json").read_text())["by"]
+    r = farm("cancel", tmp_path / "done.zarr")
+    assert r.returncode == 1 and r.stderr.strip() == (
+        f"Error: {tmp_path / 'done.zarr'}: the job is done, not running"
+    )
+    assert not (tmp_path / "done.zarr" / "farm" / "cancel.json").exists()
