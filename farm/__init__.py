@@ -4,13 +4,19 @@
 - ``farm.actor``: the Ray actor around one kept-loaded Blender process;
 - ``farm.scheduler``: the scheduling policy (dispatch, pipelining, retry with backoff,
   blocklist, timeouts), no Ray;
-- ``farm.assembly``: results kept until their shard is whole, no Ray;
-- ``farm.pool``: joining or starting Ray, the pool of actors;
+- ``farm.assembly``: result refs kept until their shard is whole, no Ray;
+- ``farm.commit``: a whole shard written as a Ray task next to its data;
+- ``farm.pool``: joining or starting Ray, the pool of actors, the commit tasks;
 - ``farm.lease``: one live driver per store;
+- ``farm.cancel``: the cancel request a running driver polls;
 - ``farm.faults``: fault injection for the tests (off unless its variable is set);
-- ``farm.driver``: ``farm submit``'s loop between them: dispatch, wait, commit shards, resume;
+- ``farm.driver``: ``farm submit``'s loop between them: dispatch, wait, commit, resume;
 - ``farm.state`` / ``farm.status``: the job state kept with the store, ``farm status``;
-- ``farm.cli``: ``farm submit``, ``farm status``, ``farm preview``.
+- ``farm.materials``: ``farm materials``, the dry run of material sources;
+- ``farm.web``: the guarded web layer (loopback, token, POST secret, confined paths);
+- ``farm.dashboard``: ``farm dashboard``, the web page and ``/metrics``;
+- ``farm.cli``: ``farm submit``, ``status``, ``cancel``, ``materials``, ``preview``,
+  ``dashboard``.
 
 Importing ``farm`` never loads Blender (nor Ray: the driver imports it when a job starts).
 """

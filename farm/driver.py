@@ -331,7 +331,10 @@ class Loop:
     def failed(self, wid: str, m: int, error: str) -> None:
         out = self.sched.failed(wid, m, error, now())
         self.state.workers[wid].failures += 1
+        spec = self.job.specs[m]
         self.state.failures[str(m)] = {
+            "kind": spec.kind,
+            "source": spec.source_id,
             "attempts": out.attempts,
             "errors": self.sched.errors[m][-5:],
             "final": out.final,

@@ -36,8 +36,9 @@ def synthetic_job(path: Path, committed=(0, 1), status="running") -> JobState:
     st = JobState(str(path), {}, LAYOUT.num_samples, LAYOUT.num_shards, status=status)
     st.frames_done = 4 * len(committed)
     st.shards_committed = len(committed)
-    st.failures = {"5": {"attempts": 2, "errors": [{"worker": "w1", "error": "boom", "at": 0}],
-                         "final": True}}  # fmt: skip
+    errors = [{"worker": "w1", "error": "boom", "at": 0}]
+    st.failures = {"5": {"attempts": 2, "errors": errors, "final": True, "kind": "uniform",
+                         "source": "uniform:seed=77"}}  # fmt: skip
     st.workers = {"w0": WorkerStats("w0", "busy", "vm", 10, frames=8, frame_seconds=4.0,
                                     last_seen=time.time()),
                   "w1": WorkerStats("w1", "dead", "vm", 11, failures=2)}  # fmt: skip
@@ -122,6 +123,7 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets):
         assert "broken.zarr" in page and "not valid JSON" in page  # an error row, a page
         code, body = s.get("/job/0/a.zarr")
         assert code == 200 and b"shardmap" in body and b"boom" in body and b"(stale)" not in body
+        assert b"uniform:seed=77" in body  # the failed material's source
         assert s.get("/thumb/0/a.zarr?sample=0")[1][:4] == b"\x89PNG"
         assert s.get("/sheet/0/a.zarr?sample=5")[1][:4] == b"\x89PNG"
         assert s.get("/thumb/0/a.zarr?sample=9")[0] == 404  # shard 2 is not committed

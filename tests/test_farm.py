@@ -245,6 +245,7 @@ def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
     assert store.committed_shards() == [1]  # the rest of the job completed
     f = job(out)["failures"]["1"]
     assert f["final"] and f["attempts"] == 3
+    assert f["kind"] == "uniform" and f["source"].startswith("uniform:seed=")
     assert {e["worker"] for e in f["errors"]} >= {"w0", "w1"}  # retried on another worker
     assert job(out)["status"] == "failed"
 

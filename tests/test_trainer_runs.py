@@ -116,6 +116,8 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     assert 5 < result["overall"]["psnr"] < 60 and 0 < result["overall"]["ssim"] <= 1
     rows = min(4, result["samples"])  # --grid-count 4; 3 panels a row
     assert Image.open(tmp_path / "g.png").size == (3 * 64, rows * 64)
+    kept = json.loads((trained / "eval.json").read_text())  # for the dashboard's runs page
+    assert kept["overall"] == result["overall"]
 
     out = tmp_path / "a.png"
     args = ["render", "--checkpoint", str(trained), "--store", tiny_store.url, "--sample", "4"]

@@ -160,6 +160,11 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, device, as_json):
         result = evaluate(ckpt, list(stores) or None, batch_size, grid, grid_count, device)
     except (StoreError, CheckpointError, EvalError) as exc:
         _fail(exc)
+    if Path(ckpt).is_dir():  # beside the run's log, for the farm dashboard's runs page
+        from storage.backend import write_atomic
+
+        data = json.dumps(result, indent=1, default=str).encode()
+        write_atomic(Path(ckpt) / "eval.json", lambda f: f.write(data))
     if as_json:
         click.echo(json.dumps(result, indent=2))
         return

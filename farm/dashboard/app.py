@@ -33,7 +33,7 @@ class Dashboard:
     def __init__(self, roots: list[str], run_dirs: list[str]):
         self.roots = [jobs.Root(i, r) for i, r in enumerate(roots)]
         self.run_dirs = [Path(r) for r in run_dirs]
-        self._seconds: dict[str, tuple[int, object]] = {}
+        self.samples = jobs.PerSample()
 
     # ---- names ----------------------------------------------------------------------------
 
@@ -78,22 +78,12 @@ class Dashboard:
         return out
 
     def frame_seconds(self, row: dict):
-        """Render seconds of the committed frames, cached until the commit count changes."""
+        """Render seconds of the committed frames (``None``: the store cannot be read)."""
         try:
             store = Store(row["url"])
-            times = jobs.commit_times(store.backend)
+            return self.samples.get(store, set(jobs.commit_times(store.backend)))["seconds"]
         except Exception:  # noqa: BLE001 - no histogram for a store that cannot be read
             return None
-        cached = self._seconds.get(row["url"])
-        if cached is not None and cached[0] == len(times):
-            return cached[1]
-        samples = [s for sh in sorted(times) for s in store.layout.shard_samples(sh)]
-        seconds = store.group["render_seconds"][:][samples] if samples else []
-        import numpy as np
-
-        arr = np.asarray(seconds, dtype=np.float64)
-        self._seconds[row["url"]] = (len(times), arr)
-        return arr
 
     def job_context(self, name: str) -> dict:
         url = self.store_url(name)
@@ -108,6 +98,7 @@ class Dashboard:
         shown = {"sources", *store.layout.to_dict()}
         settings += [(k, v) for k, v in sorted(store.settings.items()) if k not in shown]
         settings.append(("sources", ", ".join(store.settings.get("sources", []))))
+        hists = jobs.histograms(self.samples.get(store, set(times)))
         ctx.update(
             committed=len(times),
             chart=pages.line_chart(jobs.rates(state.get("history", [])) if state else []),
@@ -116,7 +107,7 @@ class Dashboard:
             failures=jobs.failures_table(state) if state else [],
             workers=jobs.workers_table(state) if state else [],
             settings=settings,
-            hists=[(k, pages.bar_chart(v)) for k, v in jobs.histograms(store, set(times)).items()],
+            hists=[(k, pages.bar_chart(v)) for k, v in hists.items()],
         )
         return ctx
 

@@ -164,26 +164,57 @@ def failures_table(state: dict) -> list[dict]:
     for m, f in sorted(state["failures"].items(), key=lambda kv: int(kv[0])):
         outcome = "final" if f["final"] else "recovered" if f.get("recovered") else "retrying"
         rows.append({"material": int(m), "attempts": f["errors"], "outcome": outcome,
-                     "count": f["attempts"]})  # fmt: skip
+                     "count": f["attempts"], "kind": f.get("kind", ""),
+                     "source": f.get("source", "")})  # fmt: skip
     for shard, error in sorted(state.get("commit_failures", {}).items()):
         rows.append({"material": None, "shard": int(shard), "outcome": "final", "count": 1,
+                     "kind": "", "source": "",
                      "attempts": [{"worker": "commit", "error": error}]})  # fmt: skip
     return rows
 
 
-def histograms(store: Store, committed: set[int]) -> dict:
+class PerSample:
+    """The per-sample values the dashboard draws (sun elevation, turbidity, render seconds) of
+    each committed shard, read once: a committed shard never changes, so following a running
+    job reads only its new shards."""
+
+    NAMES = ("elevation", "turbidity", "seconds")
+
+    def __init__(self):
+        self.shards: dict[str, dict[int, tuple[np.ndarray, ...]]] = {}
+
+    def get(self, store: Store, committed: set[int]) -> dict[str, np.ndarray]:
+        cache = self.shards.setdefault(store.url, {})
+        new = sorted(set(committed) - set(cache))
+        if new:
+            g, lay = store.group, store.layout
+            names = ("sun_direction", "turbidity", "render_seconds")
+            if len(new) > 32:  # one read of each whole array beats many shard reads
+                arrays = [g[n][:] for n in names]
+                rows = {s: lay.shard_samples(s) for s in new}
+                parts = {s: [a[r.start : r.stop] for a in arrays] for s, r in rows.items()}
+            else:
+                parts = {}
+                for s in new:
+                    r = lay.shard_samples(s)
+                    parts[s] = [g[n][r.start : r.stop] for n in names]
+            for s, (d, t, sec) in parts.items():
+                elevation = np.degrees(np.arcsin(np.clip(d[:, 2], -1, 1)))
+                cache[s] = (elevation, np.asarray(t, np.float64), np.asarray(sec, np.float64))
+        keep = sorted(committed)
+        return {name: np.concatenate([cache[s][i] for s in keep]) if keep else np.zeros(0)
+                for i, name in enumerate(self.NAMES)}  # fmt: skip
+
+
+def histograms(values: dict[str, np.ndarray]) -> dict:
     """Sun elevation and turbidity of the committed samples, 9 bins each."""
-    lay = store.layout
-    samples = [s for shard in sorted(committed) for s in lay.shard_samples(shard)]
-    if not samples:
-        return {"sun elevation (deg)": [], "turbidity": []}
-    d = store.group["sun_direction"][:][samples]
-    t = store.group["turbidity"][:][samples]
-    elevation = np.degrees(np.arcsin(np.clip(d[:, 2], -1, 1)))
     out = {}
-    for name, values, lo, hi in (("sun elevation (deg)", elevation, 0, 90),
-                                 ("turbidity", t, 1, 10)):  # fmt: skip
-        counts, edges = np.histogram(values, bins=9, range=(lo, hi))
+    for name, key, lo, hi in (("sun elevation (deg)", "elevation", 0, 90),
+                              ("turbidity", "turbidity", 1, 10)):  # fmt: skip
+        if not len(values[key]):
+            out[name] = []
+            continue
+        counts, edges = np.histogram(values[key], bins=9, range=(lo, hi))
         pairs = zip(edges[:-1], edges[1:], counts, strict=True)
         out[name] = [(float(a), float(b), int(c)) for a, b, c in pairs]
     return out

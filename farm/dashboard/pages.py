@@ -92,9 +92,10 @@ JOB_LIVE = """<div id="live" data-live="{{ 1 if row.status == 'running' else 0 }
 <a href="/sheet/{{ row.name }}?sample={{ s }}">
 <img alt="sample {{ s }}" src="/thumb/{{ row.name }}?sample={{ s }}"></a>{% endfor %}
 {% if not thumbs %}none committed yet{% endif %}</div>
-<h2>Failures</h2>{% if failures %}<table><tr><th>material</th><th>outcome</th><th>attempts</th>
-<th>worker: error</th></tr>{% for f in failures %}<tr><td>{{ f.material if f.material is not none
-else "shard %d commit"|format(f.shard) }}</td><td>{{ f.outcome }}</td><td class="num">{{ f.count
+<h2>Failures</h2>{% if failures %}<table><tr><th>material</th><th>kind</th><th>source</th>
+<th>outcome</th><th>attempts</th><th>worker: error</th></tr>{% for f in failures %}<tr><td>
+{{ f.material if f.material is not none else "shard %d commit"|format(f.shard) }}</td>
+<td>{{ f.kind }}</td><td>{{ f.source }}</td><td>{{ f.outcome }}</td><td class="num">{{ f.count
 }}</td><td>{% for a in f.attempts %}{{ a.worker }}: {{ a.error }}<br>{% endfor %}</td></tr>
 {% endfor %}</table>{% else %}<p>none</p>{% endif %}
 <h2>Workers</h2>{% if workers %}<table><tr><th>worker</th><th>host</th><th>pid</th><th>status
