@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/pip install --quiet -e '.[all,dev]' torch==2.13.0
 	touch $@
 
 # The main job on the embedded default (local Ray, local store): a small real farm job,
@@ -73,7 +73,7 @@ gpu-wheels: $(BIN)/.installed
 .venv-bench/bin/.installed: pyproject.toml
 	$(PYTHON) -m venv .venv-bench
 	.venv-bench/bin/pip install --quiet --upgrade pip
-	.venv-bench/bin/pip install --quiet -e '.[dev]' torch==2.14.1 torchvision==0.29.1 \
+	.venv-bench/bin/pip install --quiet -e '.[all,dev]' torch==2.14.1 torchvision==0.29.1 \
 		mosaicml-streaming webdataset
 	touch $@
 

@@ -13,6 +13,16 @@ from render_jobs.errors import MaterialError, RenderError
 from render_jobs.specs import DEVICES, RenderSettings
 
 
+def _require(what: str, *modules: str) -> None:
+    """One line naming the install extra when ``what`` lacks a module."""
+    from storage.extras import MissingExtra, require
+
+    try:
+        require(what, *modules)
+    except MissingExtra as exc:
+        raise click.ClickException(str(exc)) from None
+
+
 def render_options(command):
     """--suns, --resolution, --samples, --seed: shared by the commands that render."""
     options = [
@@ -92,6 +102,7 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
       farm preview -m uniform --suns 3 --resolution 128 --samples 32 -o out/quick
       farm preview -m textures/leather.png -o out/leather
     """
+    _require("farm preview", "bpy")
     from render_jobs.preview import prepare, render_preview
 
     settings = RenderSettings(
@@ -231,6 +242,7 @@ def submit(
       farm submit -m uniform:20 -m procedural:20 --resolution 128 --samples 32 -o out/small.zarr
       farm submit -m svbrdf:data/deschaintre -o s3://bucket/set.zarr --address ray://head:10001
     """
+    _require("farm submit", "ray")
     from farm.driver import FarmError
     from farm.driver import submit as run
     from farm.plan import JobConfig
@@ -324,7 +336,8 @@ def materials(sources, seed, as_json):
               help="A trainer run folder, or a folder of them (repeatable).")  # fmt: skip
 @click.option("--host", default="127.0.0.1", show_default=True,
               help="Address to bind; any other than loopback needs a token.")  # fmt: skip
-@click.option("--port", default=8266, show_default=True, type=click.IntRange(0, 65535))
+@click.option("--port", default=8266, show_default=True, type=click.IntRange(0, 65535),
+              help="Port to listen on.")  # fmt: skip
 @click.option(
     "--token",
     envvar="SHADERBALL_TOKEN",
@@ -343,6 +356,7 @@ def dashboard(roots, run_dirs, host, port, token):
       farm dashboard out --runs runs                  # http://127.0.0.1:8266
       farm dashboard s3://bucket/sets --host 0.0.0.0  # prints a token; needed by every request
     """
+    _require("farm dashboard", "aiohttp", "jinja2", "prometheus_client")
     from aiohttp import web
 
     from farm.dashboard.app import Dashboard, make_app

@@ -268,3 +268,22 @@ def test_farm_cancel_asks_a_running_job_and_refuses_others(tmp_path):
         f"Error: {tmp_path / 'done.zarr'}: the job is done, not running"
     )
     assert not (tmp_path / "done.zarr" / "farm" / "cancel.json").exists()
+
+
+def test_an_s3_prefix_of_stores_is_a_root(s3, monkeypatch):
+    endpoint, opts = s3
+    env = {"AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test",
+           "AWS_DEFAULT_REGION": "us-east-1", "AWS_ENDPOINT_URL": endpoint}  # fmt: skip
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    from farm.dashboard.app import Dashboard
+
+    store = create_store("s3://shaderball/dash/one.zarr", LAYOUT, {}, storage_options=opts)
+    write_shard(store, 0, synthetic_payload(LAYOUT, 0))
+    dash = Dashboard(["s3://shaderball/dash"], [])
+    rows = dash.job_rows()
+    assert [r["name"] for r in rows] == ["0/one.zarr"] and rows[0]["error"] is None
+    assert rows[0]["frames_done"] == 4 and rows[0]["status"] == "no state"
+    ctx = dash.job_context("0/one.zarr")
+    assert ctx["committed"] == 1 and ctx["thumbs"] == [0, 1, 2, 3]
+    assert dash.picture("s3://shaderball/dash/one.zarr", 0, False)[:4] == b"\x89PNG"

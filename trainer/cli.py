@@ -57,6 +57,12 @@ def main() -> None:
       trainer eval --checkpoint runs/demo
       trainer render --checkpoint runs/demo --store out/demo.zarr --sample 0 -o out.png
     """
+    from storage.extras import MissingExtra, require
+
+    try:
+        require("trainer", "torch")
+    except MissingExtra as exc:
+        _fail(exc)
 
 
 @main.command()
@@ -83,17 +89,38 @@ def train(**kwargs) -> None:
         )
 
 
+def _procs(ctx, param, value):
+    """``--nproc-per-node``: a count, or ``auto`` (as Kubeflow may set it): all GPUs or 1."""
+    if value is None or str(value).lower() in ("auto", "gpu", "cpu", ""):
+        return None
+    try:
+        return int(value)
+    except ValueError:
+        raise click.BadParameter(f"{value!r} is not a number or 'auto'") from None
+
+
 @main.command(context_settings={"show_default": True})
-@click.option("--nodes", default=1, type=int, help="nodes in the job")
-@click.option(
-    "--nproc-per-node", type=int, default=None, help="ranks per node [all GPUs, or 1 on CPU]"
-)
+@click.option("--nodes", default=1, type=int, envvar="PET_NNODES", help="nodes in the job")
+@click.option("--nproc-per-node", default=None, callback=_procs, envvar="PET_NPROC_PER_NODE",
+              help="ranks per node, or auto [all GPUs, or 1 on CPU]")  # fmt: skip
 @click.option("--rdzv-endpoint", default=None, help="HOST:PORT of the c10d rendezvous (nodes > 1)")
-@click.option("--node-rank", type=int, default=None, help="this node's rank (0 hosts rendezvous)")
+@click.option(
+    "--master-addr",
+    default=None,
+    envvar="PET_MASTER_ADDR",
+    help="host of node 0, for torchrun's static rendezvous (Kubeflow Trainer)",
+)
+@click.option("--master-port", default=29400, type=int, envvar="PET_MASTER_PORT",
+              help="port of the static rendezvous on --master-addr")  # fmt: skip
+@click.option("--node-rank", type=int, default=None, envvar="PET_NODE_RANK",
+              help="this node's rank (0 hosts rendezvous)")  # fmt: skip
 @click.option("--max-restarts", default=0, type=int, help="torchrun restarts of failed ranks")
 @click.option("--dry-run", is_flag=True, help="print the torchrun command, do not run it")
 @train_config.options
-def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_run, **kwargs):
+def launch(
+    nodes, nproc_per_node, rdzv_endpoint, master_addr, master_port, node_rank, max_restarts,
+    dry_run, **kwargs,
+):  # fmt: skip
     """Train with torchrun: DDP over every rank of every node.
 
     With no launch options: one node, all its GPUs (or one CPU process). Example, the
@@ -107,6 +134,9 @@ def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_ru
     \b
       trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint node0:29400 \\
           --node-rank 0 --store s3://bucket/ds.zarr --out /shared/runs/r1
+
+    In a Kubeflow Trainer TrainJob (torch-distributed runtime) the node count, rank and
+    rendezvous come from its PET_* variables: give only the training options.
     """
     from trainer.launch import (
         LaunchConfig,
@@ -119,7 +149,10 @@ def launch(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts, dry_ru
 
     cfg = _make_config(kwargs)
     try:
-        lc = LaunchConfig(nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts)
+        lc = LaunchConfig(
+            nodes, nproc_per_node, rdzv_endpoint, node_rank, max_restarts,
+            master_addr=master_addr, master_port=master_port,
+        )  # fmt: skip
     except ValueError as exc:
         _fail(exc)
     argv = torchrun_argv(lc, cfg)

@@ -2,7 +2,11 @@
 
 One node (the default) uses torchrun's ``--standalone`` rendezvous; several nodes use c10d
 rendezvous at ``--rdzv-endpoint HOST:PORT`` (every node runs the same command with its own
-``--node-rank``; the launcher prints the command for the others). torchrun restarts all
+``--node-rank``; the launcher prints the command for the others), or torchrun's static
+rendezvous at ``--master-addr``/``--master-port`` (node rank 0 hosts it). The static form is
+what Kubeflow Trainer's ``torch-distributed`` runtime gives each pod, as ``PET_NNODES``,
+``PET_NODE_RANK``, ``PET_MASTER_ADDR``, ``PET_MASTER_PORT`` and ``PET_NPROC_PER_NODE``, which
+the CLI reads when its flags are not given. torchrun restarts all
 ranks when one fails (``--max-restarts``); a restarted rank resumes from the run folder's
 latest checkpoint (``TORCHELASTIC_RESTART_COUNT`` > 0 implies ``--resume``).
 """
@@ -26,12 +30,19 @@ class LaunchConfig:
     node_rank: int | None = None
     max_restarts: int = 0
     rdzv_id: str = "shaderball"
+    master_addr: str | None = None  # static rendezvous (Kubeflow's PET_MASTER_ADDR)
+    master_port: int = 29400
 
     def __post_init__(self) -> None:
         if self.nodes < 1:
             raise ValueError(f"--nodes must be at least 1, not {self.nodes}")
-        if self.nodes > 1 and not self.rdzv_endpoint:
-            raise ValueError("several nodes need --rdzv-endpoint HOST:PORT (reachable by all)")
+        if self.nodes > 1 and not (self.rdzv_endpoint or self.master_addr):
+            raise ValueError(
+                "several nodes need --rdzv-endpoint HOST:PORT or --master-addr HOST "
+                "(reachable by all)"
+            )
+        if self.master_addr and self.node_rank is None:
+            raise ValueError("--master-addr needs --node-rank (0 hosts the rendezvous)")
         if self.rdzv_endpoint and ":" not in self.rdzv_endpoint:
             raise ValueError(f"--rdzv-endpoint {self.rdzv_endpoint!r} is not HOST:PORT")
         if self.node_rank is not None and not 0 <= self.node_rank < self.nodes:
@@ -46,7 +57,11 @@ class LaunchConfig:
 def torchrun_argv(launch: LaunchConfig, cfg: TrainConfig, node_rank: int | None = None) -> list:
     """The torchrun command line for one node."""
     argv = [sys.executable, "-m", "torch.distributed.run"]
-    if launch.nodes == 1 and not launch.rdzv_endpoint:
+    if launch.master_addr:
+        rank = launch.node_rank if node_rank is None else node_rank
+        argv += ["--nnodes", str(launch.nodes), "--node-rank", str(rank)]
+        argv += ["--master-addr", launch.master_addr, "--master-port", str(launch.master_port)]
+    elif launch.nodes == 1 and not launch.rdzv_endpoint:
         argv += ["--standalone", "--nnodes", "1"]
     else:
         argv += ["--nnodes", str(launch.nodes), "--rdzv-backend", "c10d"]
@@ -68,7 +83,11 @@ def other_node_commands(launch: LaunchConfig, cfg: TrainConfig) -> list[str]:
         args = ["trainer", "launch", "--nodes", str(launch.nodes)]
         if launch.nproc_per_node is not None:
             args += ["--nproc-per-node", str(launch.nproc_per_node)]
-        args += ["--rdzv-endpoint", launch.rdzv_endpoint, "--node-rank", str(r)]
+        if launch.master_addr:
+            args += ["--master-addr", launch.master_addr, "--master-port"]
+            args += [str(launch.master_port), "--node-rank", str(r)]
+        else:
+            args += ["--rdzv-endpoint", launch.rdzv_endpoint, "--node-rank", str(r)]
         args += ["--max-restarts", str(launch.max_restarts), *to_argv(cfg)]
         out.append(shlex.join(args))
     return out
