@@ -117,14 +117,33 @@ def _summary(pairs: list) -> dict:
     }
 
 
+#: tiles of the grid are enlarged (by whole factors, nearest neighbour: every rendered pixel
+#: stays one visible block) until they are at least this many pixels wide
+GRID_MIN_TILE = 256
+GRID_COLUMNS = ("ground truth", "network", "|error| x {gain:g}")
+
+
 def write_grid(
     path: Path, rows: list[tuple[np.ndarray, np.ndarray]], error_gain: float = 4.0
 ) -> None:
-    """A PNG with one row per sample: ground truth | prediction | |error| x ``error_gain``."""
+    """A PNG with one row per sample: ground truth | prediction | |error| x ``error_gain``,
+    under a header naming the columns; small renders are enlarged to be judged by eye."""
+    from PIL import ImageDraw, ImageFont
+
     tiles = []
     for gt, pred in rows:
         err = np.clip(np.abs(gt - pred).mean(0, keepdims=True) * error_gain, 0, 1)
         tiles.append(np.concatenate([to_uint8(gt), to_uint8(pred), to_uint8(err)], axis=1))
+    body = np.concatenate(tiles, axis=0)
+    size = rows[0][0].shape[-1]
+    factor = max(1, -(-GRID_MIN_TILE // size))
+    body = body.repeat(factor, axis=0).repeat(factor, axis=1)
+    tile, header = size * factor, 24
+    grid = Image.new("RGB", (body.shape[1], body.shape[0] + header), (24, 24, 24))
+    grid.paste(Image.fromarray(body), (0, header))
+    draw, font = ImageDraw.Draw(grid), ImageFont.load_default(size=14)
+    for i, name in enumerate(GRID_COLUMNS):
+        draw.text((i * tile + 6, 4), name.format(gain=error_gain), fill=(235, 235, 235), font=font)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.concatenate(tiles, axis=0)).save(path)
+    grid.save(path)
