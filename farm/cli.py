@@ -212,6 +212,12 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
     type=click.IntRange(64),
     help="Restart a worker's Blender above this resident memory.",
 )
+@click.option(
+    "--denoise",
+    is_flag=True,
+    help="Denoise each render with Cycles' OpenImageDenoise (albedo + normal): a baseline "
+    "store; with the same sources and --seed its samples pair with the ground truth's.",
+)
 def submit(
     sources,
     out,
@@ -229,6 +235,7 @@ def submit(
     task_timeout,
     recycle_after,
     rss_limit_mb,
+    denoise,
 ):
     """Render a dataset on Ray workers into a shard store; resumes an interrupted job.
 
@@ -241,6 +248,7 @@ def submit(
     Examples:
       farm submit -m uniform:20 -m procedural:20 --resolution 128 --samples 32 -o out/small.zarr
       farm submit -m svbrdf:data/deschaintre -o s3://bucket/set.zarr --address ray://head:10001
+      farm submit -m uniform:20 --samples 2 --denoise -o out/small-2spp-oidn.zarr  # a baseline
     """
     _require("farm submit", "ray")
     from farm.driver import FarmError
@@ -265,6 +273,7 @@ def submit(
             task_timeout_s=task_timeout,
             recycle_after=recycle_after,
             rss_limit_mb=rss_limit_mb,
+            denoise=denoise,
         )
         if cfg.shard_size % suns:
             raise FarmError(f"--shard-size {shard_size} must be a multiple of --suns {suns}")

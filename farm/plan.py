@@ -45,6 +45,7 @@ class JobConfig:
     turbidity_range: tuple[float, float] = DEFAULT_TURBIDITY_RANGE
     map_resolution: int = DEFAULT_MAP_RESOLUTION
     texture_tiling: float = 2.0
+    denoise: bool = False  # OIDN on each render: a baseline store, never ground truth
     # how to run (not part of the dataset's identity)
     workers: int | None = None
     cpus_per_worker: int = 1
@@ -78,7 +79,7 @@ class JobConfig:
             "camera": CAMERA.to_dict(),
             "geometry_hash": geometry_hash(shaderball()),
             "sky": "HOSEK_WILKIE",
-            "denoising": False,
+            "denoising": self.denoise,
         }
 
 

@@ -74,6 +74,7 @@ class WorkerPool:
             threads=cfg.cpus_per_worker,
             device="OPTIX" if cfg.gpus_per_worker else "CPU",
             texture_tiling=cfg.texture_tiling,
+            denoise=cfg.denoise,
         ).to_dict()
         self.settings = settings
         self.cls = ray.remote(actor_cls).options(

@@ -131,7 +131,9 @@ class RenderSettings(_Serialisable):
     """Job-wide Cycles settings.
 
     ``resolution``: square image side in pixels (paper: 400). ``samples``: paths per pixel
-    (paper: 150), fixed (no adaptive sampling), no denoising. ``device``: CPU, CUDA or OPTIX
+    (paper: 150), fixed (no adaptive sampling). ``denoise``: Cycles' OpenImageDenoise on the
+    final image, guided by albedo and normal passes (a baseline's setting; ground truth is
+    never denoised). ``device``: CPU, CUDA or OPTIX
     (GPU devices need a CUDA build of Blender's kernels and a GPU; each farm worker gets one).
     ``threads``: Cycles CPU threads, 0 = all cores. ``texture_tiling``: map repeats from pole to
     pole (twice as many around the equator, so texels stay square).
@@ -142,6 +144,7 @@ class RenderSettings(_Serialisable):
     device: str = "CPU"
     threads: int = 0
     texture_tiling: float = 2.0
+    denoise: bool = False
 
     def __post_init__(self) -> None:
         if not 8 <= self.resolution <= 8192:

@@ -128,8 +128,13 @@ class ShaderballRenderer:
         cycles = scene.cycles
         cycles.samples = settings.samples
         cycles.use_adaptive_sampling = False
-        cycles.use_denoising = False
+        cycles.use_denoising = settings.denoise
         cycles.use_preview_denoising = False
+        if settings.denoise:  # OIDN on the final image, guided by albedo and normal
+            cycles.denoiser = "OPENIMAGEDENOISE"
+            cycles.denoising_input_passes = "RGB_ALBEDO_NORMAL"
+            cycles.denoising_prefilter = "ACCURATE"
+            scene.view_layers[0].cycles.use_denoising = True
         render = scene.render
         render.resolution_x = render.resolution_y = settings.resolution
         render.resolution_percentage = 100
