@@ -8,6 +8,9 @@ Rules every server built on it follows:
   given, or one generated here and printed once. With a token, every request without it (as
   ``Authorization: Bearer``, the ``shaderball_token`` cookie, or ``?token=``, which sets the
   cookie) gets 401.
+* **Host.** Without a token, only requests naming a loopback host (``127.0.0.1``,
+  ``localhost``, ``[::1]``) are served (403 otherwise), so a web page whose domain is made to
+  resolve to 127.0.0.1 (DNS rebinding) cannot read the pages.
 * **POST.** A request that changes anything is a POST carrying the server's secret in the
   ``X-Shaderball-Secret`` header; the pages embed it. Another site's form cannot send it.
 * **Files.** A path from a request names something under a root with :func:`confine`:
@@ -81,6 +84,8 @@ def guard(token: str | None, secret: str):
 
     @web.middleware
     async def middleware(request: web.Request, handler):
+        if token is None and not is_loopback((request.url.host or "").strip("[]")):
+            return web.Response(status=403, text="403: this server answers loopback hosts only\n")
         if token is not None:
             given = request.query.get("token") or request.cookies.get(TOKEN_COOKIE) or ""
             auth = request.headers.get("Authorization", "")

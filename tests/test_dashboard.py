@@ -133,6 +133,9 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets):
             assert raw_get(s.port, path) in (400, 404), path
         # a POST needs the page's secret: another site's form cannot cancel a job
         assert s.get("/cancel/0/a.zarr", method="POST")[0] == 403
+        # a page from a domain rebound to 127.0.0.1 is refused (no token: loopback names only)
+        assert s.get("/", {"Host": "evil.example:8266"})[0] == 403
+        assert s.get("/", {"Host": f"localhost:{s.port}"})[0] == 200
 
 
 def test_a_non_loopback_host_needs_a_token(sets):
