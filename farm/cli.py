@@ -23,6 +23,24 @@ def _require(what: str, *modules: str) -> None:
         raise click.ClickException(str(exc)) from None
 
 
+def _job_config(cls, **kwargs):
+    """The job's config; a setting it refuses (``ValueError``) ends in one line."""
+    try:
+        return cls(**kwargs)
+    except ValueError as exc:
+        raise click.ClickException(str(exc)) from None
+
+
+def _fixed_sun(text: str | None, turbidity: float):
+    if text is None:
+        return None
+    try:
+        x, y, z = (float(v) for v in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"{text!r} is not X,Y,Z", param_hint="--fixed-sun") from None
+    return (x, y, z, turbidity)
+
+
 def render_options(command):
     """--suns, --resolution, --samples, --seed: shared by the commands that render."""
     options = [
@@ -213,6 +231,20 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
     help="Restart a worker's Blender above this resident memory.",
 )
 @click.option(
+    "--fixed-sun",
+    default=None,
+    metavar="X,Y,Z",
+    help="Render every material under this one sun direction (with --suns 1): a fixed-light "
+    "dataset, for models without a light input.",
+)
+@click.option(
+    "--fixed-turbidity",
+    default=3.0,
+    show_default=True,
+    type=click.FloatRange(1, 10),
+    help="The sky turbidity with --fixed-sun.",
+)
+@click.option(
     "--denoise",
     is_flag=True,
     help="Denoise each render with Cycles' OpenImageDenoise (albedo + normal): a baseline "
@@ -235,6 +267,8 @@ def submit(
     task_timeout,
     recycle_after,
     rss_limit_mb,
+    fixed_sun,
+    fixed_turbidity,
     denoise,
 ):
     """Render a dataset on Ray workers into a shard store; resumes an interrupted job.
@@ -256,7 +290,8 @@ def submit(
     from farm.plan import JobConfig
 
     try:
-        cfg = JobConfig(
+        cfg = _job_config(
+            JobConfig,
             sources=tuple(sources),
             out=out,
             suns=suns,
@@ -274,6 +309,7 @@ def submit(
             recycle_after=recycle_after,
             rss_limit_mb=rss_limit_mb,
             denoise=denoise,
+            fixed_sun=_fixed_sun(fixed_sun, fixed_turbidity),
         )
         if cfg.shard_size % suns:
             raise FarmError(f"--shard-size {shard_size} must be a multiple of --suns {suns}")

@@ -7,12 +7,13 @@ sources, settings and seed always give the same tasks, suns and Cycles seeds.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from render_jobs.geometry import geometry_hash, shaderball
 from render_jobs.materials import specs_from_sources
 from render_jobs.materials.procedural import DEFAULT_MAP_RESOLUTION
-from render_jobs.specs import CAMERA, MaterialSpec, RenderJob, derive_seed
+from render_jobs.specs import CAMERA, MaterialSpec, RenderJob, Sun, derive_seed
 from render_jobs.sun import (
     DEFAULT_MIN_ELEVATION_DEG,
     DEFAULT_SUNS,
@@ -46,6 +47,9 @@ class JobConfig:
     map_resolution: int = DEFAULT_MAP_RESOLUTION
     texture_tiling: float = 2.0
     denoise: bool = False  # OIDN on each render: a baseline store, never ground truth
+    # one given sun for every material (direction x, y, z and turbidity), in place of random
+    # ones: a fixed-light dataset for models without a light input; needs suns=1
+    fixed_sun: tuple[float, float, float, float] | None = None
     # how to run (not part of the dataset's identity)
     workers: int | None = None
     cpus_per_worker: int = 1
@@ -63,6 +67,18 @@ class JobConfig:
     def __post_init__(self) -> None:
         if self.shard_size is None:
             object.__setattr__(self, "shard_size", default_shard_size(self.suns))
+        if self.fixed_sun is not None:
+            if self.suns != 1:
+                raise ValueError(f"--fixed-sun needs --suns 1, not {self.suns}")
+            self.sun_for_all()  # checks it
+
+    def sun_for_all(self) -> Sun:
+        """The fixed sun (raises ``ValueError`` naming what is wrong with it)."""
+        x, y, z, turbidity = self.fixed_sun
+        norm = math.sqrt(x * x + y * y + z * z)
+        if not norm > 0:
+            raise ValueError("--sun must be a non-zero direction X,Y,Z")
+        return Sun(direction=(x / norm, y / norm, z / norm), turbidity=turbidity)
 
     def dataset_settings(self) -> dict:
         """The settings that define the dataset: stored in the store, checked on resubmit."""
@@ -80,6 +96,7 @@ class JobConfig:
             "geometry_hash": geometry_hash(shaderball()),
             "sky": "HOSEK_WILKIE",
             "denoising": self.denoise,
+            "fixed_sun": list(self.fixed_sun) if self.fixed_sun else None,
         }
 
 
@@ -93,8 +110,11 @@ def layout_for(cfg: JobConfig, num_materials: int) -> Layout:
 
 def task_for(cfg: JobConfig, index: int, spec: MaterialSpec) -> RenderJob:
     """Material ``index`` with its suns and per-sun Cycles seeds."""
-    suns = suns_for_material(
-        cfg.seed, index, cfg.suns, cfg.min_elevation_deg, tuple(cfg.turbidity_range)
-    )
+    if cfg.fixed_sun is not None:
+        suns = [cfg.sun_for_all()]
+    else:
+        suns = suns_for_material(
+            cfg.seed, index, cfg.suns, cfg.min_elevation_deg, tuple(cfg.turbidity_range)
+        )
     seeds = tuple(derive_seed(cfg.seed, index, k) for k in range(cfg.suns))
     return RenderJob(material_index=index, material=spec, suns=tuple(suns), seeds=seeds)

@@ -49,3 +49,20 @@ def test_a_baseline_store_pairs_with_its_ground_truth_sample_by_sample(tmp_path)
     # a resubmit must say the same: a ground-truth command cannot resume a baseline store
     r = farm("submit", *common, "--samples", "1", "-o", base)
     assert r.returncode == 1 and "settings.denoising=True" in r.stderr
+
+
+def test_a_fixed_sun_dataset_renders_every_material_under_one_light(tmp_path):
+    out = tmp_path / "fixed.zarr"
+    args = ["submit", "-m", "uniform:3", "--suns", "1", "--shard-size", "2", "--resolution", "32",
+            "--samples", "2", "--workers", "1", "--no-ray-dashboard"]  # fmt: skip
+    r = farm(*args, "--fixed-sun", "0,3,4", "--fixed-turbidity", "5", "-o", out)
+    assert r.returncode == 0, r.stderr[-2000:]
+    store = Store(str(out))
+    np.testing.assert_allclose(store.group["sun_direction"][:], [[0, 0.6, 0.8]] * 3, atol=1e-6)
+    np.testing.assert_array_equal(store.group["turbidity"][:], [5.0] * 3)
+    assert store.settings["fixed_sun"] == [0.0, 3.0, 4.0, 5.0]
+    bad = farm(*args[:3], "--suns", "2", "--fixed-sun", "0,0,1", "-o", tmp_path / "no.zarr")
+    assert bad.returncode == 1 and "--suns 1" in bad.stderr.strip().splitlines()[-1]
+    below = farm(*args, "--fixed-sun", "1,0,-1", "-o", tmp_path / "no.zarr")
+    assert below.returncode == 1 and "above the horizon" in below.stderr
+    assert not (tmp_path / "no.zarr").exists()
