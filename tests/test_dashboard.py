@@ -18,7 +18,7 @@ from prometheus_client.parser import text_string_to_metric_families
 
 from farm.state import JobState, WorkerStats, add_point
 from storage.backend import Backend
-from storage.schema import Layout
+from storage.schema import Layout, commit_key
 from storage.writer import create_store, write_shard
 from tests.conftest import free_port
 from tests.storage_helpers import synthetic_payload
@@ -28,11 +28,14 @@ ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 LAYOUT = Layout(num_materials=6, suns_per_material=2, resolution=16, shard_size=4)
 
 
-def synthetic_job(path: Path, committed=(0, 1), status="running") -> JobState:
-    """A store with some shards committed and a job state as a driver leaves it."""
+def synthetic_job(path: Path, committed=(0, 1), status="running", pending=()) -> JobState:
+    """A store with some shards committed (and ``pending`` ones written but not committed, as
+    a crash leaves them) and a job state as a driver leaves it."""
     store = create_store(str(path), LAYOUT, {"samples": 4, "sources": ["uniform:6"]})
-    for shard in committed:
+    for shard in (*committed, *pending):
         write_shard(store, shard, synthetic_payload(LAYOUT, shard))
+    for shard in pending:
+        (path / commit_key(shard)).unlink()
     st = JobState(str(path), {}, LAYOUT.num_samples, LAYOUT.num_shards, status=status)
     st.frames_done = 4 * len(committed)
     st.shards_committed = len(committed)
@@ -106,7 +109,7 @@ def raw_get(port: int, path: str) -> int:
 @pytest.fixture(scope="module")
 def sets(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("sets")
-    synthetic_job(root / "a.zarr")
+    synthetic_job(root / "a.zarr", pending=(2,))
     (root / "broken.zarr").mkdir()
     (root / "broken.zarr" / "zarr.json").write_text("{not json")
     secret = tmp_path_factory.mktemp("outside")
@@ -124,6 +127,7 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets):
         code, body = s.get("/job/0/a.zarr")
         assert code == 200 and b"shardmap" in body and b"boom" in body and b"(stale)" not in body
         assert b"uniform:seed=77" in body  # the failed material's source
+        assert b"committed 2" in body and b"pending 1" in body  # the shard map's legend
         assert s.get("/thumb/0/a.zarr?sample=0")[1][:4] == b"\x89PNG"
         assert s.get("/sheet/0/a.zarr?sample=5")[1][:4] == b"\x89PNG"
         assert s.get("/thumb/0/a.zarr?sample=9")[0] == 404  # shard 2 is not committed

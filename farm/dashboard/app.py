@@ -102,7 +102,9 @@ class Dashboard:
         ctx.update(
             committed=len(times),
             chart=pages.line_chart(jobs.rates(state.get("history", [])) if state else []),
-            shard_map=pages.shard_map(jobs.shard_states(store, set(times), state)),
+            shard_map=pages.shard_map(
+                jobs.shard_states(store, set(times), jobs.shards_with_bytes(store.backend), state)
+            ),
             thumbs=jobs.newest_samples(store, times),
             failures=jobs.failures_table(state) if state else [],
             workers=jobs.workers_table(state) if state else [],

@@ -136,16 +136,38 @@ def rates(history: list) -> list[tuple[float, float]]:
     return out
 
 
-def shard_states(store: Store, committed: set[int], state: dict | None) -> list[str]:
-    """Per shard: ``committed``, ``failed`` (its material failed for good or its commit
-    failed), ``pending`` (to do while the job runs) or ``empty``."""
+def shards_with_bytes(backend: Backend) -> set[int]:
+    """Shards whose renders file exists, from one listing (committed or not)."""
+    path = backend.path("renders/c")
+    try:
+        if backend.local:
+            names = os.listdir(path)
+        else:
+            backend.fs.invalidate_cache(path)
+            names = [e.rstrip("/").rsplit("/", 1)[-1] for e in backend.fs.ls(path, detail=False)]
+    except (FileNotFoundError, NotADirectoryError):
+        return set()
+    return {int(n) for n in names if n.isdigit()}
+
+
+def shard_states(
+    store: Store, committed: set[int], written: set[int], state: dict | None
+) -> list[str]:
+    """Per shard: ``committed``; ``failed`` (a material failed for good, or its commit);
+    ``pending`` (bytes written, no commit record yet: being committed, or left by a crash);
+    ``queued`` (nothing yet, the job running) or ``empty``."""
     failed = set(state.get("shards_failed", [])) if state else set()
     running = bool(state) and state.get("effective_status") == "running"
-    rest = "pending" if running else "empty"
-    return [
-        "committed" if s in committed else "failed" if s in failed else rest
-        for s in range(store.layout.num_shards)
-    ]
+    rest = "queued" if running else "empty"
+    out = []
+    for s in range(store.layout.num_shards):
+        if s in committed:
+            out.append("committed")
+        elif s in failed:
+            out.append("failed")
+        else:
+            out.append("pending" if s in written else rest)
+    return out
 
 
 def workers_table(state: dict, now: float | None = None) -> list[dict]:

@@ -176,7 +176,13 @@ def line_chart(points: list[tuple[float, float]], w: int = 640, h: int = 160, t0
     )
 
 
-COLOURS = {"committed": "#1a7f37", "pending": "#c9d3e0", "failed": "#c62828", "empty": "#eceff3"}
+COLOURS = {
+    "committed": "#1a7f37",
+    "pending": "#e0a800",
+    "queued": "#c9d3e0",
+    "failed": "#c62828",
+    "empty": "#eceff3",
+}
 
 
 def shard_map(states: list[str], cell: int = 10, per_row: int = 80) -> Markup:
