@@ -406,3 +406,31 @@ def test_sigterm_to_the_launcher_stops_every_rank(tiny_store, tmp_path):
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
+
+
+def test_the_zsolnai_feher_baseline_trains_saves_loads_and_evaluates(tiny_store, tmp_path):
+    from trainer.zf import ZsolnaiFeherRenderer, material_vector
+
+    out = tmp_path / "zf"
+    train(config(tiny_store, out, epochs=4, model="zf", lr=3e-4))
+    state = checkpoint.load(out)
+    assert state["model_config"]["arch"] == "zf"
+    catalog = Catalog.from_dict(state["catalog"])
+    torch.manual_seed(0)  # the run's initial weights
+    before = mean_l1(ZsolnaiFeherRenderer(ModelConfig(resolution=64, arch="zf")), catalog)
+    renderer = Renderer.from_checkpoint(out)
+    assert isinstance(renderer.model, ZsolnaiFeherRenderer)
+    assert mean_l1(renderer.model, catalog) < 0.9 * before
+    maps = tiny_store.read_shard(0).maps[0]
+    a = renderer.render(maps, (0, 0, 1), 3)
+    b = renderer.render(maps, (0.8, 0, 0.6), 8)
+    np.testing.assert_array_equal(a, b)  # no light input: one image per material
+    x = model_inputs(torch.from_numpy(maps[None]))
+    ball = x[:, -1:] > 0.25
+    np.testing.assert_allclose(  # the material's values: each channel's mean over the ball
+        material_vector(x)[0, :3].numpy(), [float(x[0, c][ball[0, 0]].mean()) for c in range(3)],
+        rtol=1e-5,
+    )  # fmt: skip
+    r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(out), "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output[r.output.index("{") :])["overall"]["n"] > 0

@@ -34,6 +34,12 @@ class TrainConfig:
     vgg_weights: str | None = _opt(
         None, "torchvision VGG16 state dict (.pth); default: the torch hub cache"
     )
+    model: str = _opt(
+        "unet",
+        "unet (the paper's) or zf (Zsolnai-Fehér et al. 2018's baseline: the material's values "
+        "to an image, no light input; train it on a --fixed-sun store)",
+        choices=("unet", "zf"),
+    )
     width: int = _opt(64, "channels of the first U-Net level (the paper: 64)")
     skips: bool = _opt(True, "skip connections (--no-skips: the paper's ablation)")
     roughness_channels: int = _opt(

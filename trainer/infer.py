@@ -14,7 +14,7 @@ import torch
 
 from trainer import checkpoint
 from trainer.fastnet import SubpixelRenderer
-from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
+from trainer.model import ModelConfig, NeuralRenderer, build_model, fold_batchnorm
 from trainer.targets import Tonemap, light_vector, model_inputs
 
 
@@ -29,6 +29,8 @@ def inference_network(model: NeuralRenderer, device: torch.device) -> torch.nn.M
     exact sub-pixel rewrite of :mod:`trainer.fastnet` in channels_last (1.34x faster there);
     elsewhere the original layout, since on an H100 the uncompiled rewrite was the slower
     (2.76 against 1.96 ms a frame at batch 1, ``docs/benchmarks.md``)."""
+    if not isinstance(model, NeuralRenderer):  # the baseline (trainer.zf) runs as it is
+        return model.eval()
     folded = fold_batchnorm(model)
     if device.type != "cpu":
         return folded
@@ -51,7 +53,7 @@ class Renderer:
     @classmethod
     def from_checkpoint(cls, path, device: str = "auto") -> Renderer:
         state = checkpoint.load(path)
-        model = NeuralRenderer(ModelConfig(**state["model_config"]))
+        model = build_model(ModelConfig(**state["model_config"]))
         model.load_state_dict(state["model"])
         r = cls(model, Tonemap.from_dict(state["tonemap"]), pick_device(device))
         r.state = state

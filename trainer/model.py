@@ -27,6 +27,8 @@ import torch.nn.functional as F
 from torch import nn
 
 LIGHT_CHANNELS = 128
+#: the models: the paper's U-Net, and Zsolnai-Fehér et al. 2018's baseline (trainer.zf)
+ARCHS = ("unet", "zf")
 
 
 @dataclass(frozen=True)
@@ -35,6 +37,7 @@ class ModelConfig:
     width: int = 64  # channels of the first encoder level (the paper's 64)
     skips: bool = True  # False: the paper's no-skip-connection ablation
     roughness_channels: int = 1  # 3: roughness repeated, as the authors' 12-channel input
+    arch: str = "unet"  # one of ARCHS
 
     def __post_init__(self) -> None:
         if self.resolution < 16 or self.resolution % 16:
@@ -44,6 +47,8 @@ class ModelConfig:
             )
         if self.width < 1:
             raise ValueError(f"width must be positive, not {self.width}")
+        if self.arch not in ARCHS:
+            raise ValueError(f"arch must be one of {ARCHS}, not {self.arch!r}")
         if self.roughness_channels not in (1, 3):
             raise ValueError(f"roughness_channels must be 1 or 3, not {self.roughness_channels}")
 
@@ -139,6 +144,15 @@ class NeuralRenderer(nn.Module):
                 x = torch.cat([x, skips[-1 - i]], 1)
             x = F.interpolate(dec(x), scale_factor=2, mode="bilinear", align_corners=False)
         return torch.sigmoid(self.out(x))
+
+
+def build_model(config: ModelConfig) -> nn.Module:
+    """The model ``config.arch`` names (both take ``(maps, light)`` batches)."""
+    if config.arch == "zf":
+        from trainer.zf import ZsolnaiFeherRenderer
+
+        return ZsolnaiFeherRenderer(config)
+    return NeuralRenderer(config)
 
 
 def count_parameters(model: nn.Module) -> int:

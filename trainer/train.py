@@ -41,7 +41,7 @@ from tqdm import tqdm
 from trainer import checkpoint, faults
 from trainer.config import TrainConfig
 from trainer.data import Catalog, ShardStream, steps_left
-from trainer.model import ModelConfig, NeuralRenderer
+from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
 from trainer.targets import Tonemap, model_inputs
 
@@ -123,7 +123,7 @@ class Trainee:
     """The network being trained and everything a checkpoint holds, with the run's position:
     ``step`` (global), ``epoch``, and ``position`` (samples of the epoch already taken)."""
 
-    model: NeuralRenderer
+    model: torch.nn.Module  # trainer.model.NeuralRenderer, or trainer.zf's baseline
     net: torch.nn.Module  # the model, or DDP around it
     opt: torch.optim.Optimizer
     criterion: RendererLoss
@@ -268,13 +268,15 @@ def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found) -> Catalog:
 
 def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg) -> Trainee:
     """Model, loss and optimizer, fresh (seeded) or loaded from ``state``."""
-    model_cfg = ModelConfig(catalog.resolution, cfg.width, cfg.skips, cfg.roughness_channels)
+    model_cfg = ModelConfig(
+        catalog.resolution, cfg.width, cfg.skips, cfg.roughness_channels, arch=cfg.model
+    )
     tonemap = Tonemap(exposure=cfg.exposure)
     if state is not None:
         model_cfg = ModelConfig(**state["model_config"])
         tonemap = Tonemap.from_dict(state["tonemap"])
     torch.manual_seed(cfg.seed)
-    model = NeuralRenderer(model_cfg).to(rk.device, memory_format=rk.fmt)
+    model = build_model(model_cfg).to(rk.device, memory_format=rk.fmt)
     criterion = RendererLoss(vgg, cfg.perceptual_weight).to(rk.device, memory_format=rk.fmt)
     if rk.cuda:
         torch.backends.cudnn.benchmark = True  # fixed shapes: let cuDNN pick its fastest convs
