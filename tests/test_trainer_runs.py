@@ -114,6 +114,7 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     assert result["samples"] == 3 * len(held) == result["overall"]["n"]
     assert sum(m["n"] for m in result["by_kind"].values()) == result["samples"]
     assert 5 < result["overall"]["psnr"] < 60 and 0 < result["overall"]["ssim"] <= 1
+    assert 0 < result["overall"]["flip"] < 1  # NVIDIA's FLIP: 0 only for identical images
     rows = min(4, result["samples"])  # --grid-count 4; 3 panels a row, enlarged 4x to 256²
     assert Image.open(tmp_path / "g.png").size == (3 * 256, 24 + rows * 256)  # under a header
     kept = json.loads((trained / "eval.json").read_text())  # for the dashboard's runs page

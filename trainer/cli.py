@@ -204,9 +204,11 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, device, as_json):
     o = result["overall"]
     click.echo(f"step {result['checkpoint_step']}: {o['n']} held-out samples")
     rows = [
-        (kind, m["n"], m["psnr"], m["ssim"]) for kind, m in [("all", o), *result["by_kind"].items()]
+        (kind, m["n"], m["psnr"], m["ssim"], m["flip"])
+        for kind, m in [("all", o), *result["by_kind"].items()]
     ]
-    click.echo(tabulate(rows, ["kind", "n", "PSNR dB", "SSIM"], floatfmt=("", "", ".2f", ".4f")))
+    head = ["kind", "n", "PSNR dB", "SSIM", "FLIP (lower is better)"]
+    click.echo(tabulate(rows, head, floatfmt=("", "", ".2f", ".4f", ".4f")))
     if "grid" in result:
         click.echo(f"grid: {result['grid']}")
 

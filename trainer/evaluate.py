@@ -53,6 +53,20 @@ def ssim(pred: torch.Tensor, target: torch.Tensor, size: int = 11, sigma: float 
     return s.flatten(1).mean(1)
 
 
+def flip(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per image mean LDR-FLIP (NVIDIA's perceptual difference, ``flip-evaluator``; 0 is
+    identical, lower is better) of ``(N, 3, H, W)`` sRGB-encoded images in [0, 1] → ``(N,)``."""
+    import flip_evaluator
+
+    out = []
+    for p, t in zip(pred.float().cpu().numpy(), target.float().cpu().numpy(), strict=True):
+        ref = np.ascontiguousarray(t.transpose(1, 2, 0))
+        test = np.ascontiguousarray(p.transpose(1, 2, 0))
+        _, mean, _ = flip_evaluator.evaluate(ref, test, "LDR", inputsRGB=True, applyMagma=False)
+        out.append(float(mean))
+    return torch.tensor(out)
+
+
 def evaluate(
     ckpt,
     stores: list[str] | None = None,
@@ -87,13 +101,13 @@ def evaluate(
         batch = reader.batch(ids[lo : lo + batch_size])
         pred = renderer.render_batch(batch["maps"], batch["light"])
         target = renderer.tonemap(batch["render"].to(pred.device))
-        p, s = psnr(pred, target).cpu(), ssim(pred, target).cpu()
+        p, s, f = psnr(pred, target).cpu(), ssim(pred, target).cpu(), flip(pred, target)
         for j, i in enumerate(batch["id"].tolist()):
             store, sample = split.refs[i]
             layout = reader.stores[store].layout
             kind = kinds[store][layout.material_of_sample(int(sample))]
             for key in ("all", kind):
-                scores[key].append((float(p[j]), float(s[j])))
+                scores[key].append((float(p[j]), float(s[j]), float(f[j])))
             if len(shown) < grid_count:
                 shown.append((target[j].cpu().numpy(), pred[j].cpu().numpy()))
     result = {
@@ -114,6 +128,7 @@ def _summary(pairs: list) -> dict:
         "n": len(a),
         "psnr": round(float(a[:, 0].mean()), 3),
         "ssim": round(float(a[:, 1].mean()), 4),
+        "flip": round(float(a[:, 2].mean()), 4),
     }
 
 
