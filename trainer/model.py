@@ -64,6 +64,20 @@ class ModelConfig:
         return asdict(self)
 
 
+def check_inputs(cfg: ModelConfig, maps: torch.Tensor, light: torch.Tensor) -> None:
+    """Raise ``ValueError`` naming the first input whose shape does not fit a model of
+    ``cfg`` (every model takes the same ``(maps, light)`` batches)."""
+    want = (cfg.in_channels, cfg.resolution, cfg.resolution)
+    if maps.dim() != 4 or tuple(maps.shape[1:]) != want:
+        raise ValueError(
+            f"maps have shape {tuple(maps.shape)}, the model takes (N, {want[0]}, "
+            f"{want[1]}, {want[2]}): {cfg.in_channels} channels at its {cfg.resolution}² "
+            "resolution"
+        )
+    if light.dim() != 2 or light.shape != (maps.shape[0], 4):
+        raise ValueError(f"light has shape {tuple(light.shape)}, expected ({maps.shape[0]}, 4)")
+
+
 def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(
         nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
@@ -120,17 +134,7 @@ class NeuralRenderer(nn.Module):
                     nn.init.zeros_(m.bias)
 
     def check_inputs(self, maps: torch.Tensor, light: torch.Tensor) -> None:
-        """Raise ``ValueError`` naming the first input whose shape does not fit the model."""
-        cfg = self.config
-        want = (cfg.in_channels, cfg.resolution, cfg.resolution)
-        if maps.dim() != 4 or tuple(maps.shape[1:]) != want:
-            raise ValueError(
-                f"maps have shape {tuple(maps.shape)}, the model takes (N, {want[0]}, "
-                f"{want[1]}, {want[2]}): {cfg.in_channels} channels at its {cfg.resolution}² "
-                "resolution"
-            )
-        if light.dim() != 2 or light.shape != (maps.shape[0], 4):
-            raise ValueError(f"light has shape {tuple(light.shape)}, expected ({maps.shape[0]}, 4)")
+        check_inputs(self.config, maps, light)
 
     def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         skips = []

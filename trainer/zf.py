@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from trainer.model import ModelConfig
+from trainer.model import ModelConfig, check_inputs
 
 FC = (512, 1024, 1024)
 UP = (256, 128, 64, 32, 16)
@@ -67,16 +67,7 @@ class ZsolnaiFeherRenderer(nn.Module):
                     nn.init.zeros_(m.bias)
 
     def check_inputs(self, maps: torch.Tensor, light: torch.Tensor) -> None:
-        """Raise ``ValueError`` naming the first input whose shape does not fit the model."""
-        cfg = self.config
-        want = (cfg.in_channels, cfg.resolution, cfg.resolution)
-        if maps.dim() != 4 or tuple(maps.shape[1:]) != want:
-            raise ValueError(
-                f"maps have shape {tuple(maps.shape)}, the model takes (N, {want[0]}, "
-                f"{want[1]}, {want[2]})"
-            )
-        if light.dim() != 2 or light.shape != (maps.shape[0], 4):
-            raise ValueError(f"light has shape {tuple(light.shape)}, expected ({maps.shape[0]}, 4)")
+        check_inputs(self.config, maps, light)
 
     def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         x = self.fc(material_vector(maps)).view(-1, UP[0], self.b, self.b)
