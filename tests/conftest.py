@@ -59,6 +59,17 @@ def tiny_store(worker, tmp_path_factory):
     return store
 
 
+def s3_env(endpoint: str, **extra: str) -> dict[str, str]:
+    """The environment that points botocore / s3fs at the test S3 server ``endpoint``."""
+    return {
+        "AWS_ACCESS_KEY_ID": "test",
+        "AWS_SECRET_ACCESS_KEY": "test",
+        "AWS_DEFAULT_REGION": "us-east-1",
+        "AWS_ENDPOINT_URL": endpoint,
+        **extra,
+    }
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

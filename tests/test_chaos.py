@@ -20,6 +20,7 @@ import pytest
 from farm.state import load_state
 from render_jobs.specs import derive_seed
 from storage.reader import Store
+from tests.conftest import s3_env
 from tests.flaky_proxy import FlakyProxy
 from tests.test_farm import BIN, TINY, farm
 
@@ -63,17 +64,14 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, m
     from ray.cluster_utils import Cluster
 
     endpoint, opts = s3
-    env = {
-        "RAY_AUTH_MODE": "disabled",
-        "AWS_ACCESS_KEY_ID": "test",
-        "AWS_SECRET_ACCESS_KEY": "test",
-        "AWS_DEFAULT_REGION": "us-east-1",
-        "AWS_MAX_ATTEMPTS": "1",  # every fault reaches the project's own retries
-        "SHADERBALL_FARM_FAULTS": '{"slow_s": 1.5}',
-    }
     args = ["submit", "-m", f"uniform:{MATERIALS}", *TINY, "--workers", "3"]
     with FlakyProxy(endpoint, every=25, stall_s=0, burst=2) as proxy:
-        env["AWS_ENDPOINT_URL"] = proxy.endpoint
+        env = s3_env(
+            proxy.endpoint,
+            RAY_AUTH_MODE="disabled",
+            AWS_MAX_ATTEMPTS="1",  # every fault reaches the project's own retries
+            SHADERBALL_FARM_FAULTS='{"slow_s": 1.5}',
+        )
         for k, v in env.items():  # the nodes' workers (and commit tasks) inherit these
             monkeypatch.setenv(k, v)
         loopback = {"node_ip_address": "127.0.0.1"}

@@ -20,7 +20,7 @@ from farm.state import JobState, WorkerStats, add_point
 from storage.backend import Backend
 from storage.schema import Layout, commit_key
 from storage.writer import create_store, write_shard
-from tests.conftest import free_port
+from tests.conftest import free_port, s3_env
 from tests.storage_helpers import synthetic_payload
 from tests.test_farm import BIN, TINY, assert_exactly_once, farm, wait_for_commits
 
@@ -279,9 +279,7 @@ def test_farm_cancel_asks_a_running_job_and_refuses_others(tmp_path):
 
 def test_an_s3_prefix_of_stores_is_a_root(s3, monkeypatch):
     endpoint, opts = s3
-    env = {"AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test",
-           "AWS_DEFAULT_REGION": "us-east-1", "AWS_ENDPOINT_URL": endpoint}  # fmt: skip
-    for k, v in env.items():
+    for k, v in s3_env(endpoint).items():
         monkeypatch.setenv(k, v)
     from farm.dashboard.app import Dashboard
 

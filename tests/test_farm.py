@@ -21,6 +21,7 @@ from farm.state import LOST_AFTER_S
 from render_jobs.specs import derive_seed
 from storage.reader import Store
 from storage.verify import verify
+from tests.conftest import s3_env
 from tests.flaky_proxy import FlakyProxy
 
 pytestmark = pytest.mark.slow
@@ -358,16 +359,9 @@ def test_a_farm_job_over_a_flaky_object_store_commits_every_sample_once(s3, tmp_
     on two requests in every 12 (botocore's own retries off): the job ends whole, with the
     same data as the same job written locally; a bucket that denies access fails at once."""
     endpoint, opts = s3
-    env = {
-        "AWS_ACCESS_KEY_ID": "test",
-        "AWS_SECRET_ACCESS_KEY": "test",
-        "AWS_DEFAULT_REGION": "us-east-1",
-        "AWS_MAX_ATTEMPTS": "1",
-        "AWS_RETRY_MODE": "standard",
-    }
     args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "--no-ray-dashboard"]
     with FlakyProxy(endpoint, every=12, stall_s=0, burst=2, deny="/denied.zarr") as proxy:
-        env["AWS_ENDPOINT_URL"] = proxy.endpoint
+        env = s3_env(proxy.endpoint, AWS_MAX_ATTEMPTS="1", AWS_RETRY_MODE="standard")
         r = farm(*args, "-o", "s3://shaderball/farm.zarr", env=env)
         assert r.returncode == 0, r.stderr[-3000:]
         t0 = time.time()

@@ -19,7 +19,7 @@ import pytest
 import yaml
 
 from storage.reader import Store
-from tests.conftest import free_port
+from tests.conftest import free_port, s3_env
 
 ROOT = Path(__file__).resolve().parent.parent
 K8S = ROOT / "k8s"
@@ -130,13 +130,8 @@ def test_the_dev_rayjob_and_trainjob_commands_run_here(s3, tmp_path, monkeypatch
     docs = {d["kind"]: d for d in rendered("dev")}
     entrypoint = docs["RayJob"]["spec"]["entrypoint"]
     trainer = docs["TrainJob"]["spec"]["trainer"]
-    store_env = {
-        "AWS_ACCESS_KEY_ID": "test",
-        "AWS_SECRET_ACCESS_KEY": "test",
-        "AWS_DEFAULT_REGION": "us-east-1",
-        "AWS_ENDPOINT_URL": endpoint,  # the Secret's endpoint, here the local S3 server
-        "RAY_AUTH_MODE": "disabled",
-    }
+    # the Secret's endpoint, here the local S3 server
+    store_env = s3_env(endpoint, RAY_AUTH_MODE="disabled")
     for k, v in store_env.items():  # the nodes' workers get them, as the pods get the Secret
         monkeypatch.setenv(k, v)
     loopback = {"node_ip_address": "127.0.0.1"}

@@ -78,6 +78,16 @@ def check_inputs(cfg: ModelConfig, maps: torch.Tensor, light: torch.Tensor) -> N
         raise ValueError(f"light has shape {tuple(light.shape)}, expected ({maps.shape[0]}, 4)")
 
 
+def glorot_init(model: nn.Module) -> None:
+    """Glorot (Xavier) uniform weights and zero biases for every (transposed) convolution
+    and linear layer of ``model``."""
+    for m in model.modules():
+        if isinstance(m, nn.Conv2d | nn.ConvTranspose2d | nn.Linear):
+            nn.init.xavier_uniform_(m.weight)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+
+
 def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(
         nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
@@ -127,11 +137,7 @@ class NeuralRenderer(nn.Module):
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d | nn.Linear):
-                nn.init.xavier_uniform_(m.weight)
-                if m.bias is not None:
-                    nn.init.zeros_(m.bias)
+        glorot_init(self)
 
     def check_inputs(self, maps: torch.Tensor, light: torch.Tensor) -> None:
         check_inputs(self.config, maps, light)

@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from trainer.model import ModelConfig, check_inputs
+from trainer.model import ModelConfig, check_inputs, glorot_init
 
 FC = (512, 1024, 1024)
 UP = (256, 128, 64, 32, 16)
@@ -60,11 +60,7 @@ class ZsolnaiFeherRenderer(nn.Module):
             ]
         self.up = nn.Sequential(*ups)
         self.out = nn.Conv2d(UP[-1], 3, 3, padding=1)
-        for m in self.modules():
-            if isinstance(m, nn.Conv2d | nn.ConvTranspose2d | nn.Linear):
-                nn.init.xavier_uniform_(m.weight)
-                if m.bias is not None:
-                    nn.init.zeros_(m.bias)
+        glorot_init(self)
 
     def check_inputs(self, maps: torch.Tensor, light: torch.Tensor) -> None:
         check_inputs(self.config, maps, light)

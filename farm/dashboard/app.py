@@ -14,7 +14,6 @@ import asyncio
 import functools
 import io
 import json
-import time
 from pathlib import Path
 
 from aiohttp import web
@@ -209,5 +208,4 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
     app.router.add_get("/runs", runs_page)
     app.router.add_get("/runfile/{name:.+}", run_file)
     app.router.add_get("/metrics", metrics)
-    app["started"] = time.time()
     return app

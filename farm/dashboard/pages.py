@@ -152,7 +152,7 @@ def render(name: str, **ctx) -> str:
     return ENV.get_template(name).render(css=Markup(CSS), js=Markup(JS), **ctx)
 
 
-def line_chart(points: list[tuple[float, float]], w: int = 640, h: int = 160, t0=None) -> Markup:
+def line_chart(points: list[tuple[float, float]], w: int = 640, h: int = 160) -> Markup:
     """An SVG line of ``(x, y)`` points with its y range and x span labelled."""
     if len(points) < 2:
         return Markup("<p>not enough progress points yet</p>")
