@@ -135,6 +135,18 @@ class SimWorker:
                   "rss_mb": 0.0, "recycled": False, "geometry_hash": "", **self.info()}  # fmt: skip
         return report, arrays
 
+    def screen_uv(self, supersample: int):
+        """An empty layout of the template store's size (no Blender to render one)."""
+        import numpy as np
+
+        from render_jobs.screen_uv import ScreenUV
+
+        src = Store(self.store)
+        n = src.layout.resolution * supersample
+        return ScreenUV(np.zeros((n, n, 2), np.float32), np.zeros((n, n), bool),
+                        src.layout.resolution, supersample,
+                        src.settings.get("texture_tiling", 2.0), "simulated")  # fmt: skip
+
     def close(self) -> None:
         pass
 

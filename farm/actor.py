@@ -78,5 +78,9 @@ class RenderWorker:
         }
         return report, arrays
 
+    def screen_uv(self, supersample: int):
+        """The scene's :class:`render_jobs.screen_uv.ScreenUV` at this worker's settings."""
+        return self.process.screen_uv(supersample)
+
     def close(self) -> None:
         self.process.close()

@@ -88,9 +88,10 @@ def main() -> None:
     "--material",
     "-m",
     required=True,
-    metavar="uniform|procedural|PATH",
-    help="A random uniform or procedural material, a 5-panel SVBRDF PNG, or a per-map folder "
-    "(any library's naming; `farm materials svbrdf:PATH` shows how it is read).",
+    metavar="MATERIAL",
+    help="One material: uniform or procedural (random), uniform:seed=S, procedural:seed=S, "
+    "uniform:diffuse=R,G,B;specular=R,G,B;roughness=X, a 5-panel SVBRDF PNG or a per-map "
+    "folder (any library's naming; `farm materials svbrdf:PATH` shows how it is read).",
 )
 @click.option("--out", "-o", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @render_options
@@ -119,6 +120,7 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
       farm preview --material procedural --out out/preview
       farm preview -m uniform --suns 3 --resolution 128 --samples 32 -o out/quick
       farm preview -m textures/leather.png -o out/leather
+      farm preview -m 'uniform:diffuse=#b03a2e;specular=0.04;roughness=0.3' -o out/red
     """
     _require("farm preview", "bpy")
     from render_jobs.preview import prepare, render_preview
@@ -412,6 +414,54 @@ def dashboard(roots, run_dirs, host, port, token):
     shown = f"[{host}]" if ":" in host else host
     click.echo(f"dashboard: http://{shown}:{port}/", err=True)
     web.run_app(app, host=host, port=port, print=None, access_log=None)
+
+
+@main.command("screen-uv")
+@click.argument("store")
+@click.option(
+    "--supersample",
+    type=click.IntRange(1, 16),
+    default=None,
+    help="Sub-samples a pixel side [default: 4 up to 256², 3 at 400², 2 above].",
+)
+@click.option(
+    "--threads", default=0, show_default=True, type=click.IntRange(0), help="Cycles threads."
+)
+def screen_uv(store, supersample, threads):
+    """Render STORE's screen UV layout once and keep it with the store.
+
+    The layout (what the camera sees of the shaderball's UVs, at sub-pixel resolution) lets
+    the trainer turn any material's maps into the network's input without Blender
+    (trainer render --material, trainer viewer). farm submit writes it with every new
+    store; this command adds it to a store made before, or replaces it. Local Blender, no
+    Ray; a few seconds.
+
+    \b
+    Example:
+      farm screen-uv out/set.zarr
+    """
+    _require("farm screen-uv", "bpy")
+    from render_jobs.process import RenderProcess
+    from render_jobs.screen_uv import default_supersample
+    from storage.errors import StoreError
+    from storage.reader import Store
+    from storage.writer import put_screen_uv
+
+    try:
+        s = Store(store)
+        settings = RenderSettings(
+            resolution=s.layout.resolution,
+            samples=1,
+            threads=threads,
+            texture_tiling=s.settings.get("texture_tiling", 2.0),
+        )
+        factor = supersample or default_supersample(s.layout.resolution)
+        with RenderProcess(settings) as worker:
+            layout = worker.screen_uv(factor)
+        put_screen_uv(s, layout)
+    except (StoreError, RenderError) as exc:
+        raise click.ClickException(str(exc)) from None
+    click.echo(f"wrote {store}/screen_uv.npz: {factor}x{factor} sub-samples a pixel")
 
 
 @main.command()

@@ -40,11 +40,15 @@ from farm.scheduler import Scheduler
 from farm.state import JobState, now
 from render_jobs.errors import MaterialError
 from render_jobs.materials import load_maps
+from render_jobs.screen_uv import FILE as SCREEN_UV_FILE
+from render_jobs.screen_uv import default_supersample
 from storage.backend import Backend
-from storage.writer import create_store
+from storage.writer import create_store, put_screen_uv
 
 log = logging.getLogger("shaderball.farm")
 STATE_EVERY_S = 2.0
+#: workers asked for the store's screen UV layout before the job goes on without it
+SCREEN_UV_TRIES = 3
 #: tasks a worker may hold (:mod:`farm.scheduler`, pipelining)
 PIPELINE = 2
 
@@ -99,6 +103,7 @@ class Job:
     store: object
     todo: list[int]
     state: JobState
+    needs_screen_uv: bool = False  # the store has no screen UV layout yet
 
 
 def prepare(cfg: JobConfig, specs: list, echo) -> Job:
@@ -123,7 +128,8 @@ def prepare(cfg: JobConfig, specs: list, echo) -> Job:
     if committed:
         echo(f"resuming: {len(committed)} of {layout.num_shards} shards already committed")
     todo = [s for s in range(layout.num_shards) if s not in committed]
-    return Job(cfg, specs, layout, store, todo, state)
+    needs_uv = store.backend.size(SCREEN_UV_FILE) is None
+    return Job(cfg, specs, layout, store, todo, state, needs_uv)
 
 
 def submit(
@@ -147,6 +153,8 @@ def submit(
         clear_cancel(lease.backend)  # a new submit supersedes an old cancel request
         job = prepare(cfg, specs, echo)
         if not job.todo:  # keep the finished job's state as it is
+            if job.needs_screen_uv:
+                echo(f"the store has no screen UV layout: farm screen-uv {cfg.out} adds it")
             n = job.layout.num_samples
             return Summary(cfg.out, n, 0, job.state.frames_skipped, {}, [], 0.0, None, 0.0, 0.0)
         return _run(job, lease, progress, echo, t_start, actor_cls)
@@ -229,6 +237,8 @@ class Loop:
         self.startup_s: float | None = None  # until the first workers answer
         self.t_start = 0.0
         self.last_live = self.last_save = now()
+        self.uv_ref: tuple[object, str] | None = None  # (ref, worker) of the screen UV render
+        self.uv_tries = 0
         remaining = sum(len(layout.shard_samples(s)) for s in job.todo)
         self.bar = tqdm(
             total=remaining,
@@ -244,7 +254,7 @@ class Loop:
         """Every task done or final (or, cancelled, every task in flight ended), and every
         whole shard's commit ended."""
         tasks_over = not self.refs if self.cancelled else self.sched.finished
-        return tasks_over and not self.whole and not self.commits
+        return tasks_over and not self.whole and not self.commits and self.uv_ref is None
 
     def start(self, workers: int, t_start: float) -> None:
         self.t_start = t_start
@@ -253,6 +263,7 @@ class Loop:
     def dispatch(self) -> None:
         if self.cancelled:
             return
+        self.ask_screen_uv()  # first in its worker's queue
         for wid, m in self.sched.dispatch(self.pool.usable(), self.pool.actors, now()):
             task = task_for(self.cfg, m, self.job.specs[m]).to_dict()
             report, arrays = self.pool.submit(wid, task, self.cfg.task_timeout_s)
@@ -265,6 +276,8 @@ class Loop:
         import ray
 
         waiting = [*self.refs, *self.pool.starting, *self.commits]
+        if self.uv_ref is not None:
+            waiting.append(self.uv_ref[0])
         if not waiting:
             time.sleep(0.05)
             return []
@@ -282,6 +295,9 @@ class Loop:
 
         if ref in self.commits:
             self.committed(ref)
+            return
+        if self.uv_ref is not None and ref == self.uv_ref[0]:
+            self.screen_uv_done(ref)
             return
         if ref in self.pool.starting:
             self.pool.ready(ref)
@@ -312,6 +328,33 @@ class Loop:
         self.sched.completed(wid, m, now())
         self.settle(wid)
         self.completed(wid, m, res, arrays)
+
+    def ask_screen_uv(self) -> None:
+        """Have a worker render the store's screen UV layout, when the store lacks one."""
+        if not self.job.needs_screen_uv or self.uv_ref is not None:
+            return
+        usable = self.pool.usable()
+        if usable and self.uv_tries < SCREEN_UV_TRIES:
+            s = default_supersample(self.cfg.resolution)
+            self.uv_ref = (self.pool.actors[usable[0]].screen_uv.remote(s), usable[0])
+
+    def screen_uv_done(self, ref) -> None:
+        """The layout came back: keep it with the store; a failure is tried again on another
+        worker (up to ``SCREEN_UV_TRIES``), and never fails the job."""
+        import ray
+
+        wid = self.uv_ref[1]
+        self.uv_ref = None
+        self.uv_tries += 1
+        try:
+            put_screen_uv(self.job.store, ray.get(ref))
+        except Exception as exc:  # noqa: BLE001 - the renders go on; farm screen-uv can redo it
+            error = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+            log.warning("screen UV layout (worker %s): %s", wid, error)
+            self.state.screen_uv_error = error
+            return
+        self.job.needs_screen_uv = False
+        self.state.screen_uv_error = None
 
     def settle(self, wid: str) -> None:
         """The worker's status after a task left it: busy with its next one, or idle."""

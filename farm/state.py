@@ -65,6 +65,7 @@ class JobState:
     workers: dict[str, WorkerStats] = field(default_factory=dict)
     dashboard: str | None = None
     history: list[list[float]] = field(default_factory=list)  # [time, frames done], bounded
+    screen_uv_error: str | None = None  # why the store's screen UV layout could not be made
 
     def to_json(self) -> bytes:
         data = asdict(self)

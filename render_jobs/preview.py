@@ -21,10 +21,9 @@ from pathlib import Path
 from PIL import Image
 
 from render_jobs.contact_sheet import contact_sheet, display_maps
-from render_jobs.errors import MaterialError
 from render_jobs.exr import write_exr, write_image_exr
 from render_jobs.materials.maps import MaterialMaps
-from render_jobs.materials.sources import load_maps, make_spec
+from render_jobs.materials.sources import load_maps, one_material
 from render_jobs.process import RenderProcess
 from render_jobs.results import MaterialRender
 from render_jobs.specs import MaterialSpec, RenderSettings, derive_seed
@@ -39,21 +38,11 @@ class Preview:
     result: MaterialRender
 
 
-def resolve_material(material: str, seed: int) -> MaterialSpec:
-    """``uniform``, ``procedural`` or a path (5-panel PNG or per-map folder) → spec."""
-    if material in ("uniform", "procedural"):
-        return make_spec(material, derive_seed(seed, 0))
-    path = Path(material)
-    if not path.exists():
-        raise MaterialError(
-            f"{material}: no such file or folder (use uniform, procedural or a PATH)"
-        )
-    return make_spec("svbrdf", 0, path)
-
-
 def prepare(material: str, seed: int = 0) -> tuple[MaterialSpec, MaterialMaps]:
-    """Resolve and validate ``material`` (raises :class:`MaterialError`; renders nothing)."""
-    spec = resolve_material(material, seed)
+    """Resolve and validate ``material`` (any form of
+    :func:`render_jobs.materials.sources.one_material`; raises :class:`MaterialError`;
+    renders nothing)."""
+    spec = one_material(material, seed)
     return spec, load_maps(spec)
 
 

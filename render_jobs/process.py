@@ -1,13 +1,13 @@
 """A Blender worker process: a :class:`ShaderballRenderer` in a spawned child process.
 
-The parent never imports ``bpy``. The child builds the scene once, then renders requests
-until closed, and leaves with ``os._exit`` (bpy deadlocks at normal interpreter exit).
-Blender's stdout chatter goes to ``log_path`` (or /dev/null). The parent owns the child's
-scratch folder (in /dev/shm: EXRs and texture PNGs) and removes it when the child ends, even
-when it was killed. A request that raises in the
-child comes back as :class:`RenderError` or :class:`MaterialError` with the child's message;
-a child that dies (segfault, OOM kill) raises :class:`RenderError` naming its exit code, and
-the next request starts a fresh child.
+The parent never imports ``bpy``. The child builds the scene once, then serves requests (a
+material under its suns, or the scene's screen UV layout) until closed, and leaves with
+``os._exit`` (bpy deadlocks at normal interpreter exit). Blender's stdout chatter goes to
+``log_path`` (or /dev/null). The parent owns the child's scratch folder (in /dev/shm: EXRs
+and texture PNGs) and removes it when the child ends, even when it was killed. A request
+that raises in the child comes back as :class:`RenderError` or :class:`MaterialError` with
+the child's message; a child that dies (segfault, OOM kill) raises :class:`RenderError`
+naming its exit code, and the next request starts a fresh child.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from pathlib import Path
 from render_jobs.errors import MaterialError, RenderError, WorkerDied
 from render_jobs.materials.maps import MaterialMaps
 from render_jobs.results import MaterialRender
+from render_jobs.screen_uv import DEFAULT_SUPERSAMPLE, ScreenUV
 from render_jobs.specs import RenderSettings, Sun
 
 READY_TIMEOUT_S = 300.0
@@ -80,8 +81,12 @@ def _serve(conn, settings: dict, log_path: str | None, scratch: str) -> None:  #
             request = conn.recv()
             if request is None:
                 break
-            maps, suns, seeds = request
+            what, args = request
             try:
+                if what == "screen_uv":
+                    conn.send(("ok", renderer.screen_uv(*args)))
+                    continue
+                maps, suns, seeds = args
 
                 def progress(done: int) -> None:
                     conn.send(("progress", done))
@@ -191,7 +196,7 @@ class RenderProcess:
         if not self.alive:
             self.start()
         assert self._conn is not None
-        self._conn.send((maps, list(suns), list(seeds)))
+        self._conn.send(("render", (maps, list(suns), list(seeds))))
         kind, payload = self._receive(timeout)
         while kind == "progress":
             if on_progress is not None:
@@ -202,6 +207,18 @@ class RenderProcess:
         if kind == "material":
             raise MaterialError(payload)
         raise RenderError(payload)
+
+    def screen_uv(self, supersample: int = DEFAULT_SUPERSAMPLE, timeout: float = 600) -> ScreenUV:
+        """The scene's UV layout as the camera sees it at ``supersample``² sub-samples a pixel
+        (:mod:`render_jobs.screen_uv`), rendered in the child (blocking)."""
+        if not self.alive:
+            self.start()
+        assert self._conn is not None
+        self._conn.send(("screen_uv", (supersample,)))
+        kind, payload = self._receive(timeout)
+        if kind != "ok":
+            raise RenderError(payload)
+        return payload
 
     def close(self) -> None:
         """Ask the child to exit; kill it if it does not within 10 s."""

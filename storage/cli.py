@@ -98,6 +98,7 @@ def info(store, as_json):
         + (", ".join(f"{k} {v}" for k, v in data["materials_by_kind"].items()) or "none"),
         f"bytes        {_human(b['stored'])} stored, {_human(b['raw'])} raw ({ratio}), "
         f"{_human(b['disk'])} on disk",
+        "screen UV    " + _screen_uv_line(data["screen_uv"]),
         "settings     " + json.dumps(data["settings"], sort_keys=True),
         "software     " + ", ".join(f"{k} {v}" for k, v in data["software"].items()),
         "sun elevation (degrees):",
@@ -106,6 +107,15 @@ def info(store, as_json):
         text_histogram(data["turbidity"], fmt="{:>4.1f}-{:<4.1f}"),
     ]
     click.echo("\n".join(lines))
+
+
+def _screen_uv_line(suv: dict | None) -> str:
+    if suv is None:
+        return "none (farm screen-uv STORE renders it: maps of new materials need it)"
+    if "error" in suv:
+        return f"UNUSABLE: {suv['error']}"
+    s = suv["supersample"]
+    return f"{s}x{s} sub-samples a pixel ({_human(suv['bytes'])})"
 
 
 @main.command()

@@ -144,6 +144,21 @@ class Store:
     def shard_bytes(self, shard: int) -> int:
         return sum(self.backend.size(k) or 0 for k in self.shard_keys(shard))
 
+    def screen_uv(self):
+        """The store's :class:`render_jobs.screen_uv.ScreenUV` (``None`` when it has none);
+        raises :class:`StoreError` when it is unreadable or does not fit the store."""
+        from render_jobs.screen_uv import FILE, ScreenUV, ScreenUVError
+
+        raw = self.backend.get(FILE)
+        if raw is None:
+            return None
+        try:
+            suv = ScreenUV.from_bytes(raw, f"{self.url}/{FILE}")
+            suv.check_fits({**self.settings, "resolution": self.layout.resolution}, self.url)
+        except ScreenUVError as exc:
+            raise StoreError(str(exc)) from None
+        return suv
+
     def materials(self) -> dict[int, dict]:
         """Committed materials' records (``kind``, ``source_id``, ``spec``), by index."""
         return {m["index"]: m for rec in self.commits().values() for m in rec["materials"]}

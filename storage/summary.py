@@ -8,6 +8,7 @@ from collections import Counter
 
 import numpy as np
 
+from storage.errors import StoreError
 from storage.reader import Store
 from storage.schema import PACKED_CHANNELS, PER_SAMPLE
 
@@ -75,9 +76,25 @@ def store_info(store: Store) -> dict:
             "disk": disk_size(store),
             "compression_ratio": raw / stored if stored else None,
         },
+        "screen_uv": screen_uv_info(store),
         "sun_elevation_deg": histogram(elevation, 0, 90, 9),
         "turbidity": histogram(t, 1, 10, 9),
     }
+
+
+def screen_uv_info(store: Store) -> dict | None:
+    """The screen UV layout's settings and size (``None``: the store has none; ``error``:
+    it cannot be used)."""
+    from render_jobs.screen_uv import FILE
+
+    size = store.backend.size(FILE)
+    if size is None:
+        return None
+    try:
+        suv = store.screen_uv()
+    except StoreError as exc:
+        return {"bytes": size, "error": str(exc)}
+    return {"bytes": size, **suv.meta()}
 
 
 def text_histogram(rows: list[dict], width: int = 30, fmt: str = "{:>4.0f}-{:<4.0f}") -> str:

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from storage.errors import StoreError
 from storage.reader import Store
 from storage.schema import arrays
 
@@ -83,10 +84,19 @@ def _check_shard(store: Store, shard: int, rec: dict, report: Report) -> None:
         report.add(shard, "commit record lists the wrong number of materials")
 
 
+def _check_screen_uv(store: Store, report: Report) -> None:
+    """The screen UV layout, when the store has one: readable (zip CRCs) and fitting."""
+    try:
+        store.screen_uv()
+    except StoreError as exc:
+        report.store_problems.append(str(exc))
+
+
 def verify(store: Store, progress=None) -> Report:
     """Check ``store``; ``progress(shard)`` is called after each shard."""
     report = Report()
     _check_arrays(store, report)
+    _check_screen_uv(store, report)
     if report.store_problems:
         return report
     commits = store.commits()

@@ -164,3 +164,16 @@ def write_shard(store: Store, shard: int, payload: ShardPayload, overwrite: bool
     }
     backend.put_atomic(commit_key(shard), json.dumps(record, indent=1).encode())
     return record
+
+
+def put_screen_uv(store: Store, screen_uv) -> None:
+    """Keep ``screen_uv`` (:class:`render_jobs.screen_uv.ScreenUV`) with ``store``, in one
+    atomic put (readers see the old layout or the whole new one); refused when it was made
+    for another resolution or tiling."""
+    from render_jobs.screen_uv import FILE, ScreenUVError
+
+    try:
+        screen_uv.check_fits({**store.settings, "resolution": store.layout.resolution}, store.url)
+    except ScreenUVError as exc:
+        raise StoreError(str(exc)) from None
+    store.backend.put_atomic(FILE, screen_uv.to_bytes())

@@ -4,7 +4,9 @@ A checkpoint is a plain dict loadable with ``torch.load(..., weights_only=True)`
 ``model`` and ``optimizer`` state dicts, ``step``, ``epoch`` and ``position`` (the loader
 state: the next global position in that epoch's order, see ``trainer.data``), ``config`` (the
 run's :class:`trainer.config.TrainConfig`), ``model_config``, ``tonemap`` and ``catalog`` (the
-stores, shards and held-out materials the run trains on). Written to a temporary file in the
+stores, shards and held-out materials the run trains on), and ``screen_uv`` when the stores
+have one (the bytes of ``render_jobs.screen_uv.FILE``: the checkpoint alone then maps any
+material to the network's input, ``trainer.mapping``). Written to a temporary file in the
 same folder, fsynced, then renamed into place; the newest ``keep`` are kept.
 """
 

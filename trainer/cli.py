@@ -226,37 +226,93 @@ def _floats(text: str | None, n: int, name: str):
     return vals
 
 
+def _light(sun: str | None, turbidity: float | None, default):
+    """``(direction, turbidity)`` from the options, each falling back to ``default``'s; a
+    sun below the horizon or a turbidity outside [1, 10] is a usage error."""
+    from render_jobs.specs import Sun
+
+    direction = _floats(sun, 3, "--sun") or default[0]
+    t = default[1] if turbidity is None else turbidity
+    norm = sum(c * c for c in direction) ** 0.5
+    if norm == 0:
+        raise click.BadParameter("the sun direction must not be 0,0,0", param_hint="--sun")
+    try:
+        Sun(tuple(c / norm for c in direction), t)
+    except ValueError as exc:
+        hint = "--turbidity" if "turbidity" in str(exc) else "--sun"
+        raise click.BadParameter(str(exc), param_hint=hint) from None
+    return direction, t
+
+
+#: the light of ``trainer render --material`` when none is given: from the front left, 40°
+DEFAULT_LIGHT = ((-0.5, -0.6, 0.62), 3.0)
+
+
 @main.command()
 @click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
-@click.option("--store", required=True, help="the store holding the material")
-@click.option("--sample", type=int, required=True, help="sample index in the store")
-@click.option("--sun", default=None, help="X,Y,Z sun direction (z up) [the sample's]")
-@click.option("--turbidity", type=float, default=None, help="sky turbidity [the sample's]")
+@click.option(
+    "--material",
+    default=None,
+    help="any one material, mapped without Blender: uniform:seed=S, procedural:seed=S, "
+    "uniform:diffuse=R,G,B;specular=R,G,B;roughness=X, a 5-panel PNG or a per-map folder",
+)
+@click.option(
+    "--store",
+    default=None,
+    help="the store holding --sample; with --material, a store whose screen UV layout to "
+    "use when the checkpoint carries none",
+)
+@click.option("--sample", type=int, default=None, help="sample index in --store")
+@click.option("--sun", default=None, help="X,Y,Z sun direction, z up [the sample's, or front left]")
+@click.option("--turbidity", type=float, default=None, help="sky turbidity [the sample's, or 3]")
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="PNG")
 @device_option
-def render(ckpt, store, sample, sun, turbidity, output, device):
-    """Render a stored material with the network, under its own sun or any other. Example:
+def render(ckpt, material, store, sample, sun, turbidity, output, device):
+    """Render any material with the network, under any sun, without Blender.
+
+    --material takes anything farm submit accepts for one material; its maps are UV-mapped
+    onto the ball with the screen UV layout the checkpoint carries. --store with --sample
+    renders a stored material (its own sun unless --sun / --turbidity say otherwise).
 
     \b
-      trainer render --checkpoint runs/demo --store out/demo.zarr --sample 3 \\
-          --sun 0.3,0.2,0.9 --turbidity 3 -o ball.png
+    Examples:
+      trainer render --checkpoint runs/demo --material textures/leather.png \\
+          --sun 0.3,-0.5,0.8 --turbidity 3 -o leather.png
+      trainer render --checkpoint runs/demo -o red.png \\
+          --material 'uniform:diffuse=#b03a2e;specular=0.04;roughness=0.3'
+      trainer render --checkpoint runs/demo --store out/demo.zarr --sample 3 -o ball.png
     """
     from PIL import Image
 
+    from render_jobs.errors import MaterialError
+    from render_jobs.materials.sources import load_maps, one_material
+    from render_jobs.screen_uv import ScreenUVError
     from render_jobs.tonemap import to_uint8
     from storage.errors import StoreError
     from storage.reader import Store
     from trainer.checkpoint import CheckpointError
-    from trainer.infer import Renderer
+    from trainer.infer import NoScreenUV, Renderer, material_mapper
+    from trainer.mapping import textures_from_maps
 
-    direction = _floats(sun, 3, "--sun")
+    if (material is None) == (sample is None):
+        raise click.UsageError("give --material, or --store with --sample")
+    if sample is not None and store is None:
+        raise click.UsageError("--sample needs --store")
     try:
-        r = Renderer.from_checkpoint(ckpt, device)
-        s = Store(store)
-        maps = s.packed_maps(s.layout.material_of_sample(sample))
-        d, t = s.light(sample)
-        img = r.render(maps, direction or d, t if turbidity is None else turbidity)
-    except (StoreError, CheckpointError, ValueError, IndexError) as exc:
+        if material is not None:
+            maps = load_maps(one_material(material))  # the material first: its errors are cheap
+            direction, t = _light(sun, turbidity, DEFAULT_LIGHT)
+            r = Renderer.from_checkpoint(ckpt, device)
+            packed = material_mapper(r, store)(textures_from_maps(maps)).cpu().numpy()
+        else:
+            s = Store(store)
+            packed = s.packed_maps(s.layout.material_of_sample(sample))
+            direction, t = _light(sun, turbidity, s.light(sample))
+            r = Renderer.from_checkpoint(ckpt, device)
+        img = r.render(packed, direction, t)
+    except (MaterialError, StoreError, CheckpointError, NoScreenUV, ScreenUVError) as exc:
+        _fail(exc)
+    except (ValueError, IndexError) as exc:
         _fail(exc)
     output.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(to_uint8(img)).save(output)

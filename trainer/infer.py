@@ -63,6 +63,15 @@ class Renderer:
     def config(self) -> ModelConfig:
         return self.model.config
 
+    def screen_uv(self):
+        """The :class:`render_jobs.screen_uv.ScreenUV` the checkpoint carries, or ``None``."""
+        raw = getattr(self, "state", {}).get("screen_uv")
+        if raw is None:
+            return None
+        from render_jobs.screen_uv import ScreenUV
+
+        return ScreenUV.from_bytes(raw, "the checkpoint's screen UV layout")
+
     @torch.inference_mode()
     def render_batch(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         """``maps (N, 11, H, W) uint8`` + ``light (N, 4)`` → ``(N, 3, H, W) float32`` in [0, 1]."""
@@ -83,6 +92,33 @@ class Renderer:
         out = self.render_batch(batch, torch.from_numpy(np.array(light)))
         out = out.cpu().numpy()
         return out[0] if single else out
+
+
+class NoScreenUV(ValueError):
+    """A new material must be mapped, and no screen UV layout was given."""
+
+
+def material_mapper(renderer: Renderer, store: str | None = None):
+    """A :class:`trainer.mapping.ScreenMapper` on the renderer's device, with the layout the
+    checkpoint carries, else ``store``'s (which must fit the checkpoint's resolution)."""
+    from trainer.mapping import ScreenMapper
+
+    layout = renderer.screen_uv()
+    if layout is None and store is not None:
+        from storage.reader import Store
+
+        layout = Store(store).screen_uv()
+    if layout is None:
+        raise NoScreenUV(
+            "the checkpoint carries no screen UV layout (its store had none): pass --store "
+            "with a store of the same resolution that has one (farm screen-uv STORE adds it)"
+        )
+    if layout.resolution != renderer.config.resolution:
+        raise NoScreenUV(
+            f"the screen UV layout is for {layout.resolution}², the network for "
+            f"{renderer.config.resolution}²"
+        )
+    return ScreenMapper(layout, renderer.device)
 
 
 def fast_network(

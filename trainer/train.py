@@ -131,6 +131,7 @@ class Trainee:
     tonemap: Tonemap
     catalog: Catalog
     bad: torch.Tensor  # () bool: a non-finite gradient norm was seen (checked lazily)
+    screen_uv: bytes | None = None  # the stores' layout, so checkpoints map new materials
     step: int = 0
     epoch: int = 0
     position: int = 0
@@ -166,6 +167,11 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         prefetch_factor=4 if cfg.workers else None,
     )
     log = RunLog(cfg, rk, out)
+    if t.screen_uv is None:
+        log.start(
+            f"{catalog.urls[0]} has no screen UV layout: the checkpoints will render stored "
+            "materials only (farm screen-uv STORE adds it; resume to carry it)"
+        )
     log.start(
         f"training on {len(split)} samples (held-out materials: "
         f"{sum(map(len, catalog.heldout))}), {rk.world} rank(s) x batch {cfg.batch_size} "
@@ -283,6 +289,8 @@ def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
     bad = torch.zeros((), dtype=torch.bool, device=rk.device)
     t = Trainee(model, model, opt, criterion, model_cfg, tonemap, catalog, bad)
+    if rk.master:
+        t.screen_uv = _screen_uv(catalog, state)
     if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
@@ -292,6 +300,20 @@ def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg
     if rk.distributed:
         t.net = DDP(model, device_ids=[rk.device.index] if rk.cuda else None)
     return t
+
+
+def _screen_uv(catalog: Catalog, state: dict | None) -> bytes | None:
+    """The layout a checkpoint carries: the resumed checkpoint's, else the first store's
+    (checked against that store), else none."""
+    if state is not None and state.get("screen_uv") is not None:
+        return state["screen_uv"]
+    from render_jobs.screen_uv import FILE
+    from storage.reader import Store
+
+    store = Store(catalog.urls[0])
+    if store.screen_uv() is None:  # raises StoreError when it is unusable
+        return None
+    return store.backend.get(FILE)
 
 
 def train_step(cfg: TrainConfig, rk: Rank, t: Trainee, batch: dict) -> torch.Tensor:
@@ -349,6 +371,7 @@ def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None
             "model_config": t.model_cfg.to_dict(),
             "tonemap": t.tonemap.to_dict(),
             "catalog": t.catalog.to_dict(),
+            **({"screen_uv": t.screen_uv} if t.screen_uv is not None else {}),
         },
         keep=cfg.keep,
     )

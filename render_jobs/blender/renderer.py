@@ -19,17 +19,20 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import psutil
 
 from render_jobs.blender import shaderball
 from render_jobs.blender.bpy_guard import bpy
-from render_jobs.blender.shading import SvbrdfMaterial, neutral_material, register_aovs
+from render_jobs.blender.shading import UV_AOV, SvbrdfMaterial, neutral_material, register_aovs
 from render_jobs.blender.sky import SkyAndSun
 from render_jobs.errors import RenderError
 from render_jobs.exr import read_layers
-from render_jobs.geometry import MATERIAL_OBJECTS
+from render_jobs.geometry import MATERIAL_OBJECTS, geometry_hash
+from render_jobs.geometry import shaderball as shaderball_meshes
 from render_jobs.materials.maps import MaterialMaps
 from render_jobs.results import MaterialRender, ScreenMaps, SunRender
+from render_jobs.screen_uv import FILTER_WIDTH, PIXEL_FILTER, ScreenUV
 from render_jobs.specs import RenderSettings, Sun
 
 PURGE_EVERY = 16
@@ -135,6 +138,8 @@ class ShaderballRenderer:
             cycles.denoising_input_passes = "RGB_ALBEDO_NORMAL"
             cycles.denoising_prefilter = "ACCURATE"
             scene.view_layers[0].cycles.use_denoising = True
+        cycles.pixel_filter_type = PIXEL_FILTER  # the anti-aliasing render_jobs.screen_uv models
+        cycles.filter_width = FILTER_WIDTH
         render = scene.render
         render.resolution_x = render.resolution_y = settings.resolution
         render.resolution_percentage = 100
@@ -226,6 +231,57 @@ class ShaderballRenderer:
             rss_bytes=rss_bytes(),
             material_seconds=upload,
         )
+
+    def screen_uv(self, supersample: int) -> ScreenUV:
+        """The ball's UV layout as the camera sees it (:class:`ScreenUV`): the scene rendered
+        once at ``supersample`` times the resolution, one sample per pixel at its centre
+        (filter width 0.01), the UV map and a mask written as AOVs; settings restored after."""
+        if supersample < 1:
+            raise ValueError(f"supersample must be >= 1, not {supersample}")
+        scene, render, cycles = self.scene, self.scene.render, self.scene.cycles
+        saved = {
+            (render, "resolution_x"): render.resolution_x,
+            (render, "resolution_y"): render.resolution_y,
+            (cycles, "samples"): cycles.samples,
+            (cycles, "filter_width"): cycles.filter_width,
+            (cycles, "use_denoising"): cycles.use_denoising,
+            (cycles, "max_bounces"): cycles.max_bounces,
+        }
+        path = self.scratch / f"screen-uv-{os.getpid()}.exr"
+        uv_aov = self.material.add_uv_aov(scene.view_layers[0])
+        try:
+            render.resolution_x = render.resolution_y = self.settings.resolution * supersample
+            cycles.samples, cycles.filter_width, cycles.max_bounces = 1, 0.01, 0
+            cycles.use_denoising = False
+            if not self._has_maps:  # any texture will do: only the UVs are read
+                self.material.set_maps(_flat_maps(), self.scratch)
+            render.filepath = str(path)
+            with _quiet_stdout():
+                result = bpy.ops.render.render(write_still=True)
+            if "FINISHED" not in result or not path.exists():
+                raise RenderError(f"Cycles did not render the UV layout (result {result})")
+            layers = read_layers(path)
+        finally:
+            path.unlink(missing_ok=True)
+            self.material.remove_uv_aov(scene.view_layers[0], uv_aov)
+            for (owner, name), value in saved.items():
+                setattr(owner, name, value)
+        hit = layers["mask"][0] > 0.5
+        uv = np.where(hit[..., None], layers[UV_AOV][:2].transpose(1, 2, 0), 0.0)
+        return ScreenUV(
+            uv=np.ascontiguousarray(uv, dtype=np.float32),
+            hit=hit,
+            resolution=self.settings.resolution,
+            supersample=supersample,
+            texture_tiling=self.settings.texture_tiling,
+            geometry_hash=geometry_hash(shaderball_meshes()),
+        )
+
+
+def _flat_maps() -> MaterialMaps:
+    grey = np.full((4, 4, 1), 0.5, np.float32)
+    flat = np.broadcast_to(np.array([0.5, 0.5, 1.0], np.float32), (4, 4, 3)).copy()
+    return MaterialMaps(np.repeat(grey, 3, 2), np.repeat(grey, 3, 2), grey, flat, "flat")
 
 
 def rss_bytes() -> int:

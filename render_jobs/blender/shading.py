@@ -39,6 +39,8 @@ AOVS = {
     "normal": "COLOR",
     "mask": "VALUE",
 }
+#: the AOV of the UV map, present only while ``ShaderballRenderer.screen_uv`` renders
+UV_AOV = "uv"
 _COLOUR_SPACE = {
     "diffuse": "sRGB",
     "specular": "sRGB",
@@ -74,7 +76,7 @@ class SvbrdfMaterial:
         nt = self.material.node_tree
         nodes, links = nt.nodes, nt.links
         nodes.clear()
-        uv = nodes.new("ShaderNodeUVMap")
+        self.uv = uv = nodes.new("ShaderNodeUVMap")
         uv.uv_map = "UVMap"
         mapping = nodes.new("ShaderNodeMapping")
         mapping.inputs["Scale"].default_value = (2 * texture_tiling, texture_tiling, 1.0)
@@ -110,6 +112,21 @@ class SvbrdfMaterial:
         _aov(nodes, links, "mask", value=1.0)
         self._serial = 0
         self._files: list[Path] = []
+
+    def add_uv_aov(self, view_layer):
+        """Write the UV map (before the tiling) to an AOV named ``UV_AOV``; returns the
+        view layer's AOV for :meth:`remove_uv_aov`."""
+        aov = view_layer.aovs.add()
+        aov.name, aov.type = UV_AOV, "COLOR"
+        nt = self.material.node_tree
+        self._uv_output = nt.nodes.new("ShaderNodeOutputAOV")
+        self._uv_output.aov_name = UV_AOV
+        nt.links.new(self.uv.outputs["UV"], self._uv_output.inputs["Color"])
+        return aov
+
+    def remove_uv_aov(self, view_layer, aov) -> None:
+        self.material.node_tree.nodes.remove(self._uv_output)
+        view_layer.aovs.remove(aov)
 
     def set_maps(self, maps: MaterialMaps, folder: Path) -> None:
         """Write ``maps`` as 8-bit PNGs under new names in ``folder`` and point the textures

@@ -11,7 +11,7 @@ from render_jobs.materials.files import Reading, read_svbrdf, scan_svbrdf_dir
 from render_jobs.materials.maps import MaterialMaps
 from render_jobs.materials.procedural import DEFAULT_MAP_RESOLUTION, procedural_maps
 from render_jobs.materials.uniform import sample_uniform, uniform_maps
-from render_jobs.specs import MaterialSpec, derive_seed
+from render_jobs.specs import MaterialSpec, UniformValues, derive_seed
 
 SOURCE_HELP = "uniform:N, procedural:N or svbrdf:DIR"
 
@@ -71,6 +71,102 @@ def specs_from_sources(
                 seed = derive_seed(dataset_seed, len(specs))
                 specs.append(make_spec(kind, seed, map_resolution=map_resolution))
     return specs
+
+
+ONE_HELP = (
+    "uniform or procedural (random), uniform:seed=S or procedural:seed=S (as a store names "
+    "its materials), uniform:diffuse=R,G,B;specular=R,G,B;roughness=X (sRGB values in [0, 1] "
+    "or #rrggbb; normal_tilt=DEG;normal_azimuth=DEG optional), or a PATH (svbrdf:PATH): a "
+    "5-panel PNG or a per-map folder"
+)
+_UNIFORM_KEYS = {
+    "diffuse": "diffuse",
+    "specular": "specular",
+    "roughness": "roughness",
+    "normal_tilt": "normal_tilt_deg",
+    "normal_azimuth": "normal_azimuth_deg",
+}
+
+
+def one_material(
+    text: str, seed: int = 0, map_resolution: int = DEFAULT_MAP_RESOLUTION
+) -> MaterialSpec:
+    """The one material that ``text`` names (forms: :data:`ONE_HELP`); bare ``uniform`` and
+    ``procedural`` are drawn from ``seed``. Raises :class:`MaterialError` naming ``text``;
+    reads no file (:func:`load_maps` validates)."""
+    kind, sep, arg = text.partition(":")
+    if kind in ("uniform", "procedural") and not sep:
+        return make_spec(kind, derive_seed(seed, 0), map_resolution=map_resolution)
+    if kind in ("uniform", "procedural") and arg.startswith("seed="):
+        try:
+            value = int(arg.removeprefix("seed="))
+        except ValueError:
+            raise MaterialError(f"{text}: the seed must be an integer") from None
+        if value < 0:
+            raise MaterialError(f"{text}: the seed must be >= 0")
+        return make_spec(kind, value, map_resolution=map_resolution)
+    if kind == "uniform" and sep:
+        values = _uniform_values(text, arg)
+        return MaterialSpec("uniform", text, uniform=values)
+    if kind == "procedural" and sep:
+        raise MaterialError(f"{text}: expected procedural:seed=S")
+    path = Path(arg if kind == "svbrdf" and sep else text)
+    if not path.exists():
+        raise MaterialError(
+            f"{text}: no such file or folder (a material is uniform, procedural, "
+            "uniform:seed=S, procedural:seed=S, uniform:diffuse=...;specular=...;roughness=..., "
+            "or a 5-panel PNG or per-map folder)"
+        )
+    return make_spec("svbrdf", 0, path)
+
+
+def _uniform_values(text: str, arg: str) -> UniformValues:
+    """``diffuse=...;specular=...;roughness=...`` → values (diffuse, specular, roughness
+    required)."""
+    fields: dict[str, object] = {}
+    for part in filter(None, (p.strip() for p in arg.split(";"))):
+        key, eq, value = part.partition("=")
+        name = _UNIFORM_KEYS.get(key.strip())
+        if not eq or name is None:
+            raise MaterialError(
+                f"{text}: {part!r} is not one of {', '.join(k + '=' for k in _UNIFORM_KEYS)}"
+            )
+        fields[name] = (
+            _colour(text, key, value)
+            if name in ("diffuse", "specular")
+            else (_number(text, key, value))
+        )
+    missing = [k for k in ("diffuse", "specular", "roughness") if k not in fields]
+    if missing:
+        raise MaterialError(f"{text}: {missing[0]}= is missing")
+    if not 0 <= float(fields["roughness"]) <= 1:  # type: ignore[arg-type]
+        raise MaterialError(f"{text}: roughness must lie in [0, 1]")
+    return UniformValues(**fields)  # type: ignore[arg-type]
+
+
+def _number(text: str, key: str, value: str) -> float:
+    try:
+        return float(value)
+    except ValueError:
+        raise MaterialError(f"{text}: {key}={value!r} is not a number") from None
+
+
+def _colour(text: str, key: str, value: str) -> tuple[float, float, float]:
+    """``#rrggbb``, ``R,G,B`` or one grey value, sRGB in [0, 1]."""
+    value = value.strip()
+    if value.startswith("#") and len(value) == 7:
+        try:
+            rgb = tuple(int(value[i : i + 2], 16) / 255 for i in (1, 3, 5))
+        except ValueError:
+            raise MaterialError(f"{text}: {key}={value!r} is not a #rrggbb colour") from None
+    else:
+        parts = [_number(text, key, v) for v in value.split(",")]
+        if len(parts) not in (1, 3):
+            raise MaterialError(f"{text}: {key}= takes 1 or 3 values, not {len(parts)}")
+        rgb = tuple(parts * 3 if len(parts) == 1 else parts)
+    if not all(0 <= c <= 1 for c in rgb):
+        raise MaterialError(f"{text}: {key}= values must lie in [0, 1]")
+    return rgb  # type: ignore[return-value]
 
 
 def load_maps(spec: MaterialSpec) -> MaterialMaps:

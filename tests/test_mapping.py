@@ -1,0 +1,197 @@
+"""Screen-space maps without Blender: the store's screen UV layout (written by the farm) and
+``trainer.mapping`` against Cycles' own AOV maps of the same materials, and
+``trainer render --material`` from a checkpoint alone."""
+
+from __future__ import annotations
+
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from render_jobs.materials import load_maps
+from render_jobs.materials.procedural import procedural_maps
+from render_jobs.screen_uv import ScreenUV, blackman_harris, filter_image, filter_taps
+from render_jobs.specs import MaterialSpec
+from storage.reader import Store
+from storage.schema import MAP_CHANNELS
+from tests.test_farm import BIN, farm
+from tests.test_material_libraries import ambientcg, normal_map, write
+from trainer.mapping import ScreenMapper, textures_from_maps
+
+#: the bound on every map of every material (uint8 maps, the store's own encoding)
+MIN_PSNR_DB = 40.0
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float(10 * np.log10(255.0**2 / max(mse, 1e-12)))
+
+
+def per_map(got: np.ndarray, want: np.ndarray) -> dict[str, float]:
+    out, start = {}, 0
+    for name, c in MAP_CHANNELS.items():
+        out[name] = psnr(got[start : start + c], want[start : start + c])
+        start += c
+    return out
+
+
+# ---- the filter, alone --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("s", [1, 2, 3, 4, 8])
+def test_filter_taps_are_cycles_window_normalised_and_symmetric(s):
+    taps = filter_taps(s)
+    assert taps.shape == (3 * s,) and abs(taps.sum() - 1) < 1e-12
+    np.testing.assert_allclose(taps, taps[::-1], atol=1e-12)
+    # the centre pixel's share, from the closed-form integral of Cycles' window (width 1.5:
+    # support ±1.5 px, cos(2πk(x/3 + 1/2)) terms)
+    a = (0.35875, -0.48829, 0.14128, -0.01168)
+    centre = a[0] + sum(
+        a[k] * 3 / (2 * np.pi * k) * (np.sin(4 * np.pi * k / 3) - np.sin(2 * np.pi * k / 3))
+        for k in (1, 2, 3)
+    )
+    assert abs(taps[s : 2 * s].sum() - centre / (3 * a[0])) < 1e-4
+    assert blackman_harris(np.array([1.5, -1.5, 2.0])).max() < 1e-4
+
+
+def test_filter_of_a_constant_is_the_constant_and_of_a_step_is_between():
+    s = 4
+    flat = np.full((1, 8 * s, 8 * s), 0.7, np.float32)
+    out = filter_image(flat, s, filter_taps(s))
+    np.testing.assert_allclose(out[0, 2:-2, 2:-2], 0.7, atol=1e-6)
+    step = np.zeros((1, 8 * s, 8 * s), np.float32)
+    step[:, :, 4 * s :] = 1.0  # a vertical edge on a pixel border
+    row = filter_image(step, s, filter_taps(s))[0, 4]
+    assert row[2] < 0.01 and row[5] > 0.99 and 0 < row[3] < 0.5 < row[4] < 1
+
+
+def test_mapper_matches_the_numpy_reference_on_a_made_up_layout():
+    rng = np.random.default_rng(0)
+    r, s = 12, 3
+    n = r * s
+    hit = np.zeros((n, n), bool)
+    hit[5:30, 4:33] = True
+    uv = np.where(hit[..., None], rng.uniform(0, 1, (n, n, 2)), 0).astype(np.float32)
+    layout = ScreenUV(uv, hit, r, s, 1.0, "made-up")
+    tex = torch.rand(10, 8, 8)
+    got = ScreenMapper(layout)(tex)[10].numpy()  # the mask channel: filtered hits
+    want = np.round(np.clip(layout.coverage(), 0, 1) * 255)
+    np.testing.assert_array_equal(got, want)
+    roundtrip = ScreenUV.from_bytes(layout.to_bytes())
+    np.testing.assert_array_equal(roundtrip.uv, uv)
+    assert roundtrip.meta() == layout.meta()
+
+
+# ---- against Blender --------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def aov_store(tmp_path_factory):
+    """A real farm job at 64², 64 spp, one sun each: a uniform, a procedural and two file
+    materials (a 5-panel PNG; an ambientCG-style metal-rough folder with JPEGs and a DirectX
+    normal map)."""
+    root = tmp_path_factory.mktemp("mapping")
+    lib = root / "lib"
+    panels = procedural_maps(11, 64)
+    strip = np.concatenate(
+        [panels.diffuse, panels.normal, panels.diffuse, np.repeat(panels.roughness, 3, 2),
+         panels.specular], axis=1,
+    )  # fmt: skip
+    write(lib / "leather.png", strip)
+    ambientcg(lib)
+    out = root / "aov.zarr"
+    r = farm("submit", "-m", "uniform:1", "-m", "procedural:1", "-m", f"svbrdf:{lib}",
+             "--suns", "1", "--shard-size", "2", "--resolution", "64", "--samples", "64",
+             "--workers", "1", "--no-ray-dashboard", "-o", out)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    return Store(str(out))
+
+
+@pytest.mark.slow
+def test_mapped_maps_match_the_stores_aov_maps(aov_store):
+    layout = aov_store.screen_uv()
+    assert layout is not None, "farm submit writes the store's screen UV layout"
+    assert layout.resolution == 64 and layout.supersample == 4
+    mapper = ScreenMapper(layout)
+    kinds = set()
+    for index, rec in sorted(aov_store.materials().items()):
+        maps = load_maps(MaterialSpec.from_dict(rec["spec"]))
+        got = mapper(textures_from_maps(maps)).numpy()
+        scores = per_map(got, aov_store.packed_maps(index))
+        print(rec["kind"], rec["source_id"], {k: round(v, 1) for k, v in scores.items()})
+        assert min(scores.values()) >= MIN_PSNR_DB, (rec["source_id"], scores)
+        kinds.add(rec["kind"])
+    assert kinds == {"uniform", "procedural", "svbrdf"}
+
+
+@pytest.mark.slow
+def test_screen_uv_command_and_verify(aov_store, tmp_path):
+    """farm screen-uv renders the same layout for a store made without one; shards verify
+    and info see it; a corrupt one is reported."""
+    import shutil
+
+    copy = tmp_path / "copy.zarr"
+    shutil.copytree(aov_store.url, copy)
+    (copy / "screen_uv.npz").unlink()
+    assert Store(str(copy)).screen_uv() is None
+    r = subprocess.run([str(BIN / "farm"), "screen-uv", str(copy)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    again = Store(str(copy)).screen_uv()
+    np.testing.assert_array_equal(again.hit, aov_store.screen_uv().hit)
+    np.testing.assert_allclose(again.uv, aov_store.screen_uv().uv, atol=1e-6)
+    info = subprocess.run([str(BIN / "shards"), "info", str(copy)], capture_output=True, text=True)
+    assert "screen UV    4x4 sub-samples a pixel" in info.stdout
+    raw = bytearray((copy / "screen_uv.npz").read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    (copy / "screen_uv.npz").write_bytes(bytes(raw))
+    v = subprocess.run([str(BIN / "shards"), "verify", str(copy)], capture_output=True, text=True)
+    assert v.returncode == 1 and "screen_uv.npz" in v.stdout, v.stdout
+
+
+@pytest.mark.slow
+def test_trainer_render_any_material_from_the_checkpoint_alone(aov_store, tmp_path):
+    """A checkpoint carries its store's layout: a new material renders from it alone, and
+    the stored material's mapped maps render as its stored maps do."""
+    run = tmp_path / "run"
+    t = subprocess.run(
+        [str(BIN / "trainer"), "train", "--store", aov_store.url, "--out", str(run), "--loss",
+         "l1", "--epochs", "1", "--batch-size", "2", "--workers", "0", "--holdout-fraction", "0"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert t.returncode == 0, t.stderr[-2000:]
+    lib = tmp_path / "lib"
+    ambientcg(lib)
+    grey = np.repeat(normal_map(16)[..., :1], 3, 2)
+    write(lib / "rust.png", np.concatenate([normal_map(16)] * 3 + [grey, normal_map(16)], 1))
+
+    def render(*args):
+        cmd = [str(BIN / "trainer"), "render", "--checkpoint", str(run), *map(str, args)]
+        return subprocess.run(cmd, capture_output=True, text=True)
+
+    for i, material in enumerate(
+        [
+            "uniform:diffuse=#b03a2e;specular=0.04;roughness=0.3",
+            "procedural:seed=4",
+            lib / "Bricks059_2K-JPG",
+            lib / "rust.png",
+        ]  # fmt: skip
+    ):
+        out = tmp_path / f"m{i}.png"
+        r = render("--material", material, "--sun", "0.3,-0.5,0.8", "--turbidity", "4", "-o", out)
+        assert r.returncode == 0, r.stderr
+        img = np.asarray(Image.open(out))
+        assert img.shape == (64, 64, 3) and img.std() > 1
+    # the first stored material: from its stored maps, and mapped from its source id
+    source = aov_store.materials()[0]["source_id"]
+    light = ["--sun", "0.3,-0.5,0.8", "--turbidity", "4"]
+    assert render("--store", aov_store.url, "--sample", 0, *light, "-o", tmp_path / "a.png")
+    assert render("--material", source, *light, "-o", tmp_path / "b.png").returncode == 0
+    a, b = (np.asarray(Image.open(tmp_path / f"{k}.png"), np.float64) for k in "ab")
+    assert np.abs(a - b).mean() < 1.0, np.abs(a - b).mean()
+    bad = render("--material", tmp_path / "nothing.png", "-o", tmp_path / "x.png")
+    assert bad.returncode == 1 and bad.stderr.strip().splitlines()[-1].startswith("Error: ")
+    assert "nothing.png: no such file or folder" in bad.stderr
+    assert not (tmp_path / "x.png").exists()

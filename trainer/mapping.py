@@ -1,0 +1,154 @@
+"""Material maps → the network's screen-space input, without Blender (torch, CPU or CUDA).
+
+The paper's "UV-mapping pre-process": the four texture maps of a material are looked up at
+the ball's UVs as the camera sees them (:class:`render_jobs.screen_uv.ScreenUV`, rendered
+once from Blender) and anti-aliased with Cycles' pixel filter, which gives the stored maps a
+render of that material would have (``storage.schema``: ``(11, H, W) uint8``). What Cycles
+does, and so what this does, per sub-sample:
+
+- the texture is the 8-bit map Blender loads (``render_jobs.blender.shading`` writes 8-bit
+  PNGs), looked up with bilinear interpolation, repeating, at
+  ``(u · 2 t, v · t)`` for texture tiling ``t`` (file row 0 is v = 1);
+- diffuse and specular are sRGB bytes, interpolated as bytes and then decoded to linear;
+  roughness and normal are read as they are;
+- a miss (no material under the sub-sample) counts as 0.
+
+Then every pixel is the filter-weighted mean of its sub-samples (a separable strided
+convolution), colours are encoded back to sRGB and everything is rounded to 8 bits, exactly
+as ``storage.schema.encode_maps`` stores the AOVs. Against Cycles' own AOVs: see
+``docs/rendering.md`` ("Screen-space maps without Blender") and ``tests/test_mapping.py``.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from render_jobs.materials.maps import MaterialMaps
+from render_jobs.screen_uv import ScreenUV
+from trainer.targets import srgb_encode
+
+#: texture channels, in the order of the stored maps (without the mask)
+TEXTURE_CHANNELS = 10
+COLOUR = slice(0, 6)  # diffuse and specular: sRGB-encoded
+
+
+def textures_from_maps(maps: MaterialMaps) -> torch.Tensor:
+    """A material's maps ``(H, W, C)`` float32 → ``(10, H, W) float32``: diffuse, specular
+    (sRGB-encoded), roughness, normal, in [0, 1], file row 0 first."""
+    arr = np.concatenate([maps.diffuse, maps.specular, maps.roughness, maps.normal], axis=2)
+    return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1)))
+
+
+def srgb_decode(x: torch.Tensor) -> torch.Tensor:
+    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+class ScreenMapper:
+    """Maps batches of textures to stored-map form with one :class:`ScreenUV`.
+
+    >>> mapper = ScreenMapper(screen_uv, device="cpu")            # doctest: +SKIP
+    >>> packed = mapper(textures)   # (B, 10, Ht, Wt) in [0, 1] → (B, 11, R, R) uint8
+
+    Only the sub-samples that hit the ball are looked up (``grid_sample``). A sub-sample
+    weighs on the 3 x 3 pixels around its own, so the pixel filter is a sparse matrix
+    ``(R², hits)`` with 9 entries a column, applied as one CSR product: no super-resolution
+    image is ever made. The layout's constant parts are built once on ``device``; textures
+    of any size may come, one size per call."""
+
+    def __init__(self, screen_uv: ScreenUV, device: str | torch.device = "cpu"):
+        self.layout = screen_uv
+        self.device = torch.device(device)
+        self.r = screen_uv.resolution
+        hit = torch.from_numpy(screen_uv.hit.reshape(-1))
+        index = torch.nonzero(hit).squeeze(1)
+        uv = torch.from_numpy(screen_uv.uv.reshape(-1, 2)[index.numpy()].astype(np.float64))
+        tiling = screen_uv.texture_tiling
+        frac = torch.remainder(uv * torch.tensor([2 * tiling, tiling], dtype=torch.float64), 1.0)
+        frac[:, 1] = 1.0 - frac[:, 1]  # x along u, y down the texture file's rows, in [0, 1]
+        self.frac = frac.to(self.device)
+        self.hits = len(index)
+        self.filter = _filter_matrix(screen_uv, index).to(self.device)
+        ones = torch.ones(self.hits, 1, dtype=torch.float32, device=self.device)
+        self.coverage = (self.filter @ ones).view(1, 1, self.r, self.r)
+        self._grids: dict[tuple[int, int], torch.Tensor] = {}
+        steps = torch.linspace(0.0, 1.0, _LUT_STEPS + 1, dtype=torch.float64)
+        self._lut = srgb_decode(steps).to(self.device, torch.float32)
+
+    def _grid(self, height: int, width: int) -> torch.Tensor:
+        """grid_sample coordinates ``(1, 1, hits, 2)`` into a texture padded by one texel
+        on every side (the repeat wrap), for textures of ``height`` x ``width``."""
+        grid = self._grids.get((height, width))
+        if grid is None:
+            size = torch.tensor([width, height], dtype=torch.float64, device=self.device)
+            texel = self.frac * size - 0.5 + 1.0  # texel coordinates in the padded texture
+            grid = ((texel + 0.5) / (size + 2.0) * 2.0 - 1.0).to(torch.float32)
+            grid = self._grids[(height, width)] = grid.view(1, 1, -1, 2)
+        return grid
+
+    @torch.inference_mode()
+    def __call__(self, textures: torch.Tensor) -> torch.Tensor:
+        """``(B, 10, Ht, Wt)`` float textures in [0, 1] (or ``(10, Ht, Wt)``) → stored maps
+        ``(B, 11, R, R) uint8`` (or ``(11, R, R)``), on ``device``."""
+        single = textures.dim() == 3
+        x = textures[None] if single else textures
+        if x.dim() != 4 or x.shape[1] != TEXTURE_CHANNELS:
+            raise ValueError(f"textures have shape {tuple(textures.shape)}, expected (B, 10, H, W)")
+        b, c, h, w = x.shape
+        x = x.to(self.device, torch.float32)
+        x = torch.round(x.clamp(0.0, 1.0) * 255.0) / 255.0  # the 8-bit maps Blender loads
+        x = F.pad(x, (1, 1, 1, 1), mode="circular")
+        grid = self._grid(h, w).expand(b, -1, -1, -1)
+        looked = F.grid_sample(x, grid, mode="bilinear", align_corners=False)[:, :, 0]
+        looked = looked.permute(2, 0, 1).contiguous()  # (hits, B, 10): rows for the product
+        looked[:, :, COLOUR] = self._decode(looked[:, :, COLOUR])
+        maps = self.filter @ looked.view(self.hits, b * c)  # (R², B·10)
+        maps = maps.view(self.r * self.r, b, c).permute(1, 2, 0).contiguous()
+        maps[:, COLOUR] = srgb_encode(maps[:, COLOUR])
+        maps = maps.view(b, c, self.r, self.r)
+        maps = torch.cat([maps, self.coverage.expand(b, -1, -1, -1)], 1)
+        out = (maps.clamp(0.0, 1.0) * 255.0).round_().to(torch.uint8)
+        return out[0] if single else out
+
+    def _decode(self, x: torch.Tensor) -> torch.Tensor:
+        """sRGB decode of values in [0, 1] by linear interpolation in a 4,097-entry table
+        (off by under 1e-7: the curve's second derivative is below 4)."""
+        scaled = x * _LUT_STEPS
+        i = scaled.long().clamp_(max=_LUT_STEPS - 1)
+        frac = scaled - i
+        lut = self._lut
+        return torch.lerp(lut[i], lut[i + 1], frac)
+
+
+_LUT_STEPS = 4096
+
+
+def _filter_matrix(screen_uv: ScreenUV, index: torch.Tensor) -> torch.Tensor:
+    """The pixel filter as a CSR matrix ``(R², hits) float32``: entry (pixel, k) is the weight
+    of hit sub-sample ``index[k]`` in that pixel (the product of the x and y taps)."""
+    s, r = screen_uv.supersample, screen_uv.resolution
+    taps = torch.from_numpy(screen_uv.taps()).to(torch.float32)
+    qy, qx = index // (s * r), index % (s * r)
+    cols = torch.arange(len(index))
+    rows, keep, vals = [], [], []
+    for dy in (-1, 0, 1):
+        py = qy // s + dy
+        wy = taps[qy - s * py + s]
+        for dx in (-1, 0, 1):
+            px = qx // s + dx
+            ok = (py >= 0) & (py < r) & (px >= 0) & (px < r)
+            rows.append((py * r + px)[ok])
+            keep.append(cols[ok])
+            vals.append((wy * taps[qx - s * px + s])[ok])
+    coo = torch.sparse_coo_tensor(
+        torch.stack([torch.cat(rows), torch.cat(keep)]),
+        torch.cat(vals),
+        (r * r, len(index)),
+        check_invariants=False,
+    )
+    with warnings.catch_warnings():  # "sparse CSR support is in beta"
+        warnings.simplefilter("ignore", UserWarning)
+        return coo.coalesce().to_sparse_csr()
