@@ -404,16 +404,12 @@ def dashboard(roots, run_dirs, host, port, token):
       farm dashboard s3://bucket/sets --host 0.0.0.0  # prints a token; needed by every request
     """
     _require("farm dashboard", "aiohttp", "jinja2", "prometheus_client")
-    from aiohttp import web
-
     from farm.dashboard.app import Dashboard, make_app
-    from farm.web import token_for
+    from farm.web import serve, token_for
 
     token = token_for(host, token, echo=click.echo)
     app = make_app(Dashboard(list(roots) or ["out"], list(run_dirs)), token)
-    shown = f"[{host}]" if ":" in host else host
-    click.echo(f"dashboard: http://{shown}:{port}/", err=True)
-    web.run_app(app, host=host, port=port, print=None, access_log=None)
+    serve(app, host, port, lambda line: click.echo(line, err=True), "dashboard")
 
 
 @main.command("screen-uv")

@@ -1,5 +1,5 @@
-"""The small web layer of this project's servers (the farm dashboard; the trainer's viewer
-can share it): aiohttp, bound to 127.0.0.1 unless told otherwise, a token on any other
+"""The small web layer of this project's servers (``farm dashboard``, ``trainer viewer``):
+aiohttp, bound to 127.0.0.1 unless told otherwise, a token on any other
 address, a per-server secret on every POST, and files served only from inside given roots.
 
 Rules every server built on it follows:
@@ -108,8 +108,15 @@ def guard(token: str | None, secret: str):
     return middleware
 
 
-def application(token: str | None) -> tuple[web.Application, str]:
-    """A guarded app and its POST secret."""
+def application(token: str | None, **options) -> tuple[web.Application, str]:
+    """A guarded app and its POST secret (``options`` go to ``web.Application``)."""
     secret = secrets.token_urlsafe(16)
-    app = web.Application(middlewares=[guard(token, secret)])
+    app = web.Application(middlewares=[guard(token, secret)], **options)
     return app, secret
+
+
+def serve(app: web.Application, host: str, port: int, echo, name: str) -> None:
+    """Run ``app`` on ``host:port`` until interrupted, after printing where."""
+    shown = f"[{host}]" if ":" in host else host
+    echo(f"{name}: http://{shown}:{port}/")
+    web.run_app(app, host=host, port=port, print=None, access_log=None)

@@ -34,17 +34,24 @@ def synthetic_payload(layout: Layout, shard: int, seed: int = 0) -> ShardPayload
 
 def rendered_store(worker, path: str, sources: list[str], suns: int, shard_size: int):
     """A store of real renders by the session's Blender ``worker``, written shard by shard as
-    the farm does; returns ``(store, results)`` (results: one ``MaterialRender`` a material)."""
+    the farm does, with its screen UV layout; returns ``(store, results)`` (results: one
+    ``MaterialRender`` a material)."""
+    from render_jobs.geometry import geometry_hash, shaderball
     from render_jobs.materials import load_maps, specs_from_sources
     from render_jobs.specs import derive_seed
     from render_jobs.sun import sample_suns
     from storage.convert import payload_from_renders
-    from storage.writer import create_store, write_shard
+    from storage.writer import create_store, put_screen_uv, write_shard
 
     specs = specs_from_sources(sources, dataset_seed=0)
     layout = Layout(len(specs), suns, worker.settings.resolution, shard_size)
-    settings = {"render": worker.settings.to_dict(), "geometry_hash": worker.info["geometry_hash"]}
+    settings = {
+        "render": worker.settings.to_dict(),
+        "texture_tiling": worker.settings.texture_tiling,
+        "geometry_hash": geometry_hash(shaderball()),
+    }
     store = create_store(path, layout, settings)
+    put_screen_uv(store, worker.screen_uv(4))
     results = []
     for i, spec in enumerate(specs):
         drawn = sample_suns(np.random.default_rng(derive_seed(0, i)), suns)

@@ -319,5 +319,55 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
     click.echo(f"wrote {output}")
 
 
+@main.command()
+@click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
+@click.option("--store", "stores", multiple=True,
+              help="a store whose materials fill the gallery (repeatable)")  # fmt: skip
+@click.option("--materials", "folders", multiple=True, metavar="DIR",
+              help="a folder of materials (5-panel PNGs, per-map folders)")  # fmt: skip
+@click.option("--host", default="127.0.0.1", show_default=True,
+              help="address to bind; any other than loopback needs a token")  # fmt: skip
+@click.option("--port", default=8267, show_default=True, type=click.IntRange(0, 65535))
+@click.option("--token", envvar="SHADERBALL_TOKEN", default=None,
+              help="token every request must carry (made up off loopback)")  # fmt: skip
+@device_option
+def viewer(ckpt, stores, folders, host, port, token, device):
+    """Serve the material viewer: any material on the ball through the network, live.
+
+    Pick a material from the gallery (a store's materials, a folder's), upload a 5-panel PNG
+    or per-map images, or build a uniform one; tint and scale its maps; drag the sun on the
+    hemisphere and set the turbidity. The page shows each frame's time (mapping, network,
+    encoding); for a stored material under a stored sun it shows the Cycles ground truth and
+    the error beside the network's image. Save the view as PNG (material and light in its
+    metadata). No Blender: materials are mapped with the checkpoint's screen UV layout.
+
+    \b
+    Examples:
+      trainer viewer --checkpoint runs/demo --store out/demo.zarr   # http://127.0.0.1:8267
+      trainer viewer --checkpoint runs/a --materials textures/ambientcg --device cuda
+      trainer viewer --checkpoint runs/a --host 0.0.0.0   # prints a token, needed by every request
+    """
+    from storage.extras import MissingExtra, require
+
+    try:
+        require("trainer viewer", "aiohttp", "jinja2")
+    except MissingExtra as exc:
+        _fail(exc)
+    from farm.web import serve, token_for
+    from render_jobs.errors import MaterialError
+    from storage.errors import StoreError
+    from trainer.checkpoint import CheckpointError
+    from trainer.viewer.app import build, make_app
+
+    try:
+        view, notes = build(ckpt, list(stores), list(folders), device)
+    except (CheckpointError, StoreError, MaterialError, ValueError) as exc:
+        _fail(exc)
+    for line in notes:
+        click.echo(line, err=True)
+    token = token_for(host, token, echo=click.echo)
+    serve(make_app(view, token), host, port, lambda line: click.echo(line, err=True), "viewer")
+
+
 if __name__ == "__main__":
     main()

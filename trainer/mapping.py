@@ -67,9 +67,7 @@ class ScreenMapper:
         index = torch.nonzero(hit).squeeze(1)
         uv = torch.from_numpy(screen_uv.uv.reshape(-1, 2)[index.numpy()].astype(np.float64))
         tiling = screen_uv.texture_tiling
-        frac = torch.remainder(uv * torch.tensor([2 * tiling, tiling], dtype=torch.float64), 1.0)
-        frac[:, 1] = 1.0 - frac[:, 1]  # x along u, y down the texture file's rows, in [0, 1]
-        self.frac = frac.to(self.device)
+        self.st = (uv * torch.tensor([2 * tiling, tiling], dtype=torch.float64)).to(self.device)
         self.hits = len(index)
         self.filter = _filter_matrix(screen_uv, index).to(self.device)
         ones = torch.ones(self.hits, 1, dtype=torch.float32, device=self.device)
@@ -78,21 +76,28 @@ class ScreenMapper:
         steps = torch.linspace(0.0, 1.0, _LUT_STEPS + 1, dtype=torch.float64)
         self._lut = srgb_decode(steps).to(self.device, torch.float32)
 
-    def _grid(self, height: int, width: int) -> torch.Tensor:
+    def _grid(self, height: int, width: int, tiling: float) -> torch.Tensor:
         """grid_sample coordinates ``(1, 1, hits, 2)`` into a texture padded by one texel
-        on every side (the repeat wrap), for textures of ``height`` x ``width``."""
-        grid = self._grids.get((height, width))
+        on every side (the repeat wrap), for textures of ``height`` x ``width`` repeated
+        ``tiling`` times as often as the layout's own tiling (kept for the last few)."""
+        key = (height, width, tiling)
+        grid = self._grids.get(key)
         if grid is None:
+            frac = torch.remainder(self.st * tiling, 1.0)
+            frac[:, 1] = 1.0 - frac[:, 1]  # x along u, y down the texture file's rows
             size = torch.tensor([width, height], dtype=torch.float64, device=self.device)
-            texel = self.frac * size - 0.5 + 1.0  # texel coordinates in the padded texture
+            texel = frac * size - 0.5 + 1.0  # texel coordinates in the padded texture
             grid = ((texel + 0.5) / (size + 2.0) * 2.0 - 1.0).to(torch.float32)
-            grid = self._grids[(height, width)] = grid.view(1, 1, -1, 2)
+            if len(self._grids) >= 4:
+                self._grids.pop(next(iter(self._grids)))
+            grid = self._grids[key] = grid.view(1, 1, -1, 2)
         return grid
 
     @torch.inference_mode()
-    def __call__(self, textures: torch.Tensor) -> torch.Tensor:
+    def __call__(self, textures: torch.Tensor, tiling: float = 1.0) -> torch.Tensor:
         """``(B, 10, Ht, Wt)`` float textures in [0, 1] (or ``(10, Ht, Wt)``) → stored maps
-        ``(B, 11, R, R) uint8`` (or ``(11, R, R)``), on ``device``."""
+        ``(B, 11, R, R) uint8`` (or ``(11, R, R)``), on ``device``. ``tiling`` repeats the
+        textures that many times as often as the layout's tiling does (1: as rendered)."""
         single = textures.dim() == 3
         x = textures[None] if single else textures
         if x.dim() != 4 or x.shape[1] != TEXTURE_CHANNELS:
@@ -101,7 +106,7 @@ class ScreenMapper:
         x = x.to(self.device, torch.float32)
         x = torch.round(x.clamp(0.0, 1.0) * 255.0) / 255.0  # the 8-bit maps Blender loads
         x = F.pad(x, (1, 1, 1, 1), mode="circular")
-        grid = self._grid(h, w).expand(b, -1, -1, -1)
+        grid = self._grid(h, w, float(tiling)).expand(b, -1, -1, -1)
         looked = F.grid_sample(x, grid, mode="bilinear", align_corners=False)[:, :, 0]
         looked = looked.permute(2, 0, 1).contiguous()  # (hits, B, 10): rows for the product
         looked[:, :, COLOUR] = self._decode(looked[:, :, COLOUR])

@@ -1,0 +1,374 @@
+"""``trainer viewer``: edits, light and uploads as plain code; the server's security and its
+answers to bad uploads; and (slow) the page in headless Chromium on a checkpoint trained on a
+tiny real store: drag the sun, change roughness, upload a good and a broken material, save."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import signal
+import subprocess
+import time
+import urllib.error
+import urllib.request
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from render_jobs.errors import MaterialError
+from render_jobs.materials.procedural import procedural_maps
+from tests.conftest import free_port
+from tests.test_dashboard import ARTIFACTS, chromium
+from tests.test_farm import BIN
+from trainer.mapping import textures_from_maps
+from trainer.viewer.engine import Light
+from trainer.viewer.materials import MAX_PIXELS, Edits, Library, direction, sun_angles
+
+# ---- plain parts ----------------------------------------------------------------------------
+
+
+def test_edits_from_the_query_check_every_value():
+    e = Edits.from_query({"roughness_scale": "0.5", "diffuse_tint": "#ff8000", "tiling": "2"})
+    assert e.roughness_scale == 0.5 and e.tiling == 2.0
+    assert e.diffuse_tint == (1.0, 128 / 255, 0.0)
+    assert Edits.from_query({}).identity
+    for query, culprit in [
+        ({"roughness_scale": "x"}, "roughness_scale='x' is not a number"),
+        ({"tiling": "100"}, "tiling=100 is outside"),
+        ({"diffuse_tint": "red"}, "diffuse_tint='red' is not a #rrggbb colour"),
+    ]:
+        with pytest.raises(ValueError, match=culprit):
+            Edits.from_query(query)
+
+
+def test_edits_change_what_they_name_and_nothing_else():
+    tex = textures_from_maps(procedural_maps(5, 32))
+    assert Edits().apply(tex) is tex
+    rough = Edits(roughness_scale=0.5).apply(tex)
+    torch.testing.assert_close(rough[6], (tex[6] * 0.5).clamp(0, 1))
+    torch.testing.assert_close(rough[[0, 1, 2, 3, 4, 5, 7, 8, 9]], tex[[0, 1, 2, 3, 4, 5, 7, 8, 9]])
+    flat = Edits(normal_strength=0.0).apply(tex)
+    torch.testing.assert_close(
+        flat[7:10], torch.tensor([0.5, 0.5, 1.0])[:, None, None].expand(3, 32, 32)
+    )
+    red = Edits(diffuse_tint=(1.0, 0.0, 0.0)).apply(tex)
+    assert red[1].max() == 0 and red[2].max() == 0
+    torch.testing.assert_close(red[0], tex[0], atol=1e-5, rtol=0)
+
+
+def test_light_angles_round_trip_and_bad_suns_are_refused():
+    d = direction(123.0, 37.0)
+    back = sun_angles(d, 4.0)
+    assert abs(back["azimuth"] - 123) < 1e-6 and abs(back["elevation"] - 37) < 1e-6
+    assert Light.from_query({"az": "10", "el": "45", "t": "2"}).turbidity == 2.0
+    for query in ({"el": "-5"}, {"t": "11"}, {"az": "east"}):
+        with pytest.raises(ValueError):
+            Light.from_query(query)
+
+
+def png_bytes(arr: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def panel(size: int = 16, panels: int = 5) -> bytes:
+    rng = np.random.default_rng(3)
+    arr = rng.integers(0, 256, (size, size * panels, 3), dtype=np.uint8)
+    arr[:, 3 * size : 4 * size] = arr[:, 3 * size : 4 * size, :1]  # a grey roughness panel
+    return png_bytes(arr)
+
+
+def bomb() -> bytes:
+    """A small PNG whose header declares 40,000 x 40,000 pixels (it would decode to 4.8 GB)."""
+    img = png_bytes(np.zeros((1, 1, 3), np.uint8))
+    ihdr = img.index(b"IHDR")
+    body = img[ihdr : ihdr + 4] + (40000).to_bytes(4, "big") * 2 + img[ihdr + 12 : ihdr + 17]
+    import zlib
+
+    crc = zlib.crc32(body).to_bytes(4, "big")
+    return img[: ihdr + 4] + body[4:] + crc + img[ihdr + 21 :]
+
+
+BAD_UPLOADS = [
+    ([("notes.png", b"this is not an image")], "notes.png"),
+    ([("cut.png", panel()[:300])], "cut.png"),
+    ([("four.png", panel(panels=4))], "four.png"),
+    (
+        [("bomb.png", bomb())],
+        f"bomb.png: the image is over the viewer's limit of {MAX_PIXELS:,}",
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    "files,culprit", BAD_UPLOADS, ids=["not-image", "truncated", "panels", "bomb"]
+)
+def test_bad_uploads_get_one_line_naming_the_file_and_leave_nothing(tmp_path, files, culprit):
+    lib = Library([], [], tmp_path / "uploads")
+    with pytest.raises(MaterialError) as info:
+        lib.add_upload(files)
+    message = str(info.value)
+    assert "\n" not in message and culprit in message, message
+    assert str(tmp_path) not in message  # the page sees the file's name, not the server's paths
+    assert not any((tmp_path / "uploads").rglob("*.png"))
+    good = lib.add_upload([("good.png", panel())])
+    assert good.id in lib.entries and lib.textures(good.id).shape == (10, 16, 16)
+
+
+# ---- the server --------------------------------------------------------------------------------
+
+
+class Viewer:
+    """``trainer viewer`` in a subprocess on a free port."""
+
+    def __init__(self, *args, host="127.0.0.1", tmp: Path | None = None):
+        self.port = free_port()
+        self.base = f"http://127.0.0.1:{self.port}"
+        cmd = [str(BIN / "trainer"), "viewer", *map(str, args), "--host", host, "--port",
+               str(self.port), "--device", "cpu"]  # fmt: skip
+        env = {**os.environ, **({"TMPDIR": str(tmp)} if tmp else {})}
+        self.proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+        )
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            try:
+                urllib.request.urlopen(self.base + "/api/materials", timeout=2)
+                return
+            except urllib.error.HTTPError:
+                return  # up (and asking for a token)
+            except OSError:
+                if self.proc.poll() is not None:
+                    break
+                time.sleep(0.2)
+        out, err = self.stop()
+        raise AssertionError(f"the viewer did not start: {err}")
+
+    def get(self, path: str, headers: dict | None = None, data: bytes | None = None):
+        req = urllib.request.Request(self.base + path, headers=headers or {}, data=data)
+        try:
+            with urllib.request.urlopen(req, timeout=60) as r:
+                return r.status, r.read(), dict(r.headers)
+        except urllib.error.HTTPError as e:
+            return e.code, e.read(), dict(e.headers)
+
+    def upload(self, files: list[tuple[str, bytes]], secret: str | None):
+        boundary = uuid.uuid4().hex
+        body = (
+            b"".join(
+                f"--{boundary}\r\nContent-Disposition: form-data; "
+                f'name="file"; filename="{name}"\r\n'
+                f"Content-Type: application/octet-stream\r\n\r\n".encode()
+                + data
+                + b"\r\n"
+                for name, data in files
+            )
+            + f"--{boundary}--\r\n".encode()
+        )
+        headers = {"Content-Type": f"multipart/form-data; boundary={boundary}"}
+        if secret:
+            headers["X-Shaderball-Secret"] = secret
+        return self.get("/api/upload", headers, body)
+
+    def secret(self) -> str:
+        page = self.get("/")[1].decode()
+        return page.split('name="secret" content="')[1].split('"')[0]
+
+    def stop(self):
+        self.proc.send_signal(signal.SIGINT)
+        try:
+            return self.proc.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            return self.proc.communicate()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+@pytest.fixture(scope="module")
+def run(tiny_store, tmp_path_factory) -> Path:
+    """A checkpoint trained briefly on the tiny real store (it carries the store's layout)."""
+    out = tmp_path_factory.mktemp("viewer") / "run"
+    r = subprocess.run(
+        [str(BIN / "trainer"), "train", "--store", tiny_store.url, "--out", str(out), "--loss",
+         "l1", "--epochs", "1", "--batch-size", "4", "--workers", "0", "--max-steps", "6",
+         "--width", "16"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    return out
+
+
+def frame_query(m: str, **extra) -> str:
+    from urllib.parse import urlencode
+
+    return "/api/frame?" + urlencode({"m": m, "az": 200, "el": 35, "t": 3, **extra})
+
+
+def snapshot(*folders: Path) -> dict[str, str]:
+    """Every file under ``folders`` with the SHA-256 of its bytes."""
+    return {
+        str(p): hashlib.sha256(p.read_bytes()).hexdigest()
+        for f in folders
+        for p in sorted(Path(f).rglob("*"))
+        if p.is_file()
+    }
+
+
+@pytest.mark.slow
+def test_the_server_answers_bad_requests_in_one_line_and_goes_on(run, tiny_store, tmp_path):
+    before = snapshot(run, Path(tiny_store.url))
+    with Viewer("--checkpoint", run, "--store", tiny_store.url, tmp=tmp_path) as v:
+        secret = v.secret()
+        status, body, _ = v.upload([("panel.png", panel())], secret=None)
+        assert status == 403  # a POST without the page's secret
+        for files, culprit in BAD_UPLOADS:
+            status, body, _ = v.upload(files, secret)
+            err = json.loads(body)["error"]
+            assert status == 400 and culprit in err and "\n" not in err, err
+        status, body, _ = v.upload([("big.png", b"\0" * (65 << 20))], secret)
+        assert status == 413 and "64 MB limit" in json.loads(body)["error"]
+        status, body, _ = v.upload([("panel.png", panel())], secret)
+        assert status == 200
+        up = json.loads(body)["id"]
+        kept = [p.relative_to(tmp_path) for p in tmp_path.rglob("*") if p.is_file()]
+        assert len(kept) == 1 and kept[0].name == "panel.png", kept  # only the good upload
+        assert kept[0].parts[0].startswith("shaderball-viewer-")
+        status, body, headers = v.get(frame_query(up))
+        assert status == 200 and headers["Content-Type"] == "image/jpeg"
+        assert "net;dur=" in headers["Server-Timing"]
+        for query, culprit in [
+            (frame_query("s0:999"), "s0:999: no such material"),
+            (frame_query("s0:1", el="-4"), "el=-4"),
+            (frame_query("s0:1", roughness_scale="9"), "roughness_scale=9 is outside"),
+            (frame_query("/etc/passwd"), "/etc/passwd: no such material"),
+        ]:
+            status, body, _ = v.get(query)
+            assert status == 400 and culprit in json.loads(body)["error"], body
+        # the PNG keeps the material and the light
+        status, body, headers = v.get(frame_query("s0:1", fmt="png", download="1", tiling="2"))
+        assert status == 200 and "attachment" in headers["Content-Disposition"]
+        meta = Image.open(io.BytesIO(body)).text
+        material = json.loads(meta["shaderball:material"])
+        light = json.loads(meta["shaderball:light"])
+        assert material["id"] == "s0:1" and material["edits"]["tiling"] == 2.0
+        assert light["azimuth"] == 200 and light["turbidity"] == 3
+        status, body, _ = v.get("/api/truth?m=s0:1&k=2")
+        truth = json.loads(body)
+        assert status == 200 and truth["psnr"] > 5 and truth["truth"].startswith("data:image/png")
+    assert not any(tmp_path.iterdir())  # the temporary folder goes with the server
+    assert snapshot(run, Path(tiny_store.url)) == before  # nothing written beside them
+
+
+@pytest.mark.slow
+def test_off_loopback_the_viewer_needs_a_token(run):
+    with Viewer("--checkpoint", run, host="0.0.0.0") as v:
+        assert v.get("/")[0] == 401
+        out, err = v.stop()
+    assert "token (needed by every request from another machine)" in out + err
+    with Viewer("--checkpoint", run, "--token", "s3cret", host="0.0.0.0") as v:
+        assert v.get("/")[0] == 401
+        assert v.get("/?token=s3cret")[0] == 200
+        assert v.get("/api/materials", {"Authorization": "Bearer s3cret"})[0] == 200
+
+
+DIGEST = """async () => {
+  const img = document.getElementById('frame');
+  const bytes = new Uint8Array(await (await fetch(img.src)).arrayBuffer());
+  let h = 0;
+  for (const b of bytes) h = (h * 31 + b) >>> 0;
+  return bytes.length + ':' + h;
+}"""
+
+
+def frames(page) -> int:
+    return int(page.locator("#frame").get_attribute("data-frames"))
+
+
+def wait_new_frame(page, after: int, timeout: float = 60_000) -> None:
+    page.wait_for_function(
+        f"parseInt(document.getElementById('frame').dataset.frames) > {after}", timeout=timeout
+    )
+
+
+@pytest.mark.slow
+def test_the_page_in_chromium_drags_the_sun_edits_uploads_and_compares(run, tiny_store, tmp_path):
+    from playwright.sync_api import sync_playwright
+
+    (tmp_path / "good.png").write_bytes(panel(32))
+    (tmp_path / "broken.png").write_bytes(panel(32)[:500])
+    with Viewer("--checkpoint", run, "--store", tiny_store.url, tmp=tmp_path / "t") as v, \
+            sync_playwright() as p:  # fmt: skip
+        browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
+        page = browser.new_page(viewport={"width": 1400, "height": 1000})
+        errors = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(v.base + "/")
+        wait_new_frame(page, 0)
+        first = page.evaluate(DIGEST)
+        assert "network" in page.locator("#timing").inner_text()
+
+        # drag the sun across the hemisphere: the image follows while dragging
+        box = page.locator("#sky").bounding_box()
+        cx, cy = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        n = frames(page)
+        page.mouse.move(cx - 60, cy + 40)
+        page.mouse.down()
+        for k in range(1, 9):
+            page.mouse.move(cx - 60 + 14 * k, cy + 40 - 8 * k)
+            time.sleep(0.15)
+        wait_new_frame(page, n + 1)  # frames came while the button was still down
+        page.mouse.up()
+        page.wait_for_timeout(1500)
+        dragged = page.evaluate(DIGEST)
+        assert dragged != first
+        assert "azimuth" in page.locator("#light-v").inner_text()
+
+        # rougher: the image changes again
+        n = frames(page)
+        page.locator("#roughness_scale").fill("2.5")
+        wait_new_frame(page, n)
+        page.wait_for_timeout(1000)
+        assert page.evaluate(DIGEST) != dragged
+
+        # a stored sun shows the Cycles ground truth beside the network (edits reset first)
+        page.click("#reset")
+        page.click("#suns button >> nth=0")
+        page.wait_for_selector("#truth", state="visible", timeout=60_000)
+        assert "dB" in page.locator("#truth-psnr").inner_text()
+        page.wait_for_timeout(1000)
+        ARTIFACTS.mkdir(exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "viewer.png"), full_page=True)
+
+        # a broken upload: the loader's one line in the page; a good one: a new material
+        tiles = page.locator(".tile").count()
+        page.set_input_files("#upload", str(tmp_path / "broken.png"))
+        page.click("#upload-go")
+        page.wait_for_function("document.getElementById('upload-msg').textContent !== ''")
+        message = page.locator("#upload-msg").inner_text()
+        assert "broken.png" in message and "\n" not in message.strip(), message
+        n = frames(page)
+        before = page.evaluate(DIGEST)
+        page.set_input_files("#upload", str(tmp_path / "good.png"))
+        page.click("#upload-go")
+        page.wait_for_function(
+            "document.getElementById('upload-msg').textContent.includes('loaded')"
+        )
+        wait_new_frame(page, n)
+        page.wait_for_timeout(1000)
+        assert page.locator(".tile").count() == tiles + 1
+        assert page.evaluate(DIGEST) != before
+        assert "good.png" in page.locator("#material").inner_text()
+        browser.close()
+        assert not errors, errors

@@ -1,0 +1,210 @@
+"""``trainer viewer``: the web server around :class:`trainer.viewer.engine.Engine`.
+
+Routes: ``/`` (the page), ``/api/materials`` (the gallery, JSON), ``/api/thumb?m=ID`` (a
+gallery picture), ``/api/frame?m=ID&az=&el=&t=&<edits>&fmt=jpeg|png[&download=1]`` (a frame;
+``Server-Timing`` says what it took), ``/api/truth?m=ID&k=K`` (a stored material under its
+k-th stored sun: Cycles, network, error, PSNR; JSON with base64 PNGs), ``POST /api/upload``
+(multipart files; the server's POST secret in ``X-Shaderball-Secret``). Built on
+:mod:`farm.web` like the farm dashboard: 127.0.0.1 by default, a token on any other address.
+Frames are made one at a time on one worker thread (the network uses every core); a request
+that fails gets its one-line reason with status 400 (413 for an upload that is too big), and
+the server goes on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import functools
+import io
+import re
+import shutil
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+from aiohttp import web
+from PIL import Image
+
+from farm.web import application
+from render_jobs.errors import MaterialError
+from render_jobs.tonemap import to_uint8, tonemap
+from trainer.viewer import page
+from trainer.viewer.engine import Engine, Light
+from trainer.viewer.materials import MAX_UPLOAD_BYTES, Edits, Library
+
+THUMB = 96
+
+
+class Viewer:
+    """The engine, its worker thread and its temporary folder (removed on shutdown)."""
+
+    def __init__(self, engine: Engine, upload_dir: Path, info: dict):
+        self.engine, self.upload_dir, self.info = engine, upload_dir, info
+        self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frames")
+
+    async def run(self, fn, *args):
+        return await asyncio.get_running_loop().run_in_executor(
+            self.pool, functools.partial(fn, *args)
+        )
+
+    def thumb(self, material_id: str) -> bytes:
+        """The stored render under its first sun, or the material's diffuse map."""
+        lib = self.engine.library
+        e = lib.entry(material_id)
+        if e.store is not None:
+            img = to_uint8(tonemap(lib.truth(material_id, 0)[0]))
+        else:
+            tex = lib.textures(material_id)
+            img = (tex[:3].numpy().transpose(1, 2, 0) * 255 + 0.5).astype(np.uint8)
+        pic = Image.fromarray(img)
+        pic.thumbnail((THUMB, THUMB))
+        buf = io.BytesIO()
+        pic.save(buf, format="PNG")
+        return buf.getvalue()
+
+    def close(self) -> None:
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        shutil.rmtree(self.upload_dir, ignore_errors=True)
+
+
+def _error(status: int, message: str) -> web.Response:
+    return web.json_response({"error": message.splitlines()[0] if message else "error"},
+                             status=status)  # fmt: skip
+
+
+def make_app(viewer: Viewer, token: str | None) -> web.Application:
+    app, secret = application(token)
+    engine = viewer.engine
+
+    async def index(request):
+        return web.Response(
+            text=page.render(secret=secret, info=viewer.info, materials=engine.library.listing()),
+            content_type="text/html",
+        )
+
+    async def materials(request):
+        return web.json_response(engine.library.listing())
+
+    async def thumb(request):
+        try:
+            body = await viewer.run(viewer.thumb, request.query.get("m", ""))
+        except MaterialError as exc:
+            return _error(404, str(exc))
+        return web.Response(body=body, content_type="image/png")
+
+    async def frame(request):
+        q = request.query
+        try:
+            edits, light = Edits.from_query(q), Light.from_query(q)
+            f = await viewer.run(engine.frame, q.get("m", ""), edits, light, q.get("fmt", "jpeg"))
+        except (MaterialError, ValueError) as exc:
+            return _error(400, str(exc))
+        headers = {"Server-Timing": f.server_timing(), "Cache-Control": "no-store"}
+        if q.get("download"):
+            label = re.sub(r"[^A-Za-z0-9._-]+", "_", engine.library.entry(q["m"]).label)[:60]
+            name = f"shaderball-{label}-az{light.azimuth:.0f}-el{light.elevation:.0f}.png"
+            headers["Content-Disposition"] = f'attachment; filename="{name}"'
+        return web.Response(body=f.body, content_type=f.content_type, headers=headers)
+
+    async def truth(request):
+        try:
+            k = int(request.query.get("k", ""))
+            out = await viewer.run(engine.truth, request.query.get("m", ""), k)
+        except (MaterialError, ValueError) as exc:
+            return _error(400, str(exc))
+        for key in ("truth", "network", "error"):
+            out[key] = "data:image/png;base64," + base64.b64encode(out[key]).decode()
+        return web.json_response(out)
+
+    async def upload(request):
+        try:
+            files = await _read_files(request, MAX_UPLOAD_BYTES)
+            entry = await viewer.run(engine.library.add_upload, files)
+        except _TooLarge as exc:
+            return _error(413, str(exc))
+        except (MaterialError, ValueError) as exc:
+            return _error(400, str(exc))
+        return web.json_response(entry.to_dict())
+
+    async def cleanup(app):
+        viewer.close()
+
+    async def favicon(request):
+        return web.Response(status=204)
+
+    app.router.add_get("/", index)
+    app.router.add_get("/favicon.ico", favicon)
+    app.router.add_get("/api/materials", materials)
+    app.router.add_get("/api/thumb", thumb)
+    app.router.add_get("/api/frame", frame)
+    app.router.add_get("/api/truth", truth)
+    app.router.add_post("/api/upload", upload)
+    app.on_cleanup.append(cleanup)
+    return app
+
+
+class _TooLarge(ValueError):
+    pass
+
+
+async def _read_files(request: web.Request, limit: int) -> list[tuple[str, bytes]]:
+    """The uploaded files of a multipart request, read part by part; stops (and raises) as
+    soon as they pass ``limit`` bytes together, so a huge upload is never held whole."""
+    if not request.content_type.startswith("multipart/"):
+        raise ValueError("expected a multipart/form-data upload of image files")
+    reader = await request.multipart()
+    files, total = [], 0
+    while (part := await reader.next()) is not None:
+        if not part.filename:
+            continue
+        chunks = []
+        while chunk := await part.read_chunk(1 << 16):
+            total += len(chunk)
+            if total > limit:
+                raise _TooLarge(f"upload is over the viewer's {limit >> 20} MB limit")
+            chunks.append(chunk)
+        files.append((part.filename, b"".join(chunks)))
+    if not files:
+        raise ValueError("no file uploaded")
+    return files
+
+
+def build(
+    checkpoint: str, stores: list[str], folders: list[str], device: str
+) -> tuple[Viewer, list[str]]:
+    """The viewer of ``checkpoint`` with its gallery; returns it and notes for the console."""
+    from trainer.infer import NoScreenUV, Renderer, material_mapper
+
+    renderer = Renderer.from_checkpoint(checkpoint, device)
+    notes = []
+    try:
+        mapper = material_mapper(renderer, stores[0] if stores else None)
+    except NoScreenUV as exc:
+        mapper = None
+        notes.append(f"only stored materials can be shown: {exc}")
+    upload_dir = Path(tempfile.mkdtemp(prefix="shaderball-viewer-"))
+    try:
+        library = Library(stores, folders, upload_dir)
+        for i, store in enumerate(library.stores):
+            if store.layout.resolution != renderer.config.resolution:
+                raise ValueError(
+                    f"{stores[i]}: its renders are {store.layout.resolution}², the network's "
+                    f"{renderer.config.resolution}²"
+                )
+    except BaseException:
+        shutil.rmtree(upload_dir, ignore_errors=True)
+        raise
+    state = renderer.state
+    info = {
+        "checkpoint": checkpoint,
+        "step": int(state["step"]),
+        "resolution": renderer.config.resolution,
+        "model": renderer.config.arch,
+        "device": str(renderer.device),
+        "mapping": mapper is not None,
+        "stores": list(stores),
+    }
+    engine = Engine(renderer, mapper, library, f"{checkpoint} (step {info['step']})")
+    return Viewer(engine, upload_dir, info), notes

@@ -1,0 +1,192 @@
+"""The viewer's frames: a material (with edits) under a light, through the trained network,
+timed in three parts. Plain code: no web server in it (``benchmarks/viewer.py`` times it).
+
+- **mapping**: the material's texture maps, edited, UV-mapped to the network's input
+  (:class:`trainer.mapping.ScreenMapper`); cached per (material, edits), so moving the sun
+  costs no mapping;
+- **network**: the trained network (:class:`trainer.infer.Renderer`, its fp32 inference
+  path) on the mapped maps and the light;
+- **encoding**: the image's bytes (JPEG while the page follows the sun; PNG, with the
+  material and light in its metadata, when saved).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from PIL import Image
+from PIL.PngImagePlugin import PngInfo
+
+from render_jobs.errors import MaterialError
+from render_jobs.specs import Sun
+from render_jobs.tonemap import to_uint8
+from trainer.evaluate import psnr
+from trainer.infer import Renderer
+from trainer.targets import light_vector
+from trainer.viewer.materials import Edits, Library, direction
+
+JPEG_QUALITY = 92
+FORMATS = ("jpeg", "png")
+
+
+@dataclass(frozen=True)
+class Light:
+    """The sun as the page gives it: azimuth (degrees from +X towards +Y), elevation above
+    the horizon (degrees), sky turbidity."""
+
+    azimuth: float = 240.0
+    elevation: float = 40.0
+    turbidity: float = 3.0
+
+    def __post_init__(self) -> None:
+        Sun(direction(self.azimuth, self.elevation), self.turbidity)  # raises ValueError
+
+    @classmethod
+    def from_query(cls, query) -> Light:
+        values = {}
+        for key, name in (("az", "azimuth"), ("el", "elevation"), ("t", "turbidity")):
+            if key in query:
+                try:
+                    values[name] = float(query[key])
+                except ValueError:
+                    raise ValueError(f"{key}={query[key]!r} is not a number") from None
+        if not 0.5 <= values.get("elevation", 40.0) <= 90.0:
+            raise ValueError(f"el={values['elevation']:g}: the sun must be 0.5 to 90° up")
+        return cls(**values)
+
+    @property
+    def vector(self) -> np.ndarray:
+        return light_vector(direction(self.azimuth, self.elevation), self.turbidity)
+
+
+@dataclass
+class Frame:
+    """An encoded image and what it took, in milliseconds (``mapping`` is 0 when cached)."""
+
+    body: bytes
+    content_type: str
+    image: np.ndarray  # (H, W, 3) uint8
+    mapping_ms: float
+    network_ms: float
+    encoding_ms: float
+    cached: bool
+
+    def server_timing(self) -> str:
+        """The ``Server-Timing`` header the page reads."""
+        return (
+            f'map;dur={self.mapping_ms:.2f};desc="{"cached" if self.cached else "mapping"}", '
+            f"net;dur={self.network_ms:.2f}, enc;dur={self.encoding_ms:.2f}"
+        )
+
+
+class Engine:
+    """Frames of one checkpoint. ``mapper`` is ``None`` when no screen UV layout came with
+    the checkpoint or a store: then only stored materials (their stored maps) render."""
+
+    def __init__(self, renderer: Renderer, mapper, library: Library, checkpoint: str):
+        self.renderer, self.mapper, self.library = renderer, mapper, library
+        self.checkpoint = checkpoint
+        self._maps: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+
+    def _sync(self) -> None:
+        if self.renderer.device.type == "cuda":
+            torch.cuda.synchronize()
+
+    def maps(self, material_id: str, edits: Edits) -> tuple[torch.Tensor, float, bool]:
+        """The network's input ``(1, 11, R, R) uint8`` on the device, the seconds mapping
+        took, and whether it came from the cache."""
+        key = (material_id, edits)
+        hit = self._maps.get(key)
+        if hit is not None:
+            self._maps.move_to_end(key)
+            return hit, 0.0, True
+        t0 = time.perf_counter()
+        tex = self.library.textures(material_id)
+        if tex is None:  # a stored material whose source files are not here
+            if not edits.identity:
+                raise MaterialError(
+                    f"{material_id}: its source maps cannot be read here, so it cannot be edited"
+                )
+            packed = torch.from_numpy(np.array(self.library.stored_maps(material_id)))[None]
+            packed = packed.to(self.renderer.device)
+        elif self.mapper is None:
+            raise MaterialError(
+                "no screen UV layout came with the checkpoint or --store: only stored "
+                "materials can be shown (farm screen-uv STORE adds one to a store)"
+            )
+        else:
+            packed = self.mapper(edits.apply(tex)[None], tiling=edits.tiling)
+        self._sync()
+        seconds = time.perf_counter() - t0
+        self._maps[key] = packed
+        if len(self._maps) > 32:
+            self._maps.popitem(last=False)
+        return packed, seconds, False
+
+    def network(self, packed: torch.Tensor, light: np.ndarray) -> np.ndarray:
+        """``(3, R, R) float32`` display image in [0, 1] of ``packed`` under ``light (4,)``."""
+        out = self.renderer.render_batch(packed, torch.from_numpy(light[None]))
+        return out[0].cpu().numpy()
+
+    def frame(self, material_id: str, edits: Edits, light: Light, fmt: str = "jpeg") -> Frame:
+        if fmt not in FORMATS:
+            raise ValueError(f"format {fmt!r} is not one of {FORMATS}")
+        packed, map_s, cached = self.maps(material_id, edits)
+        t0 = time.perf_counter()
+        image = to_uint8(self.network(packed, light.vector))
+        t1 = time.perf_counter()
+        buf = io.BytesIO()
+        if fmt == "jpeg":
+            Image.fromarray(image).save(buf, format="JPEG", quality=JPEG_QUALITY)
+        else:
+            meta = self.metadata(material_id, edits, light)
+            Image.fromarray(image).save(buf, format="PNG", pnginfo=meta, compress_level=6)
+        t2 = time.perf_counter()
+        return Frame(
+            buf.getvalue(), f"image/{fmt}", image, map_s * 1e3, (t1 - t0) * 1e3,
+            (t2 - t1) * 1e3, cached,
+        )  # fmt: skip
+
+    def metadata(self, material_id: str, edits: Edits, light: Light) -> PngInfo:
+        """PNG text chunks: the material (id, source, edits), the light and the checkpoint."""
+        e = self.library.entry(material_id)
+        info = PngInfo()
+        material = {"id": e.id, "label": e.label, "kind": e.kind, "source": e.source,
+                    "edits": edits.to_dict()}  # fmt: skip
+        sun = {**light.__dict__, "direction": [round(c, 6) for c in light.vector[:3].tolist()]}
+        info.add_text("shaderball:material", json.dumps(material))
+        info.add_text("shaderball:light", json.dumps(sun))
+        info.add_text("shaderball:checkpoint", self.checkpoint)
+        info.add_text("Software", "shaderball trainer viewer")
+        return info
+
+    def truth(self, material_id: str, k: int) -> dict:
+        """A stored material under its ``k``-th stored sun: the Cycles render, the network's
+        image of the unedited material under exactly that sun, their |error| x 4 (PNG
+        bytes) and the PSNR in the tonemapped display space ``trainer eval`` uses."""
+        radiance, sun = self.library.truth(material_id, k)
+        truth = self.renderer.tonemap(torch.from_numpy(radiance)[None])[0]
+        e = self.library.entry(material_id)
+        d, t = self.library.stores[e.store].light(sun["sample"])  # exact, not the page's angles
+        packed, _, _ = self.maps(material_id, Edits())
+        net = torch.from_numpy(self.network(packed, light_vector(d, t)))
+        err = ((net - truth).abs().mean(0, keepdim=True) * 4.0).clamp(0, 1)
+        return {
+            "psnr": round(float(psnr(net[None], truth[None])[0]), 2),
+            "truth": _png(to_uint8(truth.numpy())),
+            "network": _png(to_uint8(net.numpy())),
+            "error": _png(to_uint8(err.numpy())),
+            "sun": sun,
+        }
+
+
+def _png(image: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG")
+    return buf.getvalue()

@@ -1,0 +1,295 @@
+"""The viewer's materials: the gallery (stored materials, folder materials), uploads, the
+uniform builder, and the edits an artist makes. Plain code: no web server in it.
+
+A material is named by an id the page sends back: ``s<store>:<material>`` (a stored
+material), ``f<folder>:<k>`` (the k-th material of a ``--materials`` folder), ``up<n>`` (an
+upload) or ``uniform:diffuse=#rrggbb;specular=#rrggbb;roughness=X`` (the builder; the
+``render_jobs.materials.sources.one_material`` form). Paths never come from the page: an id
+can only name what the server listed or stored itself.
+
+Uploads are written to the viewer's own temporary folder only, checked before their images
+are decoded (size, pixel count), then read by the loader every other command uses
+(``render_jobs.materials``), so a bad upload gets that loader's one-line error.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from render_jobs.errors import MaterialError
+from render_jobs.materials.files import read_svbrdf, scan_svbrdf_dir
+from render_jobs.materials.sources import load_maps, one_material
+from render_jobs.specs import MaterialSpec, Sun
+from storage.reader import Store
+from trainer.mapping import srgb_decode, textures_from_maps
+from trainer.targets import srgb_encode
+
+#: the largest upload, all files together (bytes), and the largest image (pixels)
+MAX_UPLOAD_BYTES = 64 << 20
+MAX_PIXELS = 8192 * 8192
+_SAFE_NAME = re.compile(r"[^A-Za-z0-9._ -]")
+
+
+@dataclass
+class Entry:
+    """One material the page can pick. ``suns`` (stored materials only): the light of each
+    stored sample, ``{"k", "sample", "azimuth", "elevation", "turbidity"}``."""
+
+    id: str
+    label: str
+    kind: str
+    source: str
+    suns: list[dict] = field(default_factory=list)
+    spec: MaterialSpec | None = None
+    store: int | None = None
+    index: int | None = None
+    path: Path | None = None
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in ("id", "label", "kind", "source", "suns")}
+
+
+def sun_angles(direction, turbidity: float) -> dict:
+    """A sun direction (z up) as the page's azimuth (from +X towards +Y) and elevation."""
+    d = np.asarray(direction, np.float64)
+    sun = Sun(tuple(float(c) for c in d / np.linalg.norm(d)), float(turbidity))
+    return {
+        "azimuth": round(sun.azimuth_deg, 3),
+        "elevation": round(sun.elevation_deg, 3),
+        "turbidity": round(float(turbidity), 3),
+    }
+
+
+def direction(azimuth_deg: float, elevation_deg: float) -> tuple[float, float, float]:
+    """The unit sun direction (z up) of the page's angles."""
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    return (float(np.cos(el) * np.cos(az)), float(np.cos(el) * np.sin(az)), float(np.sin(el)))
+
+
+class Library:
+    """The gallery and the uploads of one viewer; ``upload_dir`` is its temporary folder."""
+
+    def __init__(self, stores: list[str], folders: list[str], upload_dir: Path):
+        self.stores = [Store(u) for u in stores]
+        self.upload_dir = upload_dir
+        self.entries: OrderedDict[str, Entry] = OrderedDict()
+        self._textures: OrderedDict[str, torch.Tensor] = OrderedDict()
+        self.uploads = 0
+        for i, store in enumerate(self.stores):
+            self._add_store(i, store)
+        for j, folder in enumerate(folders):
+            for k, path in enumerate(scan_svbrdf_dir(Path(folder))):
+                e = Entry(f"f{j}:{k}", path.name, "svbrdf", str(path), path=path)
+                self.entries[e.id] = e
+
+    def _add_store(self, i: int, store: Store) -> None:
+        lay = store.layout
+        materials = store.materials()
+        for m, rec in sorted(materials.items()):
+            suns = []
+            for k in range(lay.suns_per_material):
+                sample = m * lay.suns_per_material + k
+                d, t = store.light(sample)
+                suns.append({"k": k, "sample": sample, **sun_angles(d, t)})
+            spec = MaterialSpec.from_dict(rec["spec"]) if rec.get("spec") else None
+            label = f"{rec['source_id']} (#{m})"
+            e = Entry(f"s{i}:{m}", label, rec["kind"], rec["source_id"], suns, spec, i, m)
+            self.entries[e.id] = e
+
+    # ---- what the page lists and picks ------------------------------------------------------
+
+    def listing(self) -> list[dict]:
+        return [e.to_dict() for e in self.entries.values()]
+
+    def entry(self, material_id: str) -> Entry:
+        """The gallery's or an upload's entry, or a builder material made from its id."""
+        e = self.entries.get(material_id)
+        if e is not None:
+            return e
+        if material_id.startswith("uniform:diffuse="):
+            spec = one_material(material_id)  # raises MaterialError naming what is wrong
+            return Entry(material_id, "uniform", "uniform", material_id, spec=spec)
+        raise MaterialError(f"{material_id}: no such material in this viewer")
+
+    def textures(self, material_id: str) -> torch.Tensor | None:
+        """``(10, H, W) float32`` texture maps of the material (cached), or ``None`` for a
+        stored material whose source cannot be read here (a file on another machine):
+        :meth:`stored_maps` then stands in."""
+        cached = self._textures.get(material_id)
+        if cached is not None:
+            self._textures.move_to_end(material_id)
+            return cached
+        e = self.entry(material_id)
+        if e.path is not None:
+            maps = read_svbrdf(e.path)[0]
+        elif e.spec is not None:
+            try:
+                maps = load_maps(e.spec)
+            except MaterialError:
+                if e.store is None:
+                    raise
+                return None
+        else:
+            return None
+        tex = textures_from_maps(maps)
+        self._textures[material_id] = tex
+        if len(self._textures) > 16:
+            self._textures.popitem(last=False)
+        return tex
+
+    def stored_maps(self, material_id: str) -> np.ndarray:
+        """``(11, R, R) uint8``: a stored material's maps as Cycles' AOVs gave them."""
+        e = self.entry(material_id)
+        if e.store is None:
+            raise MaterialError(f"{material_id}: not a stored material")
+        return self.stores[e.store].packed_maps(e.index)
+
+    def truth(self, material_id: str, k: int) -> tuple[np.ndarray, dict]:
+        """A stored material's Cycles render under its ``k``-th stored sun: ``(3, R, R)
+        float32`` linear HDR, and that sun's angles."""
+        e = self.entry(material_id)
+        if e.store is None or not 0 <= k < len(e.suns):
+            raise MaterialError(f"{material_id}: no stored render {k}")
+        sun = e.suns[k]
+        return self.stores[e.store].render(sun["sample"]).astype(np.float32), sun
+
+    # ---- uploads ------------------------------------------------------------------------------
+
+    def add_upload(self, files: list[tuple[str, bytes]]) -> Entry:
+        """A material from uploaded files: one 5-panel PNG, or a material's per-map images
+        (their names say which map each is, as in material libraries). Raises
+        :class:`MaterialError` with one line naming the file; nothing is kept on failure."""
+        if not files:
+            raise MaterialError("no file uploaded")
+        total = sum(len(data) for _, data in files)
+        if total > MAX_UPLOAD_BYTES:
+            raise MaterialError(
+                f"upload of {total / 2**20:.0f} MB is over the viewer's "
+                f"{MAX_UPLOAD_BYTES >> 20} MB limit"
+            )
+        self.uploads += 1
+        folder = self.upload_dir / f"up{self.uploads}"
+        folder.mkdir(parents=True)
+        try:
+            paths = []
+            for name, data in files:
+                base = _SAFE_NAME.sub("_", Path(name.replace("\\", "/")).name).strip() or "map"
+                path = folder / base
+                path.write_bytes(data)
+                _check_pixels(path)
+                paths.append(path)
+            target = paths[0] if len(paths) == 1 else folder
+            maps = read_svbrdf(target)[0]
+        except MaterialError as exc:
+            shutil.rmtree(folder, ignore_errors=True)
+            raise MaterialError(str(exc).replace(str(folder) + "/", "")) from None
+        e = Entry(f"up{self.uploads}", Path(files[0][0]).name if len(files) == 1 else
+                  f"upload {self.uploads}", "svbrdf", "upload", path=target)  # fmt: skip
+        self.entries[e.id] = e
+        self._textures[e.id] = textures_from_maps(maps)
+        return e
+
+
+def _check_pixels(path: Path) -> None:
+    """Refuse an image whose header declares more than ``MAX_PIXELS`` (a small file may
+    decode to gigabytes), before anything decodes it."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as img:
+            w, h = img.size
+    except (UnidentifiedImageError, OSError):
+        return  # not an image PIL knows (EXR, ...): the loader reports it, or reads it
+    except Image.DecompressionBombError:  # PIL's own, higher bound: the size is not kept
+        w = h = None
+    if w is None or w * h > MAX_PIXELS:
+        size = f" ({w}x{h})" if w else ""
+        raise MaterialError(
+            f"{path.name}: the image{size} is over the viewer's limit of {MAX_PIXELS:,} pixels"
+        )
+
+
+@dataclass(frozen=True)
+class Edits:
+    """An artist's changes to a material, applied to its texture maps before mapping.
+
+    ``diffuse_tint``/``specular_tint``: colours (sRGB, in [0, 1]) that multiply the map,
+    in linear colour; ``diffuse_scale``/``specular_scale``: a brightness factor on top;
+    ``roughness_scale``: multiplies roughness; ``normal_strength``: scales the normal map's
+    tilt (0: flat, 1: as it is); ``tiling``: repeats the textures that many times as often.
+    Results are clamped to the maps' [0, 1]."""
+
+    diffuse_tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    diffuse_scale: float = 1.0
+    specular_tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    specular_scale: float = 1.0
+    roughness_scale: float = 1.0
+    normal_strength: float = 1.0
+    tiling: float = 1.0
+
+    RANGES = {
+        "diffuse_scale": (0.0, 4.0),
+        "specular_scale": (0.0, 4.0),
+        "roughness_scale": (0.0, 4.0),
+        "normal_strength": (0.0, 4.0),
+        "tiling": (0.125, 16.0),
+    }
+
+    @classmethod
+    def from_query(cls, query) -> Edits:
+        """From the page's query parameters (absent ones keep their defaults); a value out
+        of range or unreadable raises ``ValueError`` naming it."""
+        values: dict = {}
+        for name in ("diffuse_tint", "specular_tint"):
+            if name in query:
+                values[name] = hex_colour(query[name], name)
+        for name, (lo, hi) in cls.RANGES.items():
+            if name in query:
+                try:
+                    v = float(query[name])
+                except ValueError:
+                    raise ValueError(f"{name}={query[name]!r} is not a number") from None
+                if not lo <= v <= hi:
+                    raise ValueError(f"{name}={v:g} is outside [{lo:g}, {hi:g}]")
+                values[name] = v
+        return cls(**values)
+
+    @property
+    def identity(self) -> bool:
+        return self == Edits()
+
+    def apply(self, textures: torch.Tensor) -> torch.Tensor:
+        """``(10, H, W)`` maps → edited copy (the tiling is the mapper's, not applied here)."""
+        if self.identity or self == Edits(tiling=self.tiling):
+            return textures
+        x = textures.clone()
+        for sl, tint, scale in (
+            (slice(0, 3), self.diffuse_tint, self.diffuse_scale),
+            (slice(3, 6), self.specular_tint, self.specular_scale),
+        ):
+            gain = srgb_decode(torch.tensor(tint, dtype=x.dtype)).view(3, 1, 1) * scale
+            x[sl] = srgb_encode(srgb_decode(x[sl]) * gain).clamp(0.0, 1.0)
+        x[6:7] = (x[6:7] * self.roughness_scale).clamp(0.0, 1.0)
+        n = x[7:10] * 2.0 - 1.0
+        n[:2] *= self.normal_strength
+        n = n / n.norm(dim=0, keepdim=True).clamp_min(1e-6)
+        x[7:10] = ((n + 1.0) / 2.0).clamp(0.0, 1.0)
+        return x
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def hex_colour(text: str, name: str = "colour") -> tuple[float, float, float]:
+    """``#rrggbb`` (or ``rrggbb``) → sRGB in [0, 1]; ``ValueError`` naming ``name``."""
+    t = text.strip().removeprefix("#")
+    if not re.fullmatch(r"[0-9a-fA-F]{6}", t):
+        raise ValueError(f"{name}={text!r} is not a #rrggbb colour")
+    return tuple(int(t[i : i + 2], 16) / 255 for i in (0, 2, 4))  # type: ignore[return-value]
