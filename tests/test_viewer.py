@@ -48,18 +48,44 @@ def test_edits_from_the_query_check_every_value():
 
 
 def test_edits_change_what_they_name_and_nothing_else():
-    tex = textures_from_maps(procedural_maps(5, 32))
-    assert Edits().apply(tex) is tex
-    rough = Edits(roughness_scale=0.5).apply(tex)
-    torch.testing.assert_close(rough[6], (tex[6] * 0.5).clamp(0, 1))
-    torch.testing.assert_close(rough[[0, 1, 2, 3, 4, 5, 7, 8, 9]], tex[[0, 1, 2, 3, 4, 5, 7, 8, 9]])
-    flat = Edits(normal_strength=0.0).apply(tex)
-    torch.testing.assert_close(
-        flat[7:10], torch.tensor([0.5, 0.5, 1.0])[:, None, None].expand(3, 32, 32)
-    )
-    red = Edits(diffuse_tint=(1.0, 0.0, 0.0)).apply(tex)
-    assert red[1].max() == 0 and red[2].max() == 0
-    torch.testing.assert_close(red[0], tex[0], atol=1e-5, rtol=0)
+    samples = torch.rand(500, 1, 10)  # sub-samples as the mapper hands them over
+    samples[..., 9] = 0.55 + 0.45 * samples[..., 9]  # normals point out of the surface
+
+    def edited(**kw):
+        s = samples.clone()
+        Edits(**kw).adjust(s)
+        return s
+
+    assert torch.equal(edited(), samples) and torch.equal(edited(tiling=3.0), samples)
+    rough = edited(roughness_scale=0.5)
+    torch.testing.assert_close(rough[..., 6], samples[..., 6] * 0.5)
+    others = [0, 1, 2, 3, 4, 5, 7, 8, 9]
+    assert torch.equal(rough[..., others], samples[..., others])
+    flat = edited(normal_strength=0.0)
+    torch.testing.assert_close(flat[..., 7:10], torch.tensor([0.5, 0.5, 1.0]).expand(500, 1, 3))
+    red = edited(diffuse_tint=(1.0, 0.0, 0.0), specular_scale=0.5)
+    assert red[..., 1:3].max() == 0 and torch.equal(red[..., 0], samples[..., 0])
+    torch.testing.assert_close(red[..., 3:6], samples[..., 3:6] * 0.5)
+
+
+def test_an_edit_maps_as_the_edited_material(tmp_path):
+    """Mapping with a roughness edit equals mapping the texture with that roughness, within
+    the 8-bit rounding of the texture Blender would load."""
+    from render_jobs.screen_uv import ScreenUV
+    from trainer.mapping import ScreenMapper
+
+    rng = np.random.default_rng(1)
+    n = 16 * 3
+    hit = np.zeros((n, n), bool)
+    hit[6:40, 6:40] = True
+    uv = np.where(hit[..., None], rng.uniform(0, 1, (n, n, 2)), 0).astype(np.float32)
+    mapper = ScreenMapper(ScreenUV(uv, hit, 16, 3, 1.0, "made-up"))
+    tex = textures_from_maps(procedural_maps(2, 32))
+    halved = tex.clone()
+    halved[6] *= 0.5
+    a = mapper(tex, adjust=Edits(roughness_scale=0.5).adjust).int()
+    b = mapper(halved).int()
+    assert (a[6] - b[6]).abs().max() <= 1 and torch.equal(a[[0, 1, 2, 10]], b[[0, 1, 2, 10]])
 
 
 def test_light_angles_round_trip_and_bad_suns_are_refused():

@@ -94,29 +94,52 @@ class ScreenMapper:
         return grid
 
     @torch.inference_mode()
-    def __call__(self, textures: torch.Tensor, tiling: float = 1.0) -> torch.Tensor:
+    def __call__(self, textures: torch.Tensor, tiling: float = 1.0, adjust=None) -> torch.Tensor:
         """``(B, 10, Ht, Wt)`` float textures in [0, 1] (or ``(10, Ht, Wt)``) → stored maps
-        ``(B, 11, R, R) uint8`` (or ``(11, R, R)``), on ``device``. ``tiling`` repeats the
-        textures that many times as often as the layout's tiling does (1: as rendered)."""
-        single = textures.dim() == 3
-        x = textures[None] if single else textures
+        ``(B, 11, R, R) uint8`` (or ``(11, R, R)``), on ``device``: :meth:`prepare`, then
+        :meth:`finish` of :meth:`lookup` (``tiling``, ``adjust``: see there)."""
+        out = self.finish(self.lookup(self.prepare(textures), tiling), adjust)
+        return out[0] if textures.dim() == 3 else out
+
+    def prepare(self, textures: torch.Tensor) -> torch.Tensor:
+        """The textures as Blender loads them (8-bit values), padded by one texel on every
+        side for the repeat wrap: ``(B, 10, Ht + 2, Wt + 2) float32`` on ``device``,
+        channels_last (a lookup then reads its 10 values from one place: 1.7x faster on CPU
+        for 1K textures). Kept by callers that map one material many times."""
+        x = textures[None] if textures.dim() == 3 else textures
         if x.dim() != 4 or x.shape[1] != TEXTURE_CHANNELS:
             raise ValueError(f"textures have shape {tuple(textures.shape)}, expected (B, 10, H, W)")
-        b, c, h, w = x.shape
         x = x.to(self.device, torch.float32)
-        x = torch.round(x.clamp(0.0, 1.0) * 255.0) / 255.0  # the 8-bit maps Blender loads
+        x = torch.round(x.clamp(0.0, 1.0) * 255.0) / 255.0
         x = F.pad(x, (1, 1, 1, 1), mode="circular")
-        grid = self._grid(h, w, float(tiling)).expand(b, -1, -1, -1)
-        looked = F.grid_sample(x, grid, mode="bilinear", align_corners=False)[:, :, 0]
-        looked = looked.permute(2, 0, 1).contiguous()  # (hits, B, 10): rows for the product
+        return x.contiguous(memory_format=torch.channels_last)
+
+    @torch.inference_mode()
+    def lookup(self, prepared: torch.Tensor, tiling: float = 1.0) -> torch.Tensor:
+        """Bilinear lookups of :meth:`prepare`'s textures at every hit sub-sample:
+        ``(hits, B, 10)``, colours still sRGB-encoded. ``tiling`` repeats the textures that
+        many times as often as the layout's tiling does (1: as rendered)."""
+        b, _, h, w = prepared.shape
+        grid = self._grid(h - 2, w - 2, float(tiling)).expand(b, -1, -1, -1)
+        looked = F.grid_sample(prepared, grid, mode="bilinear", align_corners=False)[:, :, 0]
+        return looked.permute(2, 0, 1).contiguous()
+
+    @torch.inference_mode()
+    def finish(self, looked: torch.Tensor, adjust=None) -> torch.Tensor:
+        """Sub-samples ``(hits, B, 10)`` → stored maps ``(B, 11, R, R) uint8``: colours
+        decoded to linear, ``adjust(samples)`` when given (it may change the ``(hits, B,
+        10)`` values in place: linear colours, roughness, normal encoded (n + 1) / 2), the
+        pixel filter, colours encoded, the coverage appended, 8-bit rounding."""
+        hits, b, c = looked.shape
         looked[:, :, COLOUR] = self._decode(looked[:, :, COLOUR])
-        maps = self.filter @ looked.view(self.hits, b * c)  # (R², B·10)
+        if adjust is not None:
+            adjust(looked)
+        maps = self.filter @ looked.view(hits, b * c)  # (R², B·10)
         maps = maps.view(self.r * self.r, b, c).permute(1, 2, 0).contiguous()
         maps[:, COLOUR] = srgb_encode(maps[:, COLOUR])
         maps = maps.view(b, c, self.r, self.r)
         maps = torch.cat([maps, self.coverage.expand(b, -1, -1, -1)], 1)
-        out = (maps.clamp(0.0, 1.0) * 255.0).round_().to(torch.uint8)
-        return out[0] if single else out
+        return (maps.clamp(0.0, 1.0) * 255.0).round_().to(torch.uint8)
 
     def _decode(self, x: torch.Tensor) -> torch.Tensor:
         """sRGB decode of values in [0, 1] by linear interpolation in a 4,097-entry table

@@ -1,9 +1,9 @@
 """The viewer's frames: a material (with edits) under a light, through the trained network,
 timed in three parts. Plain code: no web server in it (``benchmarks/viewer.py`` times it).
 
-- **mapping**: the material's texture maps, edited, UV-mapped to the network's input
-  (:class:`trainer.mapping.ScreenMapper`); cached per (material, edits), so moving the sun
-  costs no mapping;
+- **mapping**: the material's texture maps UV-mapped to the network's input, with its edits
+  (:class:`trainer.mapping.ScreenMapper`; the prepared textures are kept per material, the
+  result per (material, edits), so moving the sun costs no mapping);
 - **network**: the trained network (:class:`trainer.infer.Renderer`, its fp32 inference
   path) on the mapped maps and the light;
 - **encoding**: the image's bytes (JPEG while the page follows the sun; PNG, with the
@@ -92,7 +92,8 @@ class Engine:
     def __init__(self, renderer: Renderer, mapper, library: Library, checkpoint: str):
         self.renderer, self.mapper, self.library = renderer, mapper, library
         self.checkpoint = checkpoint
-        self._maps: OrderedDict[tuple, torch.Tensor] = OrderedDict()
+        self._maps: OrderedDict[tuple, torch.Tensor] = OrderedDict()  # mapped, by edits
+        self._prepared: OrderedDict[str, torch.Tensor] = OrderedDict()  # textures, by material
 
     def _sync(self) -> None:
         if self.renderer.device.type == "cuda":
@@ -107,27 +108,42 @@ class Engine:
             self._maps.move_to_end(key)
             return hit, 0.0, True
         t0 = time.perf_counter()
-        tex = self.library.textures(material_id)
-        if tex is None:  # a stored material whose source files are not here
-            if not edits.identity:
-                raise MaterialError(
-                    f"{material_id}: its source maps cannot be read here, so it cannot be edited"
-                )
+        prepared = self._prepared.get(material_id)
+        if prepared is None:
+            prepared = self._prepare(material_id, edits)
+        if prepared is None:  # a stored material whose source files are not here
             packed = torch.from_numpy(np.array(self.library.stored_maps(material_id)))[None]
             packed = packed.to(self.renderer.device)
-        elif self.mapper is None:
-            raise MaterialError(
-                "no screen UV layout came with the checkpoint or --store: only stored "
-                "materials can be shown (farm screen-uv STORE adds one to a store)"
-            )
         else:
-            packed = self.mapper(edits.apply(tex)[None], tiling=edits.tiling)
+            adjust = edits.adjust if edits.changes_values else None
+            packed = self.mapper.finish(self.mapper.lookup(prepared, edits.tiling), adjust)
         self._sync()
         seconds = time.perf_counter() - t0
         self._maps[key] = packed
         if len(self._maps) > 32:
             self._maps.popitem(last=False)
         return packed, seconds, False
+
+    def _prepare(self, material_id: str, edits: Edits) -> torch.Tensor | None:
+        """The material's textures, prepared for the mapper and kept for the next edits;
+        ``None`` (stored maps stand in) for a stored material whose files are not here."""
+        tex = self.library.textures(material_id)
+        if tex is None:
+            if not edits.identity:
+                raise MaterialError(
+                    f"{material_id}: its source maps cannot be read here, so it cannot be edited"
+                )
+            return None
+        if self.mapper is None:
+            raise MaterialError(
+                "no screen UV layout came with the checkpoint or --store: only stored "
+                "materials can be shown (farm screen-uv STORE adds one to a store)"
+            )
+        prepared = self.mapper.prepare(tex)
+        self._prepared[material_id] = prepared
+        if len(self._prepared) > 8:
+            self._prepared.popitem(last=False)
+        return prepared
 
     def network(self, packed: torch.Tensor, light: np.ndarray) -> np.ndarray:
         """``(3, R, R) float32`` display image in [0, 1] of ``packed`` under ``light (4,)``."""

@@ -29,7 +29,6 @@ from render_jobs.materials.sources import load_maps, one_material
 from render_jobs.specs import MaterialSpec, Sun
 from storage.reader import Store
 from trainer.mapping import srgb_decode, textures_from_maps
-from trainer.targets import srgb_encode
 
 #: the largest upload, all files together (bytes), and the largest image (pixels)
 MAX_UPLOAD_BYTES = 64 << 20
@@ -218,13 +217,15 @@ def _check_pixels(path: Path) -> None:
 
 @dataclass(frozen=True)
 class Edits:
-    """An artist's changes to a material, applied to its texture maps before mapping.
+    """An artist's changes to a material, made to its values as the camera sees them: each
+    sub-sample's looked-up value, before the pixel filter (``trainer.mapping``'s ``adjust``),
+    so an edit costs the same whatever the size of the texture files.
 
-    ``diffuse_tint``/``specular_tint``: colours (sRGB, in [0, 1]) that multiply the map,
-    in linear colour; ``diffuse_scale``/``specular_scale``: a brightness factor on top;
-    ``roughness_scale``: multiplies roughness; ``normal_strength``: scales the normal map's
-    tilt (0: flat, 1: as it is); ``tiling``: repeats the textures that many times as often.
-    Results are clamped to the maps' [0, 1]."""
+    ``diffuse_tint``/``specular_tint``: colours (sRGB, in [0, 1]) that multiply the linear
+    reflectance; ``diffuse_scale``/``specular_scale``: a factor on top; ``roughness_scale``:
+    multiplies roughness; ``normal_strength``: scales the normal map's tilt (0: flat, 1: as it
+    is); ``tiling``: repeats the textures that many times as often. Values are clamped to the
+    maps' [0, 1]."""
 
     diffuse_tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
     diffuse_scale: float = 1.0
@@ -265,23 +266,28 @@ class Edits:
     def identity(self) -> bool:
         return self == Edits()
 
-    def apply(self, textures: torch.Tensor) -> torch.Tensor:
-        """``(10, H, W)`` maps → edited copy (the tiling is the mapper's, not applied here)."""
-        if self.identity or self == Edits(tiling=self.tiling):
-            return textures
-        x = textures.clone()
+    @property
+    def changes_values(self) -> bool:
+        """Whether :meth:`adjust` changes anything (the tiling is the mapper's)."""
+        return self != Edits(tiling=self.tiling)
+
+    def adjust(self, samples: torch.Tensor) -> None:
+        """Edit sub-samples ``(..., 10)`` in place: linear diffuse and specular, roughness,
+        normal encoded (n + 1) / 2 (``trainer.mapping.ScreenMapper.finish``'s ``adjust``)."""
         for sl, tint, scale in (
             (slice(0, 3), self.diffuse_tint, self.diffuse_scale),
             (slice(3, 6), self.specular_tint, self.specular_scale),
         ):
-            gain = srgb_decode(torch.tensor(tint, dtype=x.dtype)).view(3, 1, 1) * scale
-            x[sl] = srgb_encode(srgb_decode(x[sl]) * gain).clamp(0.0, 1.0)
-        x[6:7] = (x[6:7] * self.roughness_scale).clamp(0.0, 1.0)
-        n = x[7:10] * 2.0 - 1.0
-        n[:2] *= self.normal_strength
-        n = n / n.norm(dim=0, keepdim=True).clamp_min(1e-6)
-        x[7:10] = ((n + 1.0) / 2.0).clamp(0.0, 1.0)
-        return x
+            if tint != (1.0, 1.0, 1.0) or scale != 1.0:
+                gain = srgb_decode(torch.tensor(tint, dtype=samples.dtype)) * scale
+                samples[..., sl] = (samples[..., sl] * gain.to(samples.device)).clamp_(0.0, 1.0)
+        if self.roughness_scale != 1.0:
+            samples[..., 6] = (samples[..., 6] * self.roughness_scale).clamp_(0.0, 1.0)
+        if self.normal_strength != 1.0:
+            n = samples[..., 7:10] * 2.0 - 1.0
+            n[..., :2] *= self.normal_strength
+            n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+            samples[..., 7:10] = ((n + 1.0) / 2.0).clamp_(0.0, 1.0)
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}

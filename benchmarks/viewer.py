@@ -1,0 +1,132 @@
+"""Viewer benchmark: the time from an edit to the new image's bytes, in three parts.
+
+    .venv/bin/python -m benchmarks.viewer [--resolutions 128,256,400] [--frames 12]
+        [--texture 1024] [--device auto]
+
+For each resolution: the screen UV layout rendered by Blender at the farm's sub-sampling
+(``render_jobs.screen_uv.default_supersample``; cached in ``benchmarks/.cache``), the paper's
+network (width 64, skips) with fresh weights (speed does not depend on them), and one
+procedural material with ``--texture``² maps, read as the viewer reads a folder material.
+Each **edit** frame changes the roughness scale, so it maps the edited textures again
+(``trainer.mapping``), runs the network (``trainer.infer.Renderer``'s inference path) and
+encodes a JPEG, exactly as ``trainer viewer`` answers the page (``trainer.viewer.engine``);
+each **drag** frame moves the sun (the mapping is cached). Medians over ``--frames``; the
+share outside the network is (mapping + encoding) / frame. Targets: under 20 % of the frame
+on CPU, under 1 ms on CUDA.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from benchmarks.train import device_name
+from render_jobs.screen_uv import ScreenUV, default_supersample
+from trainer.infer import Renderer, pick_device
+from trainer.mapping import ScreenMapper
+from trainer.model import ModelConfig, NeuralRenderer
+from trainer.targets import Tonemap
+from trainer.viewer.engine import Engine, Light
+from trainer.viewer.materials import Edits, Library
+
+CACHE = Path(__file__).resolve().parent / ".cache"
+
+
+def layout(resolution: int) -> ScreenUV:
+    """The scene's screen UV layout at ``resolution`` (rendered once, then cached)."""
+    s = default_supersample(resolution)
+    path = CACHE / f"screen_uv-{resolution}-{s}.npz"
+    if path.exists():
+        return ScreenUV.from_bytes(path.read_bytes(), str(path))
+    from render_jobs.process import RenderProcess
+    from render_jobs.specs import RenderSettings
+
+    with RenderProcess(RenderSettings(resolution=resolution, samples=1)) as worker:
+        suv = worker.screen_uv(s)
+    CACHE.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(suv.to_bytes())
+    return suv
+
+
+def material_folder(folder: Path, texture: int) -> Path:
+    """A 5-panel PNG of a procedural material at ``texture``² (photo, normal, diffuse,
+    roughness, specular)."""
+    from render_jobs.materials.procedural import procedural_maps
+
+    m = procedural_maps(7, texture)
+    panels = [m.diffuse, m.normal, m.diffuse, np.repeat(m.roughness, 3, 2), m.specular]
+    strip = (np.concatenate(panels, 1) * 255 + 0.5).astype(np.uint8)
+    Image.fromarray(strip).save(folder / "bench.png")
+    return folder
+
+
+def measure(resolution: int, frames: int, texture: int, device: torch.device, tmp: Path):
+    """Median milliseconds of edit frames (mapping, network, encoding, frame) and drag frames."""
+    suv = layout(resolution)
+    renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
+    library = Library([], [str(material_folder(tmp, texture))], tmp / "uploads")
+    engine = Engine(renderer, ScreenMapper(suv, device), library, "fresh weights")
+    mid = next(iter(library.entries))
+    engine.frame(mid, Edits(roughness_scale=0.3), Light())  # warm-up: textures, grids, kernels
+    engine.frame(mid, Edits(roughness_scale=0.31), Light())
+    edit, drag = [], []
+    for i in range(frames):
+        f = engine.frame(mid, Edits(roughness_scale=0.4 + 0.01 * i), Light())
+        assert not f.cached
+        edit.append((f.mapping_ms, f.network_ms, f.encoding_ms))
+    for i in range(frames):
+        f = engine.frame(mid, Edits(roughness_scale=0.4), Light(azimuth=200 + 3 * i))
+        assert f.cached
+        drag.append(f.mapping_ms + f.network_ms + f.encoding_ms)
+    parts = [statistics.median(x) for x in zip(*edit, strict=True)]
+    total = statistics.median(sum(x) for x in edit)
+    return {
+        "mapping": parts[0],
+        "network": parts[1],
+        "encoding": parts[2],
+        "frame": total,
+        "outside": (parts[0] + parts[2]) / (parts[0] + parts[1] + parts[2]),
+        "drag": statistics.median(drag),
+        "supersample": suv.supersample,
+        "hits": int(suv.hit.sum()),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--resolutions", default="128,256,400")
+    ap.add_argument("--frames", type=int, default=12)
+    ap.add_argument("--texture", type=int, default=1024)
+    ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
+    args = ap.parse_args()
+    if args.frames < 1:
+        ap.error("--frames must be at least 1")
+    device = pick_device(args.device)
+    print(f"device: {device_name(device)}; torch threads {torch.get_num_threads()}; "
+          f"texture {args.texture}²; medians of {args.frames} frames")  # fmt: skip
+    print(
+        "| resolution | sub-samples | mapping ms | network ms | encoding ms | edit frame ms "
+        "| outside the network | drag frame ms |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in (int(v) for v in args.resolutions.split(",")):
+            sub = Path(tmp) / str(r)
+            sub.mkdir()
+            m = measure(r, args.frames, args.texture, device, sub)
+            print(
+                f"| {r}² | {m['supersample']}² ({m['hits']:,} hits) | {m['mapping']:.1f} | "
+                f"{m['network']:.1f} | {m['encoding']:.2f} | {m['frame']:.1f} | "
+                f"{100 * m['outside']:.1f} % | {m['drag']:.1f} |",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()
