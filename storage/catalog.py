@@ -79,9 +79,9 @@ class Catalog:
         return cls(**d)
 
     def split(self, which: str, storage_options: dict | None = None) -> Split:
-        """The ``train`` or ``test`` (held-out) samples, grouped by shard."""
-        if which not in ("train", "test"):
-            raise ValueError(f"split must be train or test, not {which!r}")
+        """The ``train`` or ``test`` (held-out) samples, or ``all``, grouped by shard."""
+        if which not in ("train", "test", "all"):
+            raise ValueError(f"split must be train, test or all, not {which!r}")
         refs, groups = [], []
         for s, url in enumerate(self.urls):
             layout = Store(url, storage_options).layout
@@ -90,7 +90,7 @@ class Catalog:
                 ids = [
                     k
                     for k in layout.shard_samples(shard)
-                    if (layout.material_of_sample(k) in held) == (which == "test")
+                    if which == "all" or (layout.material_of_sample(k) in held) == (which == "test")
                 ]
                 if ids:
                     groups.append(np.arange(len(refs), len(refs) + len(ids)))

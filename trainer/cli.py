@@ -174,26 +174,41 @@ def launch(
 @click.option("--batch-size", default=8, show_default=True, type=int, help="images per batch")
 @click.option("--grid", type=click.Path(path_type=Path), default=None, help="PNG grid path")
 @click.option("--grid-count", default=4, show_default=True, type=int, help="samples in the grid")
+@click.option(
+    "--on",
+    "on",
+    multiple=True,
+    metavar="STORE",
+    help="evaluate on every sample of this store of other materials (repeatable) instead of "
+    "the run's held-out split",
+)
 @device_option
 @click.option("--json", "as_json", is_flag=True, help="print the metrics as JSON")
-def eval_(ckpt, stores, batch_size, grid, grid_count, device, as_json):
-    """PSNR and SSIM on the held-out materials, overall and per kind, and a PNG grid
-    (ground truth | prediction | error x4) of a few samples. Example:
+def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
+    """PSNR, SSIM and FLIP on held-out materials, overall and per kind, and a PNG grid
+    (ground truth | prediction | error x4) of a few samples.
+
+    The held-out materials are the run's held-out split, or, with --on, every material of
+    stores the run never trained on (e.g. the same sources rendered with another --seed).
 
     \b
+    Examples:
       trainer eval --checkpoint runs/demo --grid runs/demo/eval.png
+      trainer eval --checkpoint runs/a --on out/test.zarr --json
     """
     from storage.errors import StoreError
     from trainer.checkpoint import CheckpointError
     from trainer.evaluate import EvalError, evaluate
 
-    if grid is None and Path(ckpt).is_dir():
+    if grid is None and Path(ckpt).is_dir() and not on:
         grid = Path(ckpt) / "eval.png"
     try:
-        result = evaluate(ckpt, list(stores) or None, batch_size, grid, grid_count, device)
+        result = evaluate(
+            ckpt, list(stores) or None, batch_size, grid, grid_count, device, list(on) or None
+        )
     except (StoreError, CheckpointError, EvalError) as exc:
         _fail(exc)
-    if Path(ckpt).is_dir():  # beside the run's log, for the farm dashboard's runs page
+    if Path(ckpt).is_dir() and not on:  # beside the run's log, for the dashboard's runs page
         from storage.backend import write_atomic
 
         data = json.dumps(result, indent=1, default=str).encode()

@@ -1,8 +1,11 @@
-"""Evaluation on the held-out materials: PSNR and SSIM, overall and per material kind.
+"""Evaluation on held-out materials: PSNR, SSIM and FLIP, overall and per material kind.
 
-Both are computed in the tonemapped display space the model predicts (``[0, 1]``), over the
+All are computed in the tonemapped display space the model predicts (``[0, 1]``), over the
 whole frame. SSIM: Gaussian window 11, σ 1.5, K1 0.01, K2 0.03, per channel, valid region
-(Wang et al. 2004). The held-out materials are the ones the checkpoint's run never trained on.
+(Wang et al. 2004). The held-out materials are the ones the checkpoint's run never trained on:
+its run's held-out split, or whole stores of other materials (``--on``). :class:`Tally` scores
+any pairs of display images the same way (the quality comparison scores Cycles baselines
+with it).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from render_jobs.tonemap import to_uint8
+from storage.reader import Store
 from trainer.data import Catalog, SampleReader
 from trainer.infer import Renderer
 
@@ -67,19 +71,54 @@ def flip(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return torch.tensor(out)
 
 
-def evaluate(
-    ckpt,
-    stores: list[str] | None = None,
-    batch_size: int = 8,
-    grid: Path | None = None,
-    grid_count: int = 4,
-    device: str = "auto",
-) -> dict:
-    """Metrics of checkpoint ``ckpt`` on its run's held-out split (``stores``: the same stores
-    by another address, e.g. a local copy); writes a ground truth | prediction | error PNG grid
-    of the first ``grid_count`` held-out samples to ``grid`` when given."""
-    renderer = Renderer.from_checkpoint(ckpt, device)
+class Tally:
+    """Per-sample PSNR, SSIM and FLIP of display images, kept per material kind."""
+
+    def __init__(self) -> None:
+        self.scores: dict[str, list] = defaultdict(list)
+
+    def add(self, pred: torch.Tensor, target: torch.Tensor, kinds: list[str]) -> list[tuple]:
+        """Score a batch of ``(N, 3, H, W)`` images in [0, 1]; returns each sample's
+        ``(psnr, ssim, flip)``."""
+        p, s, f = psnr(pred, target).cpu(), ssim(pred, target).cpu(), flip(pred, target)
+        out = []
+        for j, kind in enumerate(kinds):
+            row = (float(p[j]), float(s[j]), float(f[j]))
+            for key in ("all", kind):
+                self.scores[key].append(row)
+            out.append(row)
+        return out
+
+    def summary(self) -> dict:
+        """``{"overall": {n, psnr, ssim, flip}, "by_kind": {kind: ...}}`` (means)."""
+        kinds = {k: v for k, v in self.scores.items() if k != "all"}
+        return {
+            "overall": _summary(self.scores["all"]),
+            "by_kind": {k: _summary(v) for k, v in sorted(kinds.items())},
+        }
+
+
+def test_split(renderer: Renderer, stores: list[str] | None, on: list[str] | None):
+    """What a checkpoint is evaluated on: its run's held-out materials (in ``stores``, the
+    run's stores at another address, when given), or every sample of the stores ``on``,
+    which must not be stores the run trained on."""
     catalog = Catalog.from_dict(renderer.state["catalog"])
+    if on:
+        trained = _trained_sources(catalog)
+        for url in on:
+            store = Store(url)
+            if store.layout.resolution != renderer.config.resolution:
+                raise EvalError(
+                    f"{url}: {store.layout.resolution}², the network renders "
+                    f"{renderer.config.resolution}²"
+                )
+            seen = sorted({m["source_id"] for m in store.materials().values()} & trained)
+            if seen:
+                raise EvalError(
+                    f"{url}: {len(seen)} of its materials were trained on (e.g. {seen[0]}); "
+                    "--on takes stores of other materials"
+                )
+        return Catalog.snapshot(list(on), 0, 0.0, None).split("all")
     if stores:
         if len(stores) != len(catalog.urls):
             raise EvalError(
@@ -90,31 +129,59 @@ def evaluate(
     split = catalog.split("test")
     if len(split) == 0:
         raise EvalError(
-            "no held-out samples: the run held out no materials (train with --holdout-fraction > 0)"
+            "no held-out samples: the run held out no materials (train with --holdout-fraction "
+            "> 0, or evaluate --on a store of other materials)"
         )
+    return split
+
+
+def _trained_sources(catalog: Catalog) -> set[str]:
+    """Source ids of the materials a run trained on (its stores' committed materials, less
+    the held-out ones)."""
+    out = set()
+    for url, held in zip(catalog.urls, catalog.heldout, strict=True):
+        for m, rec in Store(url).materials().items():
+            if m not in set(held):
+                out.add(rec["source_id"])
+    return out
+
+
+def evaluate(
+    ckpt,
+    stores: list[str] | None = None,
+    batch_size: int = 8,
+    grid: Path | None = None,
+    grid_count: int = 4,
+    device: str = "auto",
+    on: list[str] | None = None,
+) -> dict:
+    """Metrics of checkpoint ``ckpt`` on its run's held-out split, or on every sample of the
+    stores ``on`` (:func:`test_split`); writes a ground truth | prediction | error PNG grid
+    of the first ``grid_count`` samples to ``grid`` when given."""
+    renderer = Renderer.from_checkpoint(ckpt, device)
+    split = test_split(renderer, stores, on)
     reader = SampleReader(split)
     kinds = [{m: rec["kind"] for m, rec in s.materials().items()} for s in reader.stores]
-    scores: dict[str, list] = defaultdict(list)
-    shown = []
+    tally, shown = Tally(), []
     ids = np.arange(len(split))
     for lo in tqdm(range(0, len(ids), batch_size), desc="eval", unit="batch"):
         batch = reader.batch(ids[lo : lo + batch_size])
         pred = renderer.render_batch(batch["maps"], batch["light"])
         target = renderer.tonemap(batch["render"].to(pred.device))
-        p, s, f = psnr(pred, target).cpu(), ssim(pred, target).cpu(), flip(pred, target)
-        for j, i in enumerate(batch["id"].tolist()):
+        names = []
+        for i in batch["id"].tolist():
             store, sample = split.refs[i]
             layout = reader.stores[store].layout
-            kind = kinds[store][layout.material_of_sample(int(sample))]
-            for key in ("all", kind):
-                scores[key].append((float(p[j]), float(s[j]), float(f[j])))
+            names.append(kinds[store][layout.material_of_sample(int(sample))])
+        tally.add(pred, target, names)
+        for j in range(len(names)):
             if len(shown) < grid_count:
                 shown.append((target[j].cpu().numpy(), pred[j].cpu().numpy()))
     result = {
         "checkpoint_step": int(renderer.state["step"]),
         "samples": len(split),
-        "overall": _summary(scores.pop("all")),
-        "by_kind": {k: _summary(v) for k, v in sorted(scores.items())},
+        "on": list(on) if on else None,
+        **tally.summary(),
     }
     if grid is not None:
         write_grid(grid, shown)
@@ -123,12 +190,12 @@ def evaluate(
 
 
 def _summary(pairs: list) -> dict:
-    a = np.array(pairs, np.float64)
+    a = np.array(pairs, np.float64).reshape(-1, 3)
     return {
         "n": len(a),
-        "psnr": round(float(a[:, 0].mean()), 3),
-        "ssim": round(float(a[:, 1].mean()), 4),
-        "flip": round(float(a[:, 2].mean()), 4),
+        "psnr": round(float(a[:, 0].mean()), 3) if len(a) else None,
+        "ssim": round(float(a[:, 1].mean()), 4) if len(a) else None,
+        "flip": round(float(a[:, 2].mean()), 4) if len(a) else None,
     }
 
 

@@ -1,0 +1,398 @@
+"""The quality comparison's measurements and report (``benchmarks.quality`` runs them).
+
+Every score is against the test set's own renders, in the tonemapped display space the
+networks predict (``trainer.evaluate.Tally``: PSNR, SSIM, FLIP), per material kind. A
+baseline store must pair with the test set sample by sample (same materials, suns, Cycles
+seeds), which is checked. Times are per frame on this machine: the networks through
+``trainer.infer.Renderer`` at batch 1 (all threads), Cycles as one ``RenderProcess`` with all
+threads, the whole render call (scene changes, path tracing, denoising, EXR out and in).
+Measured times are kept in the work folder (``timings.json``) so a report is redone cheaply.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image, ImageDraw, ImageFont
+
+from render_jobs.tonemap import to_uint8
+from storage.reader import Store
+from trainer.evaluate import Tally, evaluate
+from trainer.infer import Renderer
+from trainer.model import count_parameters
+from trainer.targets import Tonemap, light_vector
+
+PAIRED = ("material_index", "sun_direction", "turbidity", "seed")
+
+
+class QualityError(RuntimeError):
+    pass
+
+
+def _kinds(store: Store) -> dict[int, str]:
+    return {m: rec["kind"] for m, rec in store.materials().items()}
+
+
+def check_pairs(truth: Store, other: Store) -> None:
+    """Raise unless ``other`` holds the same samples as ``truth`` (materials, suns, seeds)."""
+    for store in (truth, other):
+        if store.committed_shards() != list(range(store.layout.num_shards)):
+            raise QualityError(f"{store.url}: not every shard is committed (render it first)")
+    if truth.layout.num_samples != other.layout.num_samples:
+        raise QualityError(f"{other.url}: {other.layout.num_samples} samples, not "
+                           f"{truth.layout.num_samples}")  # fmt: skip
+    for name in PAIRED:
+        if not np.array_equal(truth.group[name][:], other.group[name][:]):
+            raise QualityError(f"{other.url}: its {name} differs from {truth.url}'s")
+
+
+def score_store(truth: Store, other: Store, tonemap: Tonemap, batch: int = 16) -> dict:
+    """A baseline store's renders against the truth's, sample by sample."""
+    check_pairs(truth, other)
+    kinds, tally = _kinds(truth), Tally()
+    n = truth.layout.num_samples
+    for lo in range(0, n, batch):
+        ids = range(lo, min(lo + batch, n))
+        target = tonemap(torch.from_numpy(np.stack([truth.render(i) for i in ids])))
+        pred = tonemap(torch.from_numpy(np.stack([other.render(i) for i in ids])))
+        names = [kinds[truth.layout.material_of_sample(i)] for i in ids]
+        tally.add(pred, target, names)
+    return tally.summary()
+
+
+# ---- reference renders ------------------------------------------------------------------
+
+
+def reference_samples(store: Store, count: int) -> list[int]:
+    """``count`` test samples, half of each kind (each material's first sun)."""
+    kinds = _kinds(store)
+    per = {k: [m for m, v in sorted(kinds.items()) if v == k] for k in sorted(set(kinds.values()))}
+    share = max(1, count // max(1, len(per)))
+    mats = sorted(m for ms in per.values() for m in ms[:share])[:count]
+    return [m * store.layout.suns_per_material for m in mats]
+
+
+def reference(plan) -> None:
+    """Render the reference samples at ``reference_spp`` (kept in ``reference.npz``)."""
+    from render_jobs.materials import load_maps
+    from render_jobs.process import RenderProcess
+    from render_jobs.specs import MaterialSpec, RenderSettings
+
+    s = plan.scale
+    path = plan.work / "reference.npz"
+    store = Store(plan.store("test"))
+    samples = reference_samples(store, s.reference_count)
+    if path.exists():
+        with np.load(path) as z:
+            if list(z["samples"]) == samples and int(z["spp"]) == s.reference_spp:
+                return
+    specs = store.materials()
+    settings = RenderSettings(resolution=s.resolution, samples=s.reference_spp,
+                              texture_tiling=store.settings.get("texture_tiling", 2.0))  # fmt: skip
+    renders, seconds = [], []
+    with RenderProcess(settings) as worker:
+        for i in samples:
+            sample = store.sample(i)
+            maps = load_maps(MaterialSpec.from_dict(specs[sample.material_index]["spec"]))
+            print(f"reference: sample {i} at {s.reference_spp} spp", flush=True)
+            r = worker.render_material(maps, [sample.sun], [sample.seed]).renders[0]
+            renders.append(r.radiance)
+            seconds.append(r.seconds)
+    np.savez(path, samples=np.array(samples), spp=s.reference_spp, renders=np.stack(renders),
+             seconds=np.array(seconds))  # fmt: skip
+
+
+def score_reference(plan, tonemap: Tonemap) -> dict:
+    """The ground truth's own renders against the reference renders."""
+    store = Store(plan.store("test"))
+    with np.load(plan.work / "reference.npz") as z:
+        samples, ref = list(z["samples"]), z["renders"]
+    kinds = _kinds(store)
+    truth = np.stack([store.render(int(i)).astype(np.float32) for i in samples])
+    tally = Tally()
+    names = [kinds[store.layout.material_of_sample(int(i))] for i in samples]
+    tally.add(tonemap(torch.from_numpy(truth)), tonemap(torch.from_numpy(ref)), names)
+    return tally.summary()
+
+
+# ---- times ----------------------------------------------------------------------------------
+
+
+def network_ms(run: Path, store: Store, iters: int = 20) -> tuple[float, int]:
+    """Median ms of one frame at batch 1 on the CPU (all threads), and the parameter count."""
+    r = Renderer.from_checkpoint(run, "cpu")
+    maps = torch.from_numpy(np.array(store.packed_maps(0)))[None]
+    light = torch.tensor([[0.0, -0.6, 0.8, 0.3]])
+    times = []
+    for i in range(iters + 3):
+        t0 = time.perf_counter()
+        r.render_batch(maps, light)
+        if i >= 3:
+            times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times), count_parameters(r.model)
+
+
+def cycles_ms(plan, samples: int, denoise: bool) -> float:
+    """Median ms of a whole Cycles render call with all threads, over test samples (kept in
+    ``timings.json``)."""
+    from render_jobs.materials import load_maps
+    from render_jobs.process import RenderProcess
+    from render_jobs.specs import MaterialSpec, RenderSettings
+
+    key = f"cycles-{samples}spp{'-oidn' if denoise else ''}"
+    path = plan.work / "timings.json"
+    known = json.loads(path.read_text()) if path.exists() else {}
+    if key in known:
+        return known[key]
+    s = plan.scale
+    store = Store(plan.store("test"))
+    specs = store.materials()
+    settings = RenderSettings(resolution=s.resolution, samples=samples, denoise=denoise,
+                              texture_tiling=store.settings.get("texture_tiling", 2.0))  # fmt: skip
+    ids = reference_samples(store, s.timing_count + 1)
+    times = []
+    with RenderProcess(settings) as worker:
+        for i in ids:  # the first frame of a fresh Blender warms it up and is not counted
+            sample = store.sample(i)
+            maps = load_maps(MaterialSpec.from_dict(specs[sample.material_index]["spec"]))
+            times.append(worker.render_material(maps, [sample.sun], [sample.seed]).renders[0])
+    ms = 1e3 * statistics.median(r.seconds for r in times[1:] or times)
+    known[key] = ms
+    path.write_text(json.dumps(known, indent=1))
+    return ms
+
+
+# ---- the report -----------------------------------------------------------------------------
+
+
+def measure(plan) -> dict:
+    """Every score and time of the report, as plain data (kept as ``results.json``)."""
+    s = plan.scale
+    test, fixed = Store(plan.store("test")), Store(plan.store("test-fixed"))
+    tonemap = Tonemap.from_dict(Renderer.from_checkpoint(plan.run("unet"), "cpu").state["tonemap"])
+    rows = {}
+
+    def net(name, on):
+        result = evaluate(plan.run(name), on=[plan.store(on)], device="cpu")
+        ms, params = network_ms(plan.run(name), Store(plan.store(on)))
+        return {**result, "ms": ms, "parameters": params}
+
+    rows["unet"] = net("unet", "test")
+    rows["unet-noskips"] = net("unet-noskips", "test")
+    for spp in s.baselines:
+        for oidn in (False, True):
+            name = f"test-{spp}spp{'-oidn' if oidn else ''}"
+            rows[name] = {**score_store(test, Store(plan.store(name)), tonemap),
+                          "ms": cycles_ms(plan, spp, oidn)}  # fmt: skip
+    rows["truth"] = {"ms": cycles_ms(plan, s.samples, False)}
+    rows["zf-fixed"] = net("zf-fixed", "test-fixed")
+    rows["unet-fixed"] = net("unet-fixed", "test-fixed")
+    rows["unet-on-fixed"] = net("unet", "test-fixed")
+    rows["fixed-2spp-oidn"] = {
+        **score_store(fixed, Store(plan.store("test-fixed-2spp-oidn")), tonemap),
+        "ms": cycles_ms(plan, 2, True),
+    }
+    rows["reference"] = score_reference(plan, tonemap)
+    return rows
+
+
+def write(plan, scale_name: str, doc: Path, img: Path) -> None:
+    """Measure, then write ``doc`` (markdown) and ``img`` (the picture grid)."""
+    rows = measure(plan)
+    (plan.work / "results.json").write_text(json.dumps(rows, indent=1, default=str))
+    picture_grid(plan, img)
+    doc.parent.mkdir(parents=True, exist_ok=True)
+    doc.write_text(markdown(plan, scale_name, rows, img, doc))
+    print(f"wrote {doc} and {img}", flush=True)
+
+
+def _fmt(m: dict | None, key: str, digits: int) -> str:
+    if not m or m.get(key) is None:
+        return "—"
+    return f"{m[key]:.{digits}f}"
+
+
+def _metrics(m: dict | None) -> str:
+    return f"{_fmt(m, 'psnr', 2)} | {_fmt(m, 'ssim', 4)} | {_fmt(m, 'flip', 4)}"
+
+
+def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
+    s = plan.scale
+    train, test = Store(plan.store("train")), Store(plan.store("test"))
+    seconds = json.loads((plan.work / "train-seconds.json").read_text()) if (
+        plan.work / "train-seconds.json").exists() else {}  # fmt: skip
+    steps = {n: rows[n].get("checkpoint_step") for n in rows if "checkpoint_step" in rows[n]}
+    cpu = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
+    named = [("ours (U-Net, L1)", "unet"), ("ours without skips (L1)", "unet-noskips")]
+    for spp in s.baselines:
+        named += [(f"Cycles {spp} spp", f"test-{spp}spp"),
+                  (f"Cycles {spp} spp + OIDN", f"test-{spp}spp-oidn")]  # fmt: skip
+    out = [
+        "# What the renderer is worth",
+        "",
+        f"The paper's Table 1 reproduced on this machine ({dt.date.today()}, scale "
+        f"`{scale_name}`), by `make quality` (`python -m benchmarks.quality`; the module "
+        "docstring says what each step does). Every score is on **held-out materials only**: "
+        "a test set rendered from the same sources with another seed, so none of its "
+        "materials was trained on. Scores are against the test set's own Cycles renders, in "
+        "the networks' tonemapped display space; FLIP is NVIDIA's perceptual difference (0 is "
+        "identical, lower is better).",
+        "",
+        "## Data and training",
+        "",
+        f"- training set: {train.layout.num_materials} materials "
+        f"({', '.join(f'{v} {k}' for k, v in _count(train).items())}) x {s.suns} random suns "
+        f"= {train.layout.num_samples} renders at {s.resolution}², {s.samples} spp "
+        "(Hosek-Wilkie sky, turbidity 2-10);",
+        f"- test set: {test.layout.num_materials} other materials "
+        f"({', '.join(f'{v} {k}' for k, v in _count(test).items())}) x {s.suns} suns = "
+        f"{test.layout.num_samples} renders, same settings, seed 1;",
+        f"- fixed-sun sets (Zsolnai-Fehér has no light input): {s.fixed[0]} / {s.fixed[1]} "
+        "uniform materials under one sun (direction (-0.4, -0.6, 0.7), turbidity 3);",
+        f"- training: L1 loss, Adam lr 1e-3, batch {s.batch}, one CPU process "
+        f"({cpu}); U-Net runs {s.epochs} epochs, fixed-sun runs {s.fixed_epochs}. Steps and "
+        "wall time: "
+        + ", ".join(
+            f"{n} {steps.get(n, '?')} steps / {seconds.get(n, 0) / 60:.0f} min"
+            for n in ("unet", "unet-noskips", "unet-fixed", "zf-fixed")
+        )
+        + ".",  # fmt: skip
+        "- not trained: the paper's L1 + VGG16 loss. No ImageNet VGG16 weights are available on "
+        "these machines; `--loss l1+vgg` works for users who have them (`--vgg-weights`).",
+        "",
+        "## Held-out materials, random suns",
+        "",
+        f"ms / frame on this machine's CPU ({cpu}), batch 1; no GPU was available for this "
+        "run. Cycles times are whole render calls (scene changes, path tracing, denoising, "
+        "EXR).",
+        "",
+        "| method | PSNR dB | SSIM | FLIP | ms / frame |",
+        "|---|---|---|---|---|",
+    ]
+    for label, key in named:
+        m = rows[key]
+        out.append(f"| {label} | {_metrics(m.get('overall', m))} | {m['ms']:.1f} |")
+    out.append(f"| Cycles {s.samples} spp (the ground truth itself) | — | — | — | "
+               f"{rows['truth']['ms']:.1f} |")  # fmt: skip
+    out += ["", "Per material kind:", ""]
+    kinds = sorted(rows["unet"]["by_kind"])
+    out.append("| method | " + " | ".join(f"{k} PSNR / SSIM / FLIP" for k in kinds) + " |")
+    out.append("|---|" + "---|" * len(kinds))
+    for label, key in named:
+        bk = rows[key]["by_kind"]
+        cells = [f"{_fmt(bk.get(k), 'psnr', 2)} / {_fmt(bk.get(k), 'ssim', 3)} / "
+                 f"{_fmt(bk.get(k), 'flip', 3)}" for k in kinds]  # fmt: skip
+        out.append(f"| {label} | " + " | ".join(cells) + " |")
+    out += [
+        "",
+        "## Fixed sun, uniform materials (the Zsolnai-Fehér et al. 2018 comparison)",
+        "",
+        "| method | PSNR dB | SSIM | FLIP | ms / frame | parameters |",
+        "|---|---|---|---|---|---|",
+    ]
+    fixed_rows = [
+        ("Zsolnai-Fehér (assumed layers, `trainer/zf.py`)", "zf-fixed"),
+        ("ours, trained on the same fixed-sun data", "unet-fixed"),
+        ("ours, trained on random suns (the main run)", "unet-on-fixed"),
+    ]
+    for label, key in fixed_rows:
+        m = rows[key]
+        out.append(f"| {label} | {_metrics(m['overall'])} | {m['ms']:.1f} | "
+                   f"{m['parameters'] / 1e6:.1f} M |")  # fmt: skip
+    m = rows["fixed-2spp-oidn"]
+    out.append(f"| Cycles 2 spp + OIDN | {_metrics(m['overall'])} | {m['ms']:.1f} | — |")
+    ref = rows["reference"]
+    out += [
+        "",
+        "## How converged the ground truth is",
+        "",
+        f"{ref['overall']['n']} test samples rendered again at {s.reference_spp} spp: the "
+        f"ground truth ({s.samples} spp) against them. No score against the ground truth can "
+        "mean more than this.",
+        "",
+        "| | n | PSNR dB | SSIM | FLIP |",
+        "|---|---|---|---|---|",
+    ]
+    for kind, m in [("all", ref["overall"]), *ref["by_kind"].items()]:
+        out.append(f"| ground truth vs {s.reference_spp} spp, {kind} | {m['n']} | {_metrics(m)} |")
+    rel = os.path.relpath(Path(img).resolve(), doc.resolve().parent)
+    out += [
+        "",
+        "## Pictures",
+        "",
+        "Uniform materials under the fixed sun (every method), then procedural ones under "
+        "random suns (Zsolnai-Fehér renders only the fixed sun). The error column is "
+        "|ours - ground truth| x 4.",
+        "",
+        f"![ground truth, ours, 2 spp + OIDN, Zsolnai-Fehér, error]({rel})",
+        "",
+    ]
+    return "\n".join(out)
+
+
+def _count(store: Store) -> dict[str, int]:
+    from collections import Counter
+
+    return dict(sorted(Counter(_kinds(store).values()).items()))
+
+
+# ---- the picture grid -------------------------------------------------------------------
+
+#: column labels (ASCII: PIL's default font has no accented letters)
+GRID_COLUMNS = ("ground truth", "ours", "2 spp + OIDN", "Zsolnai-Feher", "|ours - truth| x 4")
+GRID_MIN_TILE = 256
+
+
+def picture_grid(plan, path: Path, rows_per_set: int = 3) -> None:
+    """Rows of uniform materials under the fixed sun, then procedural ones under random
+    suns: ground truth | ours | 2 spp + OIDN | Zsolnai-Fehér | error, labelled."""
+    ours = Renderer.from_checkpoint(plan.run("unet"), "cpu")
+    zf = Renderer.from_checkpoint(plan.run("zf-fixed"), "cpu")
+    tonemap = ours.tonemap
+    rows = []
+    for truth_name, oidn_name, kind, with_zf in [
+        ("test-fixed", "test-fixed-2spp-oidn", "uniform", True),
+        ("test", "test-2spp-oidn", "procedural", False),
+    ]:
+        truth = Store(plan.store(truth_name))
+        oidn = Store(plan.store(oidn_name)) if Path(plan.store(oidn_name)).exists() else None
+        kinds = _kinds(truth)
+        picks = [m for m, k in sorted(kinds.items()) if k == kind][:rows_per_set]
+        for m in picks:
+            i = m * truth.layout.suns_per_material
+            maps = torch.from_numpy(np.array(truth.packed_maps(m)))[None]
+            light = torch.from_numpy(light_vector(*truth.light(i))[None])
+            gt = tonemap(torch.from_numpy(truth.render(i).astype(np.float32))[None])[0]
+            pred = ours.render_batch(maps, light)[0]
+            cells = [gt, pred]
+            cells.append(tonemap(torch.from_numpy(oidn.render(i).astype(np.float32))[None])[0]
+                         if oidn is not None else None)  # fmt: skip
+            cells.append(zf.render_batch(maps, light)[0] if with_zf else None)
+            cells.append(((pred - gt).abs().mean(0, keepdim=True) * 4).clamp(0, 1))
+            rows.append(cells)
+    size = plan.scale.resolution
+    factor = max(1, -(-GRID_MIN_TILE // size))
+    tile, header = size * factor, 26
+    grid = Image.new("RGB", (tile * len(GRID_COLUMNS), header + tile * len(rows)), (24, 24, 24))
+    draw, font = ImageDraw.Draw(grid), ImageFont.load_default(size=15)
+    for j, name in enumerate(GRID_COLUMNS):
+        draw.text((j * tile + 6, 5), name, fill=(235, 235, 235), font=font)
+    for r, cells in enumerate(rows):
+        for j, cell in enumerate(cells):
+            x, y = j * tile, header + r * tile
+            if cell is None:
+                draw.text((x + tile // 3, y + tile // 2), "fixed sun only", fill=(140, 140, 140),
+                          font=font)  # fmt: skip
+                continue
+            pic = to_uint8(cell.detach().cpu().numpy()).repeat(factor, 0).repeat(factor, 1)
+            grid.paste(Image.fromarray(pic), (x, y))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    grid.save(path)

@@ -1,0 +1,76 @@
+"""The quality comparison (``benchmarks.quality``): baselines must pair with the ground
+truth sample by sample, and (slow) the whole command end to end at the tiny scale."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from benchmarks.quality import SCALES
+from benchmarks.quality_report import QualityError, check_pairs
+from storage.reader import Store
+from storage.schema import Layout
+from storage.writer import create_store, write_shard
+from tests.storage_helpers import synthetic_payload
+
+LAYOUT = Layout(num_materials=4, suns_per_material=2, resolution=16, shard_size=4)
+
+
+def store(path, seed: int, shards=(0, 1)) -> Store:
+    s = create_store(str(path), LAYOUT, {"samples": 4})
+    for shard in shards:
+        write_shard(s, shard, synthetic_payload(LAYOUT, shard, seed=seed))
+    return s
+
+
+def test_a_baseline_must_pair_with_the_truth_sample_by_sample(tmp_path):
+    truth = store(tmp_path / "truth.zarr", seed=0)
+    check_pairs(truth, store(tmp_path / "same.zarr", seed=0))
+    with pytest.raises(QualityError, match="sun_direction differs"):
+        check_pairs(truth, store(tmp_path / "other.zarr", seed=1))
+    with pytest.raises(QualityError, match="not every shard is committed"):
+        check_pairs(truth, store(tmp_path / "half.zarr", seed=0, shards=(0,)))
+
+
+@pytest.mark.slow
+def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
+    """Every step on real stores, runs and renders: the report has a row for each method
+    with finite numbers, the picture grid has every row; a second run trains nothing."""
+    from ray.cluster_utils import Cluster
+
+    work, doc = tmp_path / "work", tmp_path / "doc" / "quality.md"
+    head = {"num_cpus": 2, "node_ip_address": "127.0.0.1"}
+    cluster = Cluster(initialize_head=True, head_node_args=head)
+    try:
+        env = {**os.environ, "RAY_ADDRESS": cluster.address, "RAY_AUTH_MODE": "disabled"}
+        cmd = [sys.executable, "-m", "benchmarks.quality", "--scale", "tiny", "--work", str(work),
+               "--doc", str(doc)]  # fmt: skip
+        r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1500)
+        assert r.returncode == 0, (r.stdout[-3000:], r.stderr[-3000:])
+        again = subprocess.run([*cmd, "--steps", "train,report"], capture_output=True, text=True,
+                               env=env, timeout=600)  # fmt: skip
+        assert again.returncode == 0, again.stderr[-3000:]
+        assert "trainer train" not in again.stdout  # every run had reached its last epoch
+    finally:
+        cluster.shutdown()
+    text = doc.read_text()
+    scale = SCALES["tiny"]
+    labels = ["ours (U-Net, L1)", "ours without skips (L1)", "Zsolnai-Fehér",
+              "ours, trained on the same fixed-sun data", "Cycles 2 spp + OIDN",
+              f"ground truth vs {scale.reference_spp} spp, all"]  # fmt: skip
+    labels += [f"Cycles {spp} spp" for spp in scale.baselines]
+    for label in labels:
+        row = next((line for line in text.splitlines() if line.startswith(f"| {label}")), None)
+        assert row is not None, label
+        numbers = [float(v) for v in re.findall(r"\| (-?\d+\.\d+)", row)]
+        assert numbers and all(np.isfinite(numbers)), row
+    assert "VGG16" in text and "held-out materials only" in text
+    grid = Image.open(doc.parent / "img" / "quality-grid.png")
+    rows = scale.fixed[1] + scale.test[1]  # fixed-sun uniform rows, then procedural ones
+    assert grid.size == (5 * 256, 26 + rows * 256)
