@@ -47,6 +47,9 @@ def connect(address: str | None, dashboard: bool = True) -> str | None:
         ctx = ray.init(address=address, log_to_driver=False, **extra)
     else:
         ctx = ray.init(  # embedded: everything on the loopback interface
+            # a new local Ray, even when a cluster started with `ray start` runs here (with
+            # no address Ray would join that one)
+            address="local",
             num_cpus=os.cpu_count(),
             include_dashboard=dashboard,
             log_to_driver=False,

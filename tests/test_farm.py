@@ -379,3 +379,23 @@ def test_a_farm_job_over_a_flaky_object_store_commits_every_sample_once(s3, tmp_
         np.testing.assert_array_equal(remote.group[name][:], here.group[name][:])
     np.testing.assert_array_equal(remote.group["maps"][:], here.group["maps"][:])
     assert verify(remote).ok
+
+
+def test_the_embedded_farm_starts_its_own_ray_beside_a_running_cluster(tmp_path):
+    """Without --address or RAY_ADDRESS the farm starts its own local Ray, even while a
+    cluster started on the same machine runs (with no address Ray would join that one)."""
+    from ray.cluster_utils import Cluster
+
+    head = {"num_cpus": 1, "node_ip_address": "127.0.0.1"}
+    cluster = Cluster(initialize_head=True, head_node_args=head)
+    saved = os.environ.pop("RAY_ADDRESS", None)
+    try:
+        out = tmp_path / "own.zarr"
+        r = farm("submit", "-m", "uniform:1", *TINY, "--workers", "1", "--no-ray-dashboard",
+                 "-o", out)  # fmt: skip
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert_exactly_once(out, 1)
+    finally:
+        if saved is not None:
+            os.environ["RAY_ADDRESS"] = saved
+        cluster.shutdown()
