@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium bench-dashboard bench-render bench-farm bench-farm-scale bench-train bench-infer bench-storage gpu-wheels clean
+.PHONY: demo demo-train test lint chromium quality bench-dashboard bench-render bench-farm bench-farm-scale bench-train bench-infer bench-viewer bench-storage gpu-wheels clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -39,6 +39,10 @@ lint: $(BIN)/.installed
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
+# The paper's Table 1 here: renders, trainings, scores, docs/quality.md (hours; resumes).
+quality: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.quality
+
 bench-render: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.render
 
@@ -58,6 +62,10 @@ bench-train: $(BIN)/.installed
 
 bench-infer: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.infer
+
+# The viewer: an edit's mapping, network and encoding times at 128², 256², 400².
+bench-viewer: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.viewer
 
 # For a GPU machine with CUDA torch but no package registry (benchmarks/gpu.sh says how):
 # the store's packages as wheels for its Python (GPU_PYTHON, the device's is 3.12) in .whl/.

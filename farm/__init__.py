@@ -16,7 +16,7 @@
 - ``farm.web``: the guarded web layer (loopback, token, POST secret, confined paths);
 - ``farm.dashboard``: ``farm dashboard``, the web page and ``/metrics``;
 - ``farm.cli``: ``farm submit``, ``status``, ``cancel``, ``materials``, ``preview``,
-  ``dashboard``.
+  ``screen-uv``, ``dashboard``.
 
 Importing ``farm`` never loads Blender (nor Ray: the driver imports it when a job starts).
 """

@@ -15,6 +15,8 @@ Schema version 1 (``storage.schema``):
   shard size, counts), render settings, camera, geometry hash, software versions.
 - ``commits/NNNNNN.json``: one record per committed shard (its materials' kind, source id and
   spec; byte sizes of its shard files), written atomically after the shard's bytes are durable.
+- ``screen_uv.npz`` (optional): the ball's UV layout as the camera sees it, per sub-pixel
+  sample (``render_jobs.screen_uv``), written once, atomically, by the farm.
 
 Materials come ``suns_per_material`` samples each, consecutively; a shard holds
 ``shard_size`` samples (a multiple of the suns, so all suns of a material share a shard) and

@@ -342,7 +342,8 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
               help="a folder of materials (5-panel PNGs, per-map folders)")  # fmt: skip
 @click.option("--host", default="127.0.0.1", show_default=True,
               help="address to bind; any other than loopback needs a token")  # fmt: skip
-@click.option("--port", default=8267, show_default=True, type=click.IntRange(0, 65535))
+@click.option("--port", default=8267, show_default=True, type=click.IntRange(0, 65535),
+              help="port to listen on")  # fmt: skip
 @click.option("--token", envvar="SHADERBALL_TOKEN", default=None,
               help="token every request must carry (made up off loopback)")  # fmt: skip
 @device_option
