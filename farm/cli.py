@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
+from farm.web import server_options
 from render_jobs.errors import MaterialError, RenderError
 from render_jobs.specs import DEVICES, RenderSettings
 
@@ -381,16 +382,7 @@ def materials(sources, seed, as_json):
 @click.argument("roots", nargs=-1, metavar="ROOT...")
 @click.option("--runs", "run_dirs", multiple=True, metavar="DIR",
               help="A trainer run folder, or a folder of them (repeatable).")  # fmt: skip
-@click.option("--host", default="127.0.0.1", show_default=True,
-              help="Address to bind; any other than loopback needs a token.")  # fmt: skip
-@click.option("--port", default=8266, show_default=True, type=click.IntRange(0, 65535),
-              help="Port to listen on.")  # fmt: skip
-@click.option(
-    "--token",
-    envvar="SHADERBALL_TOKEN",
-    default=None,
-    help="Token every request must carry (generated off loopback when not given).",
-)
+@server_options(port=8266)
 def dashboard(roots, run_dirs, host, port, token):
     """Serve the farm dashboard: jobs, shards, failures, workers, renders, runs, metrics.
 

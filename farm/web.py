@@ -24,7 +24,10 @@ import ipaddress
 import secrets
 from pathlib import Path
 
-from aiohttp import web
+import click
+
+# aiohttp is imported where it is used: the command lines import this module for
+# :func:`server_options` in every install, the server needs the [dashboard] extra
 
 TOKEN_COOKIE = "shaderball_token"
 SECRET_HEADER = "X-Shaderball-Secret"
@@ -79,8 +82,29 @@ def confine_key(rel: str) -> str:
     return rel
 
 
+def server_options(port: int):
+    """``--host``, ``--port`` (default ``port``) and ``--token``: the options of every server
+    built on this layer."""
+
+    def decorate(command):
+        for option in reversed([
+            click.option("--host", default="127.0.0.1", show_default=True,
+                         help="Address to bind; any other than loopback needs a token."),
+            click.option("--port", default=port, show_default=True,
+                         type=click.IntRange(0, 65535), help="Port to listen on."),
+            click.option("--token", envvar="SHADERBALL_TOKEN", default=None,
+                         help="Token every request must carry (generated off loopback when "
+                         "not given)."),
+        ]):  # fmt: skip
+            command = option(command)
+        return command
+
+    return decorate
+
+
 def guard(token: str | None, secret: str):
     """Middleware: the token (when there is one) on every request, the secret on POSTs."""
+    from aiohttp import web
 
     @web.middleware
     async def middleware(request: web.Request, handler):
@@ -108,15 +132,20 @@ def guard(token: str | None, secret: str):
     return middleware
 
 
-def application(token: str | None, **options) -> tuple[web.Application, str]:
-    """A guarded app and its POST secret (``options`` go to ``web.Application``)."""
+def application(token: str | None, **options):
+    """A guarded ``aiohttp.web.Application`` and its POST secret (``options`` go to the
+    application)."""
+    from aiohttp import web
+
     secret = secrets.token_urlsafe(16)
     app = web.Application(middlewares=[guard(token, secret)], **options)
     return app, secret
 
 
-def serve(app: web.Application, host: str, port: int, echo, name: str) -> None:
-    """Run ``app`` on ``host:port`` until interrupted, after printing where."""
+def serve(app, host: str, port: int, echo, name: str) -> None:
+    """Run the aiohttp ``app`` on ``host:port`` until interrupted, after printing where."""
+    from aiohttp import web
+
     shown = f"[{host}]" if ":" in host else host
     echo(f"{name}: http://{shown}:{port}/")
     web.run_app(app, host=host, port=port, print=None, access_log=None)

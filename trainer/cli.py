@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 from tabulate import tabulate
 
+from farm.web import server_options
 from trainer import config as train_config
 
 
@@ -340,12 +341,7 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
               help="a store whose materials fill the gallery (repeatable)")  # fmt: skip
 @click.option("--materials", "folders", multiple=True, metavar="DIR",
               help="a folder of materials (5-panel PNGs, per-map folders)")  # fmt: skip
-@click.option("--host", default="127.0.0.1", show_default=True,
-              help="address to bind; any other than loopback needs a token")  # fmt: skip
-@click.option("--port", default=8267, show_default=True, type=click.IntRange(0, 65535),
-              help="port to listen on")  # fmt: skip
-@click.option("--token", envvar="SHADERBALL_TOKEN", default=None,
-              help="token every request must carry (made up off loopback)")  # fmt: skip
+@server_options(port=8267)
 @device_option
 def viewer(ckpt, stores, folders, host, port, token, device):
     """Serve the material viewer: any material on the ball through the network, live.
