@@ -336,7 +336,7 @@ class Loop:
         usable = self.pool.usable()
         if usable and self.uv_tries < SCREEN_UV_TRIES:
             s = default_supersample(self.cfg.resolution)
-            self.uv_ref = (self.pool.actors[usable[0]].screen_uv.remote(s), usable[0])
+            self.uv_ref = (self.pool.screen_uv(usable[0], s), usable[0])
 
     def screen_uv_done(self, ref) -> None:
         """The layout came back: keep it with the store; a failure is tried again on another

@@ -146,6 +146,10 @@ class WorkerPool:
         """Queue ``task`` at worker ``wid``; returns the refs of its report and its arrays."""
         return tuple(self.actors[wid].render.options(num_returns=2).remote(task, timeout_s))
 
+    def screen_uv(self, wid: str, supersample: int):
+        """Ask worker ``wid`` for the scene's screen UV layout; returns the result's ref."""
+        return self.actors[wid].screen_uv.remote(supersample)
+
     def commit(self, shard: int, records: list[dict], arrays: list):
         """Start writing ``shard`` from its materials' array refs; returns the report's ref."""
         return self.commit_fn.remote(self.cfg.out, None, shard, records, *arrays)

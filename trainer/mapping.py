@@ -29,7 +29,7 @@ import torch.nn.functional as F
 
 from render_jobs.materials.maps import MaterialMaps
 from render_jobs.screen_uv import ScreenUV
-from trainer.targets import srgb_encode
+from trainer.targets import srgb_decode, srgb_encode
 
 #: texture channels, in the order of the stored maps (without the mask)
 TEXTURE_CHANNELS = 10
@@ -41,10 +41,6 @@ def textures_from_maps(maps: MaterialMaps) -> torch.Tensor:
     (sRGB-encoded), roughness, normal, in [0, 1], file row 0 first."""
     arr = np.concatenate([maps.diffuse, maps.specular, maps.roughness, maps.normal], axis=2)
     return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1)))
-
-
-def srgb_decode(x: torch.Tensor) -> torch.Tensor:
-    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
 
 
 class ScreenMapper:
@@ -72,7 +68,7 @@ class ScreenMapper:
         self.filter = _filter_matrix(screen_uv, index).to(self.device)
         ones = torch.ones(self.hits, 1, dtype=torch.float32, device=self.device)
         self.coverage = (self.filter @ ones).view(1, 1, self.r, self.r)
-        self._grids: dict[tuple[int, int], torch.Tensor] = {}
+        self._grids: dict[tuple[int, int, float], torch.Tensor] = {}
         steps = torch.linspace(0.0, 1.0, _LUT_STEPS + 1, dtype=torch.float64)
         self._lut = srgb_decode(steps).to(self.device, torch.float32)
 

@@ -52,6 +52,11 @@ def srgb_encode(x: torch.Tensor) -> torch.Tensor:
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-8) ** (1 / 2.4) - 0.055)
 
 
+def srgb_decode(x: torch.Tensor) -> torch.Tensor:
+    """IEC 61966-2-1 sRGB decode of values in [0, 1]."""
+    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
 def model_inputs(packed: torch.Tensor, roughness_channels: int = 1) -> torch.Tensor:
     """Stored maps ``(N, 11, H, W) uint8`` → network input ``(N, 9 + r, H, W) float32``."""
     if packed.dim() != 4 or packed.shape[1] != 11:

@@ -28,7 +28,8 @@ from render_jobs.materials.files import read_svbrdf, scan_svbrdf_dir
 from render_jobs.materials.sources import load_maps, one_material
 from render_jobs.specs import MaterialSpec, Sun
 from storage.reader import Store
-from trainer.mapping import srgb_decode, textures_from_maps
+from trainer.mapping import textures_from_maps
+from trainer.targets import srgb_decode
 
 #: the largest upload, all files together (bytes), and the largest image (pixels)
 MAX_UPLOAD_BYTES = 64 << 20
