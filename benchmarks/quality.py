@@ -57,9 +57,35 @@ class Scale:
 
 SCALES = {
     "full": Scale(
-        128, 64, (250, 250), (25, 25), 5, (500, 50), (1, 2, 4, 16), 2048, 6, 12, 30, 8, 3
-    ),  # fmt: skip
-    "tiny": Scale(32, 4, (2, 2), (1, 1), 2, (6, 2), (1, 2), 16, 2, 1, 1, 2, 1),
+        resolution=128,
+        samples=64,
+        train=(250, 250),
+        test=(25, 25),
+        suns=5,
+        fixed=(500, 50),
+        baselines=(1, 2, 4, 16),
+        reference_spp=2048,
+        reference_count=6,
+        epochs=3,  # what one 3-hour session fits on 2 cores; raise it and rerun to resume
+        fixed_epochs=10,
+        batch=8,
+        timing_count=3,
+    ),
+    "tiny": Scale(
+        resolution=32,
+        samples=4,
+        train=(2, 2),
+        test=(1, 1),
+        suns=2,
+        fixed=(6, 2),
+        baselines=(1, 2),
+        reference_spp=16,
+        reference_count=2,
+        epochs=1,
+        fixed_epochs=1,
+        batch=2,
+        timing_count=1,
+    ),
 }
 
 

@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from benchmarks.quality import SCALES
-from benchmarks.quality_report import QualityError, check_pairs
+from benchmarks.quality_report import QualityError, check_pairs, findings
 from storage.reader import Store
 from storage.schema import Layout
 from storage.writer import create_store, write_shard
@@ -36,6 +36,35 @@ def test_a_baseline_must_pair_with_the_truth_sample_by_sample(tmp_path):
         check_pairs(truth, store(tmp_path / "other.zarr", seed=1))
     with pytest.raises(QualityError, match="not every shard is committed"):
         check_pairs(truth, store(tmp_path / "half.zarr", seed=0, shards=(0,)))
+
+
+def _row(psnr, flip, ms, parameters=None):
+    return {"overall": {"psnr": psnr, "ssim": 0.9, "flip": flip}, "ms": ms,
+            "parameters": parameters}  # fmt: skip
+
+
+def test_the_findings_name_the_cheapest_cycles_setting_that_matches_the_network():
+    rows = {
+        "unet": _row(30.0, 0.10, 50.0),
+        "test-1spp": _row(20.0, 0.30, 70.0),
+        "test-1spp-oidn": _row(29.0, 0.09, 400.0),
+        "test-4spp": _row(25.0, 0.20, 200.0),
+        "test-4spp-oidn": _row(31.0, 0.05, 600.0),
+        "zf-fixed": _row(27.0, 0.2, 1.0, 40e6),
+        "unet-fixed": _row(33.0, 0.1, 1.0, 4e6),
+        "reference": _row(38.0, 0.02, 0.0),
+    }
+    text = "\n".join(findings(rows, (1, 4), 2048))
+    assert "(Cycles 1 spp) takes 70.0 ms, 1.4x ours" in text
+    assert "PSNR: ours scores 30; the cheapest Cycles setting at least as good is " \
+        "Cycles 4 spp + OIDN (31) at 600.0 ms a frame, 12.0x ours" in text  # fmt: skip
+    assert "FLIP: ours scores 0.1; the cheapest Cycles setting at least as good is " \
+        "Cycles 1 spp + OIDN (0.09) at 400.0 ms" in text  # fmt: skip
+    assert "33.00 dB against Zsolnai-Fehér's 27.00 dB, with 4.0 M parameters against 40.0 M" in text
+    assert "8.00 dB under" in text
+    rows["test-4spp-oidn"] = _row(29.5, 0.05, 600.0)
+    assert "PSNR: no Cycles setting measured reaches ours (30); the best, Cycles 4 spp + OIDN, " \
+        "scores 29.5" in "\n".join(findings(rows, (1, 4), 2048))  # fmt: skip
 
 
 @pytest.mark.slow
