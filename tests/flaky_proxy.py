@@ -1,11 +1,15 @@
 """A fault-injecting HTTP proxy on 127.0.0.1, in front of the tests' S3 server.
 
-Every ``every``-th request gets a fault, taking turns: a 503 ``SlowDown`` answer (S3's
-throttling), a connection reset before any answer, and a stall of ``stall_s`` (longer than the
-client's read timeout) before the request goes through (``stall_s`` 0: no stalls). With
-``burst`` > 1 a 503 or reset fault also hits the ``burst - 1`` requests after it, which
-outlasts the few quick retries botocore and s3fs make themselves. All other requests are
-forwarded.
+Every ``every``-th request (of the HTTP ``methods`` given; all when none) gets a fault, taking
+turns: a 503 ``SlowDown`` answer (S3's throttling), a connection reset before any answer, and a
+stall of ``stall_s`` (longer than the client's read timeout) before the request goes through
+(``stall_s`` 0: no stalls). A 503 or reset fault hits ``burst`` tries in a row of the same
+request (method, path and query), as S3 throttles one prefix; ``burst`` above ``S3FS_TRIES``
+outlasts the quick retries s3fs makes itself (botocore's are turned off in the tests), so the
+fault reaches this project's retry policy whatever else is in flight. ``limit``: at most that
+many requests start a fault (None: no limit), so that an operation of many requests, retried
+whole, ends. Faulting only ``GET`` or ``PUT`` keeps clear of the requests s3fs answers another
+way when they fail (a failed ``HEAD`` falls back to a listing). All other requests are forwarded.
 ``deny``: a path fragment answered with 403 ``AccessDenied`` every time (a permanent error).
 """
 
@@ -23,6 +27,8 @@ SLOW_DOWN = (
     b'<?xml version="1.0" encoding="UTF-8"?><Error><Code>SlowDown</Code>'
     b"<Message>Please reduce your request rate.</Message></Error>"
 )
+#: how often s3fs tries a request itself before it raises (``S3FileSystem.retries``)
+S3FS_TRIES = 5
 DENIED = (
     b'<?xml version="1.0" encoding="UTF-8"?><Error><Code>AccessDenied</Code>'
     b"<Message>Access Denied</Message></Error>"
@@ -31,10 +37,19 @@ DENIED = (
 
 class FlakyProxy:
     def __init__(
-        self, upstream: str, every: int = 7, stall_s: float = 4.0, deny: str = "", burst: int = 1
+        self,
+        upstream: str,
+        every: int = 7,
+        stall_s: float = 4.0,
+        deny: str = "",
+        burst: int = 1,
+        limit: int | None = None,
+        methods: tuple[str, ...] = (),
     ):
         self.upstream, self.every, self.stall_s, self.deny = upstream, every, stall_s, deny
-        self.burst, self.left, self.kind = burst, 0, "503"
+        self.burst, self.limit, self.methods = burst, limit, methods
+        self.matching = self.started = 0  # requests that may fault; faults started
+        self.pending: dict[str, tuple[str, int]] = {}  # request -> (fault, tries left to fault)
         self.count = itertools.count(1)
         self.faults = {"503": 0, "reset": 0, "stall": 0, "denied": 0}
         self.requests = 0
@@ -53,8 +68,8 @@ class FlakyProxy:
         return self
 
     def __exit__(self, *exc) -> None:
-        closed = asyncio.run_coroutine_threadsafe(self.session.close(), self.loop)
-        closed.result(10)
+        for done in (self.runner.cleanup(), self.session.close()):  # open keep-alives too
+            asyncio.run_coroutine_threadsafe(done, self.loop).result(10)
         self.loop.call_soon_threadsafe(self.loop.stop)
         self._thread.join(10)
 
@@ -62,7 +77,7 @@ class FlakyProxy:
         asyncio.set_event_loop(self.loop)
         app = web.Application(client_max_size=1 << 30)
         app.router.add_route("*", "/{tail:.*}", self._handle)
-        runner = web.AppRunner(app)
+        self.runner = runner = web.AppRunner(app)
         self.loop.run_until_complete(runner.setup())
         site = web.TCPSite(runner, "127.0.0.1", 0)
         self.loop.run_until_complete(site.start())
@@ -74,6 +89,24 @@ class FlakyProxy:
     async def _session(self) -> aiohttp.ClientSession:
         return aiohttp.ClientSession(auto_decompress=False)
 
+    def _fault(self, method: str, key: str) -> str | None:
+        """The fault for a ``method`` request that ``key`` names (None: forward it)."""
+        if key in self.pending:
+            kind, left = self.pending.pop(key)
+            if left > 1:
+                self.pending[key] = (kind, left - 1)
+            return kind
+        if self.methods and method not in self.methods:
+            return None
+        self.matching += 1
+        if self.matching % self.every or (self.limit is not None and self.started >= self.limit):
+            return None
+        kinds = ("503", "reset", "stall") if self.stall_s else ("503", "reset")
+        kind, self.started = kinds[self.started % len(kinds)], self.started + 1
+        if kind != "stall" and self.burst > 1:
+            self.pending[key] = (kind, self.burst - 1)
+        return kind
+
     async def _handle(self, request: web.Request) -> web.StreamResponse:
         n = next(self.count)
         self.requests = n
@@ -81,15 +114,7 @@ class FlakyProxy:
         if self.deny and self.deny in request.path:
             self.faults["denied"] += 1
             return web.Response(status=403, body=DENIED, content_type="application/xml")
-        kinds = ("503", "reset", "stall") if self.stall_s else ("503", "reset")
-        if self.left > 0:
-            self.left -= 1
-            kind = self.kind
-        elif n % self.every == 0:
-            kind = self.kind = kinds[(n // self.every) % len(kinds)]
-            self.left = self.burst - 1 if kind != "stall" else 0
-        else:
-            kind = None
+        kind = self._fault(request.method, f"{request.method} {request.path_qs}")
         if kind is not None:
             self.faults[kind] += 1
             if kind == "503":

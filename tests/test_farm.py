@@ -22,7 +22,7 @@ from render_jobs.specs import derive_seed
 from storage.reader import Store
 from storage.verify import verify
 from tests.conftest import s3_env
-from tests.flaky_proxy import FlakyProxy
+from tests.flaky_proxy import S3FS_TRIES, FlakyProxy
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
@@ -356,11 +356,20 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
 
 def test_a_farm_job_over_a_flaky_object_store_commits_every_sample_once(s3, tmp_path):
     """``--out s3://...`` through a proxy that answers 503 SlowDown or resets the connection
-    on two requests in every 12 (botocore's own retries off): the job ends whole, with the
-    same data as the same job written locally; a bucket that denies access fails at once."""
+    on four writes, one in every 12, for more tries of each than s3fs makes (botocore's own
+    retries off): the project's retries are logged, the job ends whole, with the same data as
+    the same job written locally; a bucket that denies access fails at once."""
     endpoint, opts = s3
     args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "--no-ray-dashboard"]
-    with FlakyProxy(endpoint, every=12, stall_s=0, burst=2, deny="/denied.zarr") as proxy:
+    with FlakyProxy(
+        endpoint,
+        every=12,
+        stall_s=0,
+        burst=S3FS_TRIES + 1,
+        limit=4,
+        methods=("PUT",),
+        deny="/denied.zarr",
+    ) as proxy:
         env = s3_env(proxy.endpoint, AWS_MAX_ATTEMPTS="1", AWS_RETRY_MODE="standard")
         r = farm(*args, "-o", "s3://shaderball/farm.zarr", env=env)
         assert r.returncode == 0, r.stderr[-3000:]

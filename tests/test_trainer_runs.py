@@ -22,7 +22,7 @@ from torch.utils.data import DataLoader
 
 from storage.schema import Layout
 from storage.writer import create_store, write_shard
-from tests.flaky_proxy import FlakyProxy
+from tests.flaky_proxy import S3FS_TRIES, FlakyProxy
 from tests.storage_helpers import synthetic_payload
 from tests.test_trainer import vgg_weights_file
 from trainer import checkpoint
@@ -302,14 +302,19 @@ def test_launch_commands():
 def test_trains_from_an_s3_store(tiny_store, s3, tmp_path, flaky):
     """The loader streams shards from object storage (credentials and endpoint from the
     standard AWS environment variables, as on a cluster), also through a proxy that answers
-    503 SlowDown or resets the connection on two requests in every 15 (botocore's own
-    retries off, so the faults reach this project's retry policy), with the same samples."""
+    503 SlowDown or resets the connection on four reads, one in every 15, for more tries of
+    each than s3fs makes (botocore's own retries off), so the faults reach this project's
+    retry policy, with the same samples."""
     endpoint, opts = s3
     url = f"s3://shaderball/tiny-{flaky}.zarr"
     remote = create_store(url, tiny_store.layout, tiny_store.settings, storage_options=opts)
     for shard in tiny_store.committed_shards():
         write_shard(remote, shard, tiny_store.read_shard(shard))
-    proxy = FlakyProxy(endpoint, every=15, stall_s=0, burst=2) if flaky else None
+    proxy = (
+        FlakyProxy(endpoint, every=15, stall_s=0, burst=S3FS_TRIES + 1, limit=4, methods=("GET",))
+        if flaky
+        else None
+    )
     with proxy or contextlib.nullcontext():
         env = {
             **os.environ,
