@@ -7,6 +7,7 @@ the environment Kubeflow Trainer's torch-distributed runtime gives its pods."""
 from __future__ import annotations
 
 import copy
+import functools
 import os
 import shlex
 import subprocess
@@ -64,8 +65,10 @@ def strict(schema: dict) -> dict:
     return s
 
 
+@functools.cache
 def crd_schema(kind: str, version: str) -> dict:
-    crd = yaml.safe_load((CRDS / CRD_FILES[kind]).read_text())
+    """The CRD's schema for ``version``, made strict (parsed once: the CRDs are megabytes)."""
+    crd = yaml.load((CRDS / CRD_FILES[kind]).read_text(), Loader=yaml.CSafeLoader)
     for v in crd["spec"]["versions"]:
         if v["name"] == version:
             return strict(v["schema"]["openAPIV3Schema"])

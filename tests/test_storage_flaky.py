@@ -97,7 +97,7 @@ def flaky_options(opts: dict, endpoint: str) -> dict:
 def test_a_store_written_and_read_through_faults_is_whole(s3):
     upstream, opts = s3
     url = "s3://shaderball/flaky.zarr"
-    with FlakyProxy(upstream, every=15, stall_s=1.5, burst=2) as proxy:
+    with FlakyProxy(upstream, every=30, stall_s=1.5, burst=2) as proxy:
         o = flaky_options(opts, proxy.endpoint)
         store = create_store(url, LAYOUT, {"samples": 8}, storage_options=o)
         for shard in range(LAYOUT.num_shards):
