@@ -187,7 +187,8 @@ def test_trainer_render_any_material_from_the_checkpoint_alone(aov_store, tmp_pa
     # the first stored material: from its stored maps, and mapped from its source id
     source = aov_store.materials()[0]["source_id"]
     light = ["--sun", "0.3,-0.5,0.8", "--turbidity", "4"]
-    assert render("--store", aov_store.url, "--sample", 0, *light, "-o", tmp_path / "a.png")
+    stored = render("--store", aov_store.url, "--sample", 0, *light, "-o", tmp_path / "a.png")
+    assert stored.returncode == 0, stored.stderr
     assert render("--material", source, *light, "-o", tmp_path / "b.png").returncode == 0
     a, b = (np.asarray(Image.open(tmp_path / f"{k}.png"), np.float64) for k in "ab")
     assert np.abs(a - b).mean() < 1.0, np.abs(a - b).mean()
