@@ -20,6 +20,7 @@ import itertools
 import threading
 
 import aiohttp
+import s3fs
 from aiohttp import web
 
 HOP = {"connection", "keep-alive", "transfer-encoding", "content-length", "host"}
@@ -27,8 +28,8 @@ SLOW_DOWN = (
     b'<?xml version="1.0" encoding="UTF-8"?><Error><Code>SlowDown</Code>'
     b"<Message>Please reduce your request rate.</Message></Error>"
 )
-#: how often s3fs tries a request itself before it raises (``S3FileSystem.retries``)
-S3FS_TRIES = 5
+#: how often s3fs tries a request itself before it raises
+S3FS_TRIES = s3fs.S3FileSystem.retries
 DENIED = (
     b'<?xml version="1.0" encoding="UTF-8"?><Error><Code>AccessDenied</Code>'
     b"<Message>Access Denied</Message></Error>"
