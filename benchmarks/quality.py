@@ -89,6 +89,11 @@ SCALES = {
 }
 
 
+def baseline_store(spp: int, oidn: bool) -> str:
+    """The name of the test set's Cycles baseline store at ``spp``, denoised or raw."""
+    return f"test-{spp}spp{'-oidn' if oidn else ''}"
+
+
 @dataclass(frozen=True)
 class Plan:
     """Where everything of one run lives, and the commands that make it."""
@@ -113,8 +118,8 @@ class Plan:
                  "--fixed-turbidity", str(FIXED_SUN[3])]  # fmt: skip
         out = [("test", [*test, "--samples", str(s.samples)])]
         for spp in s.baselines:
-            out.append((f"test-{spp}spp", [*test, "--samples", str(spp)]))
-            out.append((f"test-{spp}spp-oidn", [*test, "--samples", str(spp), "--denoise"]))
+            out.append((baseline_store(spp, False), [*test, "--samples", str(spp)]))
+            out.append((baseline_store(spp, True), [*test, "--samples", str(spp), "--denoise"]))
         fixed_test = ["-m", f"uniform:{s.fixed[1]}", "--seed", "1", *fixed]
         out.append(("test-fixed", [*fixed_test, "--samples", str(s.samples)]))
         out.append(("test-fixed-2spp-oidn", [*fixed_test, "--samples", "2", "--denoise"]))

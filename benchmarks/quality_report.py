@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
+from benchmarks.quality import baseline_store
 from render_jobs.tonemap import to_uint8
 from storage.reader import Store
 from trainer.evaluate import Tally, evaluate
@@ -189,7 +190,7 @@ def measure(plan) -> dict:
     rows["unet-noskips"] = net("unet-noskips", "test")
     for spp in s.baselines:
         for oidn in (False, True):
-            name = f"test-{spp}spp{'-oidn' if oidn else ''}"
+            name = baseline_store(spp, oidn)
             rows[name] = {**score_store(test, Store(plan.store(name)), tonemap),
                           "ms": cycles_ms(plan, spp, oidn)}  # fmt: skip
     rows["truth"] = {"ms": cycles_ms(plan, s.samples, False)}
@@ -350,9 +351,9 @@ def _cheapest(rows: dict, keys: list[str], good) -> str | None:
 def cycles_baselines(baselines: tuple[int, ...]) -> dict[str, str]:
     """``{store name: label}`` of the Cycles baselines, raw then OIDN for each spp."""
     return {
-        f"test-{spp}spp{sfx}": f"Cycles {spp} spp{label}"
+        baseline_store(spp, oidn): f"Cycles {spp} spp{' + OIDN' if oidn else ''}"
         for spp in baselines
-        for sfx, label in (("", ""), ("-oidn", " + OIDN"))
+        for oidn in (False, True)
     }
 
 
