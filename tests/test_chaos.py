@@ -24,7 +24,8 @@ from tests.conftest import s3_env
 from tests.flaky_proxy import S3FS_TRIES, FlakyProxy
 from tests.test_farm import BIN, TINY, farm
 
-pytestmark = pytest.mark.slow
+# it kills render actors found by name among all of the machine's processes
+pytestmark = [pytest.mark.slow, pytest.mark.exclusive]
 URL = "s3://shaderball/chaos.zarr"
 MATERIALS = 18  # 9 shards of 2 materials x 2 suns
 SHARDS = MATERIALS // 2

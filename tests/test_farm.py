@@ -53,13 +53,14 @@ def assert_exactly_once(path, materials: int, suns: int = 2, seed: int = 0):
 
 
 def wait_for_commits(out: Path, count: int, timeout: float = 120) -> None:
-    """Poll until ``count`` shards of the store at ``out`` are committed (or time runs out)."""
+    """Poll until ``count`` shards of the store at ``out`` are committed; fail after ``timeout``."""
     deadline = time.time() + timeout
     commits = out / "commits"
     while time.time() < deadline:
         if commits.exists() and len(list(commits.glob("*.json"))) >= count:
             return
         time.sleep(0.2)
+    raise AssertionError(f"fewer than {count} shards of {out} committed after {timeout:.0f} s")
 
 
 def job(path) -> dict:
@@ -184,6 +185,7 @@ def _blender_children() -> list[psutil.Process]:
     ]
 
 
+@pytest.mark.exclusive  # it kills Blender and render actors found by name machine-wide
 def test_killed_blender_and_killed_worker_lose_nothing(tmp_path):
     out = tmp_path / "set.zarr"
     proc = farm("submit", "-m", "uniform:8", *TINY, "-o", out, faults={"slow_s": 1.0}, wait=False)
@@ -284,6 +286,8 @@ def test_task_timeout_counts_as_failure(tmp_path):
     assert f["final"] and all("timed out" in e["error"] for e in f["errors"])
 
 
+# the node must go while its worker still has work: on a loaded machine the job can end first
+@pytest.mark.exclusive
 def test_node_removed_mid_job(tmp_path, monkeypatch):
     """A two-node Ray cluster on this machine; the node running workers goes away."""
     from ray.cluster_utils import Cluster
@@ -323,6 +327,7 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
         cluster.shutdown()
 
 
+@pytest.mark.exclusive  # `ray stop --force` stops every Ray on the machine
 def test_killed_driver_resumes_where_it_stopped(tmp_path):
     out = tmp_path / "set.zarr"
     args = ["submit", "-m", "uniform:10", *TINY, "--workers", "2", "-o", out]
