@@ -59,6 +59,16 @@ class FlakyProxy:
         self._ready = threading.Event()
         self._thread = threading.Thread(target=self._serve, daemon=True)
 
+    @classmethod
+    def past_client_retries(
+        cls, upstream: str, every: int, method: str, deny: str = ""
+    ) -> FlakyProxy:
+        """Faults that reach this project's retry policy: one ``method`` request in ``every``
+        fails (503 or reset, no stalls) for more tries than s3fs makes, at most 4 of them."""
+        return cls(
+            upstream, every, stall_s=0, deny=deny, burst=S3FS_TRIES + 1, limit=4, methods=(method,)
+        )
+
     @property
     def endpoint(self) -> str:
         return f"http://127.0.0.1:{self.port}"

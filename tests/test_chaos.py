@@ -21,7 +21,7 @@ from farm.state import load_state
 from render_jobs.specs import derive_seed
 from storage.reader import Store
 from tests.conftest import s3_env
-from tests.flaky_proxy import S3FS_TRIES, FlakyProxy
+from tests.flaky_proxy import FlakyProxy
 from tests.test_farm import BIN, TINY, farm
 
 # it kills render actors found by name among all of the machine's processes
@@ -66,9 +66,7 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, m
 
     endpoint, opts = s3
     args = ["submit", "-m", f"uniform:{MATERIALS}", *TINY, "--workers", "3"]
-    with FlakyProxy(
-        endpoint, every=25, stall_s=0, burst=S3FS_TRIES + 1, limit=4, methods=("PUT",)
-    ) as proxy:
+    with FlakyProxy.past_client_retries(endpoint, every=25, method="PUT") as proxy:
         env = s3_env(
             proxy.endpoint,
             RAY_AUTH_MODE="disabled",

@@ -9,7 +9,7 @@ from storage.reader import Store
 from storage.schema import Layout
 from storage.verify import verify
 from storage.writer import create_store
-from tests.flaky_proxy import S3FS_TRIES, FlakyProxy
+from tests.flaky_proxy import FlakyProxy
 from tests.storage_helpers import synthetic_payload
 from tests.test_storage_flaky import flaky_options
 
@@ -55,9 +55,7 @@ def test_a_commit_over_a_flaky_object_store_reports_its_retries(s3):
     url = "s3://shaderball/commit-task.zarr"
     create_store(url, LAYOUT, {}, storage_options=opts)
     packed, records = packed_results(0)
-    with FlakyProxy(
-        endpoint, every=6, stall_s=0, burst=S3FS_TRIES + 1, limit=4, methods=("PUT",)
-    ) as proxy:
+    with FlakyProxy.past_client_retries(endpoint, every=6, method="PUT") as proxy:
         report = commit_shard(url, flaky_options(opts, proxy.endpoint), 0, records, *packed)
     assert sum(proxy.faults.values()) > 0
     assert report["retries"] and all("retry" in line for line in report["retries"])

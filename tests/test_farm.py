@@ -22,7 +22,7 @@ from render_jobs.specs import derive_seed
 from storage.reader import Store
 from storage.verify import verify
 from tests.conftest import s3_env
-from tests.flaky_proxy import S3FS_TRIES, FlakyProxy
+from tests.flaky_proxy import FlakyProxy
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
@@ -366,14 +366,8 @@ def test_a_farm_job_over_a_flaky_object_store_commits_every_sample_once(s3, tmp_
     the same job written locally; a bucket that denies access fails at once."""
     endpoint, opts = s3
     args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "--no-ray-dashboard"]
-    with FlakyProxy(
-        endpoint,
-        every=12,
-        stall_s=0,
-        burst=S3FS_TRIES + 1,
-        limit=4,
-        methods=("PUT",),
-        deny="/denied.zarr",
+    with FlakyProxy.past_client_retries(
+        endpoint, every=12, method="PUT", deny="/denied.zarr"
     ) as proxy:
         env = s3_env(proxy.endpoint, AWS_MAX_ATTEMPTS="1", AWS_RETRY_MODE="standard")
         r = farm(*args, "-o", "s3://shaderball/farm.zarr", env=env)

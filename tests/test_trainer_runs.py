@@ -22,7 +22,7 @@ from torch.utils.data import DataLoader
 
 from storage.schema import Layout
 from storage.writer import create_store, write_shard
-from tests.flaky_proxy import S3FS_TRIES, FlakyProxy
+from tests.flaky_proxy import FlakyProxy
 from tests.storage_helpers import synthetic_payload
 from tests.test_trainer import vgg_weights_file
 from trainer import checkpoint
@@ -310,11 +310,7 @@ def test_trains_from_an_s3_store(tiny_store, s3, tmp_path, flaky):
     remote = create_store(url, tiny_store.layout, tiny_store.settings, storage_options=opts)
     for shard in tiny_store.committed_shards():
         write_shard(remote, shard, tiny_store.read_shard(shard))
-    proxy = (
-        FlakyProxy(endpoint, every=15, stall_s=0, burst=S3FS_TRIES + 1, limit=4, methods=("GET",))
-        if flaky
-        else None
-    )
+    proxy = FlakyProxy.past_client_retries(endpoint, every=15, method="GET") if flaky else None
     with proxy or contextlib.nullcontext():
         env = {
             **os.environ,
