@@ -26,8 +26,8 @@ demo-train: $(BIN)/.installed
 	$(BIN)/trainer eval --checkpoint out/runs/demo
 
 # Two pytest workers (the suite mostly waits on Ray, Blender and servers starting), then the tests
-# marked `exclusive` (they kill processes found by name, stop every Ray or remove a Ray node
-# mid-job) alone (docs/development.md). Both passes always run; the target fails if either does.
+# marked `exclusive` (they kill processes found by name or stop every Ray) alone
+# (docs/development.md). Both passes always run; the target fails if either does.
 test: $(BIN)/.installed lint chromium
 	$(BIN)/pytest -q -n 2 --dist worksteal -m "not exclusive"; a=$$?; \
 	$(BIN)/pytest -q -m exclusive; b=$$?; \

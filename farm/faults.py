@@ -7,7 +7,9 @@ and the actor never calls in here. Keys:
 - ``flaky_materials``: material indices that raise on a worker's first try;
 - ``hang_materials``: material indices that sleep past any timeout;
 - ``bad_workers``: worker ids whose every task raises;
-- ``slow_s``: seconds to sleep before each task.
+- ``slow_s``: seconds to sleep before each task;
+- ``hold_while``: a path; each task waits while that file exists. Set in one Ray node's
+  environment only, it keeps that node's worker busy for as long as a test needs.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ class Faults:
         """Raise, sleep or hang as the plan says for ``material`` on ``worker``."""
         f = self.plan
         time.sleep(float(f.get("slow_s", 0)))
+        while f.get("hold_while") and os.path.exists(f["hold_while"]):
+            time.sleep(0.1)
         if worker in f.get("bad_workers", []):
             raise RenderError(f"injected fault: worker {worker} is bad")
         if material in f.get("fail_materials", []):

@@ -15,6 +15,7 @@ import numpy as np
 import psutil
 import pytest
 
+from farm.faults import FAULTS_ENV
 from farm.lease import LEASE_S, holder_alive
 from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.state import LOST_AFTER_S
@@ -286,43 +287,40 @@ def test_task_timeout_counts_as_failure(tmp_path):
     assert f["final"] and all("timed out" in e["error"] for e in f["errors"])
 
 
-# the node must go while its worker still has work: on a loaded machine the job can end first
-@pytest.mark.exclusive
 def test_node_removed_mid_job(tmp_path, monkeypatch):
-    """A two-node Ray cluster on this machine; the node running workers goes away."""
+    """A two-node Ray cluster on this machine; the node goes while its worker holds a task.
+
+    The second node's raylet (and so its worker) alone sees a ``hold_while`` fault: its first
+    task waits on a file that is never removed, so the node is certain to go mid-task, however
+    loaded the machine is. The head's worker takes that task over and the job ends whole."""
     from ray.cluster_utils import Cluster
 
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
-    monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps({"slow_s": 1.0}))
+    monkeypatch.delenv(FAULTS_ENV, raising=False)
+    hold = tmp_path / "hold"
+    hold.touch()
     loopback = {"node_ip_address": "127.0.0.1"}
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, **loopback})
-    node = cluster.add_node(num_cpus=1, **loopback)
+    node_env = {FAULTS_ENV: json.dumps({"hold_while": str(hold)})}
+    node = cluster.add_node(num_cpus=1, env_vars=node_env, **loopback)
     out = tmp_path / "set.zarr"
+    args = ["submit", "-m", "uniform:8", *TINY, "--workers", "2", "-o", out]
     try:
         cluster.wait_for_nodes()
-        proc = farm(
-            "submit",
-            "-m",
-            "uniform:8",
-            *TINY,
-            "--workers",
-            "2",
-            "--address",
-            cluster.address,
-            "-o",
-            out,
-            faults={"slow_s": 1.0},
-            wait=False,
-        )
+        proc = farm(*args, "--address", cluster.address, wait=False)
         try:
-            wait_for_commits(out, 1)
+            wait_for_commits(out, 1)  # the head's worker renders; the node's one is held
             cluster.remove_node(node)  # a machine of the farm disappears
             stdout, stderr = proc.communicate(timeout=240)
         finally:
             proc.kill()
         assert proc.returncode == 0, stderr
         assert_exactly_once(out, 8)
-        assert any(w["status"] == "dead" for w in job(out)["workers"].values())
+        workers = list(job(out)["workers"].values())
+        dead = [w for w in workers if w["status"] == "dead"]
+        # the held worker died with its one task, unrendered; the head's worker rendered all
+        assert [(w["materials"], w["failures"]) for w in dead] == [(0, 1)], workers
+        assert sum(w["materials"] for w in workers) == 8, workers
     finally:
         cluster.shutdown()
 
