@@ -6,27 +6,40 @@
 # (the store's own packages as wheels in .whl/). Carry out/bench-400.zarr and .whl/ with the
 # checkout, then there:
 #
-#     bash benchmarks/gpu.sh infer     # benchmarks.infer at batch 1 and 128, compiled rows too
-#     bash benchmarks/gpu.sh train     # benchmarks.train, L1 (2,000 samples), then L1 + VGG16
+#     bash benchmarks/gpu.sh infer [ARGS]   # benchmarks.infer at batch 1 and 128, compiled rows
+#     bash benchmarks/gpu.sh train          # benchmarks.train, L1 (2,000 samples), then L1 + VGG16
 #
+# ARGS go to benchmarks.infer after its defaults (e.g. --only "subpixel compiled", --gemm-at 50).
 # Output is printed and appended to ${OUT:-out}/gpu-bench.txt. The compiled rows leave the
 # convolutions to cuDNN (CONV_BACKENDS=ATEN): with Triton's convolution templates autotuned too
 # (CONV_BACKENDS=ATEN,TRITON) the infer part needs more than the device's 10-minute call.
-# docs/benchmarks.md has the figures and the commands of each row.
+#
+# Autotuning across calls: Inductor's and Triton's caches live in .gpucache/ (ignored by git).
+# Inductor writes each operation's autotuning timings there as soon as they are measured, so a
+# run stopped part-way keeps what it tuned. The benchmark runs for at most BUDGET seconds
+# (default 540: a device call lasts 600), then .gpucache/ is packed into
+# ${OUT:-out}/gpucache.tgz (only Inductor's timings when the whole is over 15 MiB, the most a
+# device call brings back). Unpack that into .gpucache/ here and carry .gpucache with the next
+# call: its run skips the operations already tuned and goes on with the rest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 py=${PYTHON:-python3}
 store=out/bench-400.zarr
 part=${1:-}
-[[ $part == infer || $part == train ]] || { echo "usage: bash benchmarks/gpu.sh infer|train" >&2; exit 2; }
+[[ $part == infer || $part == train ]] || { echo "usage: bash benchmarks/gpu.sh infer|train [ARGS]" >&2; exit 2; }
+shift
+[[ $part == infer || $# -eq 0 ]] || { echo "gpu.sh: train takes no arguments" >&2; exit 2; }
 [[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make bench-train, then carry it)" >&2; exit 2; }
 if ! "$py" -c "import zarr, numcodecs, zstandard, google_crc32c" 2>/dev/null; then
     [[ -d .whl ]] || { echo "gpu.sh: zarr is not installed and .whl/ is missing (make gpu-wheels)" >&2; exit 2; }
     "$py" -m pip install --quiet --no-index --find-links .whl zarr numcodecs donfig crc32c \
         zstandard google-crc32c
 fi
-log=${OUT:-out}/gpu-bench.txt
-mkdir -p "$(dirname "$log")"
+out=${OUT:-out}
+log=$out/gpu-bench.txt
+mkdir -p "$out" .gpucache
+export TORCHINDUCTOR_CACHE_DIR=$PWD/.gpucache/inductor TRITON_CACHE_DIR=$PWD/.gpucache/triton
+budget=(timeout --signal=INT --kill-after=20 "${BUDGET:-540}")
 train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 10)
 {
     echo "== $part $(date -u +%FT%TZ) $(git rev-parse --short HEAD 2>/dev/null || echo '?')"
@@ -34,7 +47,8 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
     "$py" -c 'import sys, torch; print("python", sys.version.split()[0], "torch", torch.__version__)'
     case $part in
         infer) TORCHINDUCTOR_MAX_AUTOTUNE_CONV_BACKENDS=${CONV_BACKENDS:-ATEN} \
-                   "$py" -m benchmarks.infer --store "$store" --batch 128 --iters 30 --compile ;;
+                   "${budget[@]}" "$py" -m benchmarks.infer --store "$store" --batch 128 \
+                   --iters 30 --compile "$@" || echo "benchmarks.infer ended with status $?" ;;
         # L1 on 2,000 samples (63 steps an epoch: the epoch-end stall, if any, shows), then
         # the paper's loss on 8,000 samples (docs/benchmarks.md)
         train) "$py" "${train[@]}" --replicate 50 --steps 240 --warmup 40 --sim-epochs 4
@@ -42,3 +56,9 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
                    --sim-epochs 0 ;;
     esac
 } 2>&1 | tee -a "$log"
+[[ $part == infer ]] || exit 0
+tar -czf "$out/gpucache.tgz" -C .gpucache .
+if (($(stat -c %s "$out/gpucache.tgz") > 15 << 20)) && [[ -d .gpucache/inductor/cache ]]; then
+    tar -czf "$out/gpucache.tgz" -C .gpucache inductor/cache
+fi
+echo "caches: $out/gpucache.tgz ($(du -h "$out/gpucache.tgz" | cut -f1)); unpack into .gpucache/ and carry it"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -146,10 +147,58 @@ def test_gpu_benchmark_script_refuses_bad_use(tmp_path):
     missing part or a missing store, before it installs or runs anything."""
     script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
     r = subprocess.run(["bash", str(script), "bogus"], capture_output=True, text=True)
-    assert (r.returncode, r.stderr) == (2, "usage: bash benchmarks/gpu.sh infer|train\n")
+    assert (r.returncode, r.stderr) == (2, "usage: bash benchmarks/gpu.sh infer|train [ARGS]\n")
+    r = subprocess.run(["bash", str(script), "train", "--x"], capture_output=True, text=True)
+    assert (r.returncode, r.stderr) == (2, "gpu.sh: train takes no arguments\n")
     (tmp_path / "benchmarks").mkdir()  # a checkout without the carried store
     copy = tmp_path / "benchmarks" / "gpu.sh"
     copy.write_text(script.read_text())
     r = subprocess.run(["bash", str(copy), "infer"], capture_output=True, text=True)
     assert r.returncode == 2 and "out/bench-400.zarr is missing" in r.stderr
     assert len(r.stderr.splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+# stands in for benchmarks.infer: says whether an earlier call's tuning is there, tunes "one
+# operation" into Inductor's cache, then outlasts the budget as a long autotuning run does
+SLOW_INFER = """
+import os, pathlib, sys, time
+cache = pathlib.Path(os.environ["TORCHINDUCTOR_CACHE_DIR"], "cache")
+print("args", sys.argv[1:], "tuned before:", sorted(p.name for p in cache.glob("*")), flush=True)
+cache.mkdir(parents=True, exist_ok=True)
+(cache / f"op{len(list(cache.glob('*')))}").write_text("timings")
+time.sleep(60)
+"""
+
+
+def test_gpu_benchmark_script_carries_autotuning_over_calls(tmp_path):
+    """``gpu.sh infer`` stops the benchmark after ``BUDGET`` seconds, still packs Inductor's
+    cache into ``$OUT/gpucache.tgz``, and a call given that cache in ``.gpucache/`` starts from
+    it: a long autotuning run spreads over several device calls."""
+    script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
+    (tmp_path / "benchmarks").mkdir()
+    (tmp_path / "benchmarks" / "gpu.sh").write_text(script.read_text())
+    (tmp_path / "benchmarks" / "infer.py").write_text(SLOW_INFER)
+    (tmp_path / "benchmarks" / "__init__.py").touch()
+    (tmp_path / "out" / "bench-400.zarr").mkdir(parents=True)
+    (tmp_path / "out" / "bench-400.zarr" / "zarr.json").write_text("{}")
+    env = {**os.environ, "PYTHON": sys.executable, "BUDGET": "6"}
+    for call, before in enumerate([[], ["op0"]]):
+        out = tmp_path / f"device-out-{call}"
+        cmd = ["bash", "benchmarks/gpu.sh", "infer", "--only", "subpixel compiled"]
+        r = subprocess.run(
+            cmd, cwd=tmp_path, env={**env, "OUT": str(out)}, capture_output=True, text=True
+        )
+        assert r.returncode == 0, r.stderr
+        assert "args ['--store', 'out/bench-400.zarr', '--batch', '128'" in r.stdout
+        assert f"'--only', 'subpixel compiled'] tuned before: {before}" in r.stdout
+        assert "benchmarks.infer ended with status 124" in r.stdout  # the budget stopped it
+        assert "caches: " in r.stdout and (out / "gpu-bench.txt").exists()
+        # what comes back from the device, unpacked into the next call's checkout
+        shutil.rmtree(tmp_path / ".gpucache")
+        (tmp_path / ".gpucache").mkdir()
+        tar = ["tar", "-xzf", out / "gpucache.tgz", "-C", tmp_path / ".gpucache"]
+        subprocess.run(tar, check=True)
+    assert sorted(p.name for p in (tmp_path / ".gpucache/inductor/cache").iterdir()) == [
+        "op0",
+        "op1",
+    ]
