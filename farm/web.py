@@ -19,9 +19,11 @@ Rules every server built on it follows:
 
 from __future__ import annotations
 
+import errno
 import hmac
 import ipaddress
 import secrets
+import socket
 from pathlib import Path
 
 import click
@@ -142,10 +144,33 @@ def application(token: str | None, **options):
     return app, secret
 
 
+def listen(host: str, port: int) -> socket.socket:
+    """A socket listening on ``host:port`` (port 0: any free one); an unknown host or a taken
+    port is a one-line error that names it."""
+    try:
+        info = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except OSError as exc:
+        raise click.ClickException(f"cannot listen on --host {host}: {exc.strerror}") from None
+    family, kind, proto, _, address = info[0]
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(128)
+    except OSError as exc:
+        sock.close()
+        hint = " (another --port, or 0 for any free one)" if exc.errno == errno.EADDRINUSE else ""
+        raise click.ClickException(
+            f"cannot listen on {host}:{port}: {exc.strerror}{hint}"
+        ) from None
+    return sock
+
+
 def serve(app, host: str, port: int, echo, name: str) -> None:
     """Run the aiohttp ``app`` on ``host:port`` until interrupted, after printing where."""
     from aiohttp import web
 
+    sock = listen(host, port)
     shown = f"[{host}]" if ":" in host else host
-    echo(f"{name}: http://{shown}:{port}/")
-    web.run_app(app, host=host, port=port, print=None, access_log=None)
+    echo(f"{name}: http://{shown}:{sock.getsockname()[1]}/")
+    web.run_app(app, sock=sock, print=None, access_log=None)

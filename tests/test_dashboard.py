@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 import os
-import signal
+import socket
 import subprocess
 import time
 import urllib.error
@@ -20,7 +20,8 @@ from farm.state import JobState, WorkerStats, add_point
 from storage.backend import Backend
 from storage.schema import Layout, commit_key
 from storage.writer import create_store, write_shard
-from tests.conftest import free_port, s3_env
+from tests.conftest import s3_env
+from tests.servers import ServerProcess
 from tests.storage_helpers import synthetic_payload
 from tests.test_farm import BIN, TINY, assert_exactly_once, farm, wait_for_commits
 
@@ -51,27 +52,11 @@ def synthetic_job(path: Path, committed=(0, 1), status="running", pending=()) ->
     return st
 
 
-class Server:
-    """``farm dashboard`` in a subprocess on a free port."""
+class Server(ServerProcess):
+    """``farm dashboard`` in a subprocess on a port of its own."""
 
     def __init__(self, *args, host="127.0.0.1"):
-        self.port = free_port()
-        self.base = f"http://127.0.0.1:{self.port}"
-        cmd = [str(BIN / "farm"), "dashboard", *map(str, args), "--host", host,
-               "--port", str(self.port)]  # fmt: skip
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True)  # fmt: skip
-        deadline = time.time() + 30
-        while time.time() < deadline:
-            try:
-                urllib.request.urlopen(self.base + "/metrics", timeout=2)
-                return
-            except urllib.error.HTTPError:
-                return  # up (and asking for a token)
-            except OSError:
-                time.sleep(0.2)
-        self.stop()
-        raise AssertionError(f"the dashboard did not start: {self.proc.stderr.read()}")
+        super().__init__([BIN / "farm", "dashboard", *args, "--host", host], "dashboard")
 
     def get(self, path: str, headers: dict | None = None, method="GET") -> tuple[int, bytes]:
         req = urllib.request.Request(self.base + path, headers=headers or {}, method=method)
@@ -80,21 +65,6 @@ class Server:
                 return r.status, r.read()
         except urllib.error.HTTPError as e:
             return e.code, e.read()
-
-    def stop(self) -> str:
-        self.proc.send_signal(signal.SIGINT)
-        try:
-            out, _ = self.proc.communicate(timeout=10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, _ = self.proc.communicate()
-        return out
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.stop()
 
 
 def raw_get(port: int, path: str) -> int:
@@ -149,12 +119,31 @@ def test_a_non_loopback_host_needs_a_token(sets):
             time.sleep(0.2)
         assert s.get("/")[0] == 401 and s.get("/metrics")[0] == 401
         assert s.get("/job/0/a.zarr?token=wrong")[0] == 401
-        out = s.stop()
+        out, _ = s.stop()
     token = out.split("token (needed by every request from another machine): ")[1].split()[0]
     with Server(sets, "--token", token, host="0.0.0.0") as s:
         assert s.get(f"/?token={token}")[0] == 200
         assert s.get("/", {"Authorization": f"Bearer {token}"})[0] == 200
         assert s.get("/")[0] == 401
+
+
+def test_a_taken_port_or_an_unknown_host_is_one_line(tmp_path):
+    """Both servers listen through ``farm.web.serve``: the address is named, nothing runs."""
+    dashboard = [str(BIN / "farm"), "dashboard", str(tmp_path)]
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = subprocess.run([*dashboard, "--port", str(port)], capture_output=True, text=True)
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr == (
+        f"Error: cannot listen on 127.0.0.1:{port}: Address already in use "
+        "(another --port, or 0 for any free one)\n"
+    )
+    bad_host = [*dashboard, "--host", "no-such-host.invalid", "--token", "t"]
+    r = subprocess.run(bad_host, capture_output=True, text=True)
+    assert r.returncode == 1 and len(r.stderr.splitlines()) == 1
+    assert r.stderr.startswith("Error: cannot listen on --host no-such-host.invalid: ")
 
 
 def test_metrics_parse_and_match_the_job_state(sets, tmp_path):

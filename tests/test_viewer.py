@@ -8,7 +8,6 @@ import hashlib
 import io
 import json
 import os
-import signal
 import subprocess
 import time
 import urllib.error
@@ -23,7 +22,7 @@ from PIL import Image
 
 from render_jobs.errors import MaterialError
 from render_jobs.materials.procedural import procedural_maps
-from tests.conftest import free_port
+from tests.servers import ServerProcess
 from tests.test_dashboard import ARTIFACTS, chromium
 from tests.test_farm import BIN
 from trainer.mapping import textures_from_maps
@@ -151,31 +150,13 @@ def test_bad_uploads_get_one_line_naming_the_file_and_leave_nothing(tmp_path, fi
 # ---- the server --------------------------------------------------------------------------------
 
 
-class Viewer:
-    """``trainer viewer`` in a subprocess on a free port."""
+class Viewer(ServerProcess):
+    """``trainer viewer`` in a subprocess on a port of its own."""
 
     def __init__(self, *args, host="127.0.0.1", tmp: Path | None = None):
-        self.port = free_port()
-        self.base = f"http://127.0.0.1:{self.port}"
-        cmd = [str(BIN / "trainer"), "viewer", *map(str, args), "--host", host, "--port",
-               str(self.port), "--device", "cpu"]  # fmt: skip
         env = {**os.environ, **({"TMPDIR": str(tmp)} if tmp else {})}
-        self.proc = subprocess.Popen(
-            cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
-        )
-        deadline = time.time() + 60
-        while time.time() < deadline:
-            try:
-                urllib.request.urlopen(self.base + "/api/materials", timeout=2)
-                return
-            except urllib.error.HTTPError:
-                return  # up (and asking for a token)
-            except OSError:
-                if self.proc.poll() is not None:
-                    break
-                time.sleep(0.2)
-        out, err = self.stop()
-        raise AssertionError(f"the viewer did not start: {err}")
+        cmd = [BIN / "trainer", "viewer", *args, "--host", host, "--device", "cpu"]
+        super().__init__(cmd, "viewer", env)
 
     def get(self, path: str, headers: dict | None = None, data: bytes | None = None):
         req = urllib.request.Request(self.base + path, headers=headers or {}, data=data)
@@ -206,20 +187,6 @@ class Viewer:
     def secret(self) -> str:
         page = self.get("/")[1].decode()
         return page.split('name="secret" content="')[1].split('"')[0]
-
-    def stop(self):
-        self.proc.send_signal(signal.SIGINT)
-        try:
-            return self.proc.communicate(timeout=15)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            return self.proc.communicate()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.stop()
 
 
 @pytest.fixture(scope="module")
