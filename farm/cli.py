@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -288,7 +289,7 @@ def submit(
       farm submit -m uniform:20 --samples 2 --denoise -o out/small-2spp-oidn.zarr  # a baseline
     """
     _require("farm submit", "ray")
-    from farm.driver import FarmError
+    from farm.driver import FarmError, terminated
     from farm.driver import submit as run
     from farm.plan import JobConfig
 
@@ -319,6 +320,14 @@ def submit(
         summary = run(cfg, echo=click.echo)
     except (FarmError, MaterialError) as exc:
         raise click.ClickException(str(exc)) from None
+    except KeyboardInterrupt:
+        sig = signal.SIGTERM if terminated() else signal.SIGINT
+        click.echo(
+            f"\n{sig.name}: stopped; every committed shard is kept (farm status {out}), and "
+            "the same command resumes",
+            err=True,
+        )
+        sys.exit(128 + sig)
     rate = summary.frames_rendered / summary.wall_s if summary.wall_s else 0.0
     click.echo(
         f"frames    {summary.frames_rendered} rendered, {summary.frames_skipped} already "

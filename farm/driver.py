@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import collections
 import logging
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -55,6 +57,30 @@ PIPELINE = 2
 
 class FarmError(RuntimeError):
     """The job could not start (bad input, incompatible store, no Ray)."""
+
+
+_TERMINATED = threading.Event()
+
+
+def _on_sigterm(signum, frame) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM kills at once
+    _TERMINATED.set()
+    # the one exception Ray's blocking calls (ray.wait, ray.get) let through from a handler
+    raise KeyboardInterrupt
+
+
+def stop_on_sigterm() -> None:
+    """Make SIGTERM (a deleted pod, ``timeout``, ``docker stop``) unwind the job as Ctrl-C
+    does, with :func:`terminated` true after. Called when a job starts and again after
+    ``ray.init``: Ray's core worker installs its own SIGTERM handler there, which ends the
+    process at once and leaves the job state saying "running"."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _on_sigterm)
+
+
+def terminated() -> bool:
+    """Whether the ``KeyboardInterrupt`` that stopped a job came from SIGTERM."""
+    return _TERMINATED.is_set()
 
 
 @dataclass
@@ -138,6 +164,7 @@ def submit(
     """Run (or resume) the job ``cfg`` to the end; see the module docstring. ``actor_cls``:
     the render actor (a benchmark's simulated one; :class:`farm.pool.WorkerPool`)."""
     t_start = time.perf_counter()
+    stop_on_sigterm()
     keep_ray_on_loopback(cfg.address)
     try:
         specs = validate(cfg, progress)  # nothing is written on bad input
@@ -168,6 +195,7 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
 
     cfg = job.cfg
     job.state.dashboard = connect(cfg.address, cfg.ray_dashboard)
+    stop_on_sigterm()
     echo(f"ray dashboard: {job.state.dashboard or 'off'}")
     workers = cfg.workers or max(
         1, int(ray.cluster_resources().get("CPU", 1)) // cfg.cpus_per_worker

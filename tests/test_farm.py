@@ -357,6 +357,33 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
     assert_exactly_once(out, 10)
 
 
+def test_sigterm_stops_the_job_cleanly_and_the_same_command_resumes(tmp_path):
+    """What a deleted pod, ``timeout`` or ``docker stop`` sends: the driver stops its workers
+    and Ray, says how to resume and exits 143; the job state says interrupted, not running."""
+    out = tmp_path / "set.zarr"
+    args = ["submit", "-m", "uniform:10", *TINY, "--workers", "2", "-o", out]
+    proc = farm(*args, faults={"slow_s": 0.5}, wait=False)
+    try:
+        wait_for_commits(out, 1)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=90)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert f"SIGTERM: stopped; every committed shard is kept (farm status {out})" in err
+    st = job(out)
+    assert st["status"] == "interrupted"
+    workers = [w["pid"] for w in st["workers"].values() if w["pid"]]
+    deadline = time.time() + 10  # the embedded Ray went down with the driver
+    while time.time() < deadline and any(psutil.pid_exists(pid) for pid in workers):
+        time.sleep(0.2)
+    assert workers and not any(psutil.pid_exists(pid) for pid in workers)
+    r = farm(*args, "--no-ray-dashboard")
+    assert r.returncode == 0, r.stderr
+    assert "resuming: " in r.stdout
+    assert_exactly_once(out, 10)
+
+
 def test_a_farm_job_over_a_flaky_object_store_commits_every_sample_once(s3, tmp_path):
     """``--out s3://...`` through a proxy that answers 503 SlowDown or resets the connection
     on four writes, one in every 12, for more tries of each than s3fs makes (botocore's own
