@@ -508,7 +508,11 @@ class Loop:
             self.last_save = now()
 
     def close(self) -> None:
+        """Stop the workers and save the job state. Saved first too: an interrupted driver
+        may be killed before its workers are stopped (``ray job stop`` waits 3 s)."""
         self.bar.close()
-        for wid in list(self.pool.actors):
-            self.pool.remove(wid, "stopped")
+        interrupted = self.state.status == "interrupted"
+        if interrupted:
+            self.state.save(self.job.store.backend)
+        self.pool.stop_all(wait_s=2 if interrupted else 15)
         self.state.save(self.job.store.backend)

@@ -131,12 +131,19 @@ class WorkerPool:
     def remove(self, wid: str, status: str) -> None:
         actor = self.actors.pop(wid, None)
         if actor is not None:
-            if status == "stopped":  # the job is over: let it close its Blender first
-                with contextlib.suppress(Exception):  # dead or stuck: the kill ends it
-                    self.ray.get(actor.close.remote(), timeout=15)
             self.ray.kill(actor, no_restart=True)
         self.state.workers[wid].status = status
         self.state.workers[wid].current = None
+
+    def stop_all(self, wait_s: float) -> None:
+        """The job is over: every actor is asked to close its Blender, all at once, and
+        given ``wait_s`` seconds in all (a busy one closes only after its render), then
+        killed."""
+        closing = [actor.close.remote() for actor in self.actors.values()]
+        with contextlib.suppress(Exception):  # dead or stuck: the kill ends it
+            self.ray.wait(closing, num_returns=len(closing), timeout=wait_s)
+        for wid in list(self.actors):
+            self.remove(wid, "stopped")
 
     def usable(self) -> list[str]:
         """Workers that are placed, alive and not being removed, in start order."""
