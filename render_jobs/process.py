@@ -7,7 +7,8 @@ material under its suns, or the scene's screen UV layout) until closed, and leav
 and texture PNGs) and removes it when the child ends, even when it was killed. A request
 that raises in the child comes back as :class:`RenderError` or :class:`MaterialError` with
 the child's message; a child that dies (segfault, OOM kill) raises :class:`RenderError`
-naming its exit code, and the next request starts a fresh child.
+naming its exit code, and the next request starts a fresh child. On Linux the child dies with
+its parent (a Ray actor killed mid-render leaves no Blender rendering on).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import contextlib
 import multiprocessing as mp
 import os
 import shutil
+import signal
 import sys
 import tempfile
 import traceback
@@ -66,7 +68,24 @@ def thread_pool_of(threads: int):
                 os.sched_setaffinity(int(tid), full)
 
 
-def _serve(conn, settings: dict, log_path: str | None, scratch: str) -> None:  # in the child
+def _die_with_parent(parent: int) -> None:  # in the child
+    """Have the kernel kill this process when its parent goes (Linux ``PR_SET_PDEATHSIG``;
+    elsewhere a no-op). The signal comes when the *thread* that started the child ends: every
+    caller starts it from its main thread (Ray runs a sync actor's methods on its main
+    thread)."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
+    if os.getppid() != parent:  # it died before the call above
+        os._exit(1)
+
+
+def _serve(conn, settings: dict, log_path: str | None, scratch: str, parent: int) -> None:
+    """The child's life: load Blender, then answer requests until told to stop."""
+    _die_with_parent(parent)
     os.environ["SHADERBALL_BLENDER_WORKER"] = "1"
     log = os.open(log_path or os.devnull, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(log, 1)
@@ -133,7 +152,7 @@ class RenderProcess:
         self._scratch = tempfile.mkdtemp(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-", dir=shm)
         self._proc = ctx.Process(
             target=_serve,
-            args=(child, self.settings.to_dict(), self.log_path, self._scratch),
+            args=(child, self.settings.to_dict(), self.log_path, self._scratch, os.getpid()),
             daemon=True,
         )
         self._proc.start()

@@ -164,6 +164,43 @@ def test_script_without_main_guard_gets_a_clear_error(tmp_path):
     assert 'needs an `if __name__ == "__main__":` guard' in last
 
 
+# a parent that starts a long render, says so, and waits to be killed
+LONG_RENDER = """
+import sys
+from render_jobs.materials.procedural import procedural_maps
+from render_jobs.process import RenderProcess
+from render_jobs.specs import RenderSettings
+from render_jobs.sun import sun_from_angles
+if __name__ == "__main__":
+    with RenderProcess(RenderSettings(resolution=128, samples=4096, threads=1)) as w:
+        print(w.pid, flush=True)
+        w.render_material(procedural_maps(0, 64), [sun_from_angles(35, 0, 3.0)], [0])
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_killed_parent_takes_its_rendering_blender_with_it(tmp_path):
+    """What a Ray actor killed mid-render does to its Blender child: it ends at once rather
+    than rendering on (this render alone takes minutes)."""
+    script = tmp_path / "parent.py"
+    script.write_text(LONG_RENDER)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, env=env)
+    child = None
+    try:
+        child = psutil.Process(int(proc.stdout.readline()))
+        deadline = time.time() + 60  # until the render is under way
+        while time.time() < deadline and child.cpu_percent(interval=0.5) < 50:
+            pass
+        proc.kill()
+        proc.wait(10)
+        child.wait(timeout=10)  # psutil.TimeoutExpired if it renders on
+    finally:
+        proc.kill()
+        if child is not None and child.is_running():
+            child.kill()
+
+
 def cpu_seconds(pid: int) -> float:
     """User + system CPU time of process ``pid``, all its threads."""
     t = psutil.Process(pid).cpu_times()
