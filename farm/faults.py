@@ -8,8 +8,11 @@ and the actor never calls in here. Keys:
 - ``hang_materials``: material indices that sleep past any timeout;
 - ``bad_workers``: worker ids whose every task raises;
 - ``slow_s``: seconds to sleep before each task;
-- ``hold_while``: a path; each task waits while that file exists. Set in one Ray node's
-  environment only, it keeps that node's worker busy for as long as a test needs.
+- ``hold_while``: a path; each task waits while that file exists, after creating the file
+  ``<path>.held`` to say so. Set in one Ray node's environment only, it keeps that node's
+  worker busy for as long as a test needs, and tells the test when it is;
+- ``wait_for``: a path; each task waits until that file exists (another node's ``.held``
+  file: this node's worker cannot finish the job before that node's worker has a task).
 """
 
 from __future__ import annotations
@@ -32,8 +35,13 @@ class Faults:
         """Raise, sleep or hang as the plan says for ``material`` on ``worker``."""
         f = self.plan
         time.sleep(float(f.get("slow_s", 0)))
-        while f.get("hold_while") and os.path.exists(f["hold_while"]):
+        while f.get("wait_for") and not os.path.exists(f["wait_for"]):
             time.sleep(0.1)
+        hold = f.get("hold_while")
+        if hold and os.path.exists(hold):
+            open(f"{hold}.held", "w").close()
+            while os.path.exists(hold):
+                time.sleep(0.1)
         if worker in f.get("bad_workers", []):
             raise RenderError(f"injected fault: worker {worker} is bad")
         if material in f.get("fail_materials", []):

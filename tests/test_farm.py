@@ -290,9 +290,10 @@ def test_task_timeout_counts_as_failure(tmp_path):
 def test_node_removed_mid_job(tmp_path, monkeypatch):
     """A two-node Ray cluster on this machine; the node goes while its worker holds a task.
 
-    The second node's raylet (and so its worker) alone sees a ``hold_while`` fault: its first
-    task waits on a file that is never removed, so the node is certain to go mid-task, however
-    loaded the machine is. The head's worker takes that task over and the job ends whole."""
+    The second node's raylet (and so its worker) sees a ``hold_while`` fault: its first task
+    waits on a file that is never removed, and says so; the head's worker waits for that
+    (``wait_for``), so it cannot finish the job first. The node goes mid-task however loaded
+    the machine is, the head's worker takes that task over and the job ends whole."""
     from ray.cluster_utils import Cluster
 
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
@@ -300,7 +301,11 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
     hold = tmp_path / "hold"
     hold.touch()
     loopback = {"node_ip_address": "127.0.0.1"}
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, **loopback})
+    head_env = {FAULTS_ENV: json.dumps({"wait_for": f"{hold}.held"})}
+    cluster = Cluster(
+        initialize_head=True,
+        head_node_args={"num_cpus": 1, "env_vars": head_env, **loopback},
+    )
     node_env = {FAULTS_ENV: json.dumps({"hold_while": str(hold)})}
     node = cluster.add_node(num_cpus=1, env_vars=node_env, **loopback)
     out = tmp_path / "set.zarr"
@@ -309,8 +314,11 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
         cluster.wait_for_nodes()
         proc = farm(*args, "--address", cluster.address, wait=False)
         try:
-            wait_for_commits(out, 1)  # the head's worker renders; the node's one is held
-            cluster.remove_node(node)  # a machine of the farm disappears
+            deadline = time.time() + 120
+            while time.time() < deadline and not Path(f"{hold}.held").exists():
+                time.sleep(0.2)
+            assert Path(f"{hold}.held").exists(), "the node's worker never got a task"
+            cluster.remove_node(node)  # a machine of the farm disappears mid-task
             stdout, stderr = proc.communicate(timeout=240)
         finally:
             proc.kill()
