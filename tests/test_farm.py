@@ -53,15 +53,23 @@ def assert_exactly_once(path, materials: int, suns: int = 2, seed: int = 0):
     assert r.returncode == 0, r.stdout
 
 
+def wait_until(done, timeout: float, failure: str) -> None:
+    """Poll ``done()`` every 0.2 s until it is true; fail with ``failure`` after ``timeout``."""
+    deadline = time.time() + timeout
+    while not done():
+        if time.time() > deadline:
+            raise AssertionError(f"{failure} (after {timeout:.0f} s)")
+        time.sleep(0.2)
+
+
 def wait_for_commits(out: Path, count: int, timeout: float = 120) -> None:
     """Poll until ``count`` shards of the store at ``out`` are committed; fail after ``timeout``."""
-    deadline = time.time() + timeout
     commits = out / "commits"
-    while time.time() < deadline:
-        if commits.exists() and len(list(commits.glob("*.json"))) >= count:
-            return
-        time.sleep(0.2)
-    raise AssertionError(f"fewer than {count} shards of {out} committed after {timeout:.0f} s")
+    wait_until(
+        lambda: commits.exists() and len(list(commits.glob("*.json"))) >= count,
+        timeout,
+        f"fewer than {count} shards of {out} committed",
+    )
 
 
 def job(path) -> dict:
@@ -314,10 +322,8 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
         cluster.wait_for_nodes()
         proc = farm(*args, "--address", cluster.address, wait=False)
         try:
-            deadline = time.time() + 120
-            while time.time() < deadline and not Path(f"{hold}.held").exists():
-                time.sleep(0.2)
-            assert Path(f"{hold}.held").exists(), "the node's worker never got a task"
+            held = Path(f"{hold}.held")
+            wait_until(held.exists, 120, "the node's worker never got a task")
             cluster.remove_node(node)  # a machine of the farm disappears mid-task
             stdout, stderr = proc.communicate(timeout=240)
         finally:
@@ -382,10 +388,12 @@ def test_sigterm_stops_the_job_cleanly_and_the_same_command_resumes(tmp_path):
     st = job(out)
     assert st["status"] == "interrupted"
     workers = [w["pid"] for w in st["workers"].values() if w["pid"]]
-    deadline = time.time() + 10  # the embedded Ray went down with the driver
-    while time.time() < deadline and any(psutil.pid_exists(pid) for pid in workers):
-        time.sleep(0.2)
-    assert workers and not any(psutil.pid_exists(pid) for pid in workers)
+    assert workers
+
+    def gone() -> bool:  # the embedded Ray went down with the driver
+        return not any(psutil.pid_exists(pid) for pid in workers)
+
+    wait_until(gone, 10, f"render workers {workers} outlived the driver")
     r = farm(*args, "--no-ray-dashboard")
     assert r.returncode == 0, r.stderr
     assert "resuming: " in r.stdout
