@@ -7,12 +7,13 @@ For each resolution: the screen UV layout rendered by Blender at the farm's sub-
 (``render_jobs.screen_uv.default_supersample``; cached in ``benchmarks/.cache``), the paper's
 network (width 64, skips) with fresh weights (speed does not depend on them), and one
 procedural material with ``--texture``² maps, read as the viewer reads a folder material.
-Each **edit** frame changes the roughness scale, so it maps the edited textures again
-(``trainer.mapping``), runs the network (``trainer.infer.Renderer``'s inference path) and
-encodes a JPEG, exactly as ``trainer viewer`` answers the page (``trainer.viewer.engine``);
-each **drag** frame moves the sun (the mapping is cached). Medians over ``--frames``; the
-share outside the network is (mapping + encoding) / frame. Targets: under 20 % of the frame
-on CPU, under 1 ms on CUDA.
+Each **edit** frame changes the roughness scale, so it applies the edit to the looked-up
+sub-samples and filters them again (``trainer.mapping``), runs the network
+(``trainer.infer.Renderer``'s inference path) and encodes a JPEG, exactly as ``trainer
+viewer`` answers the page (``trainer.viewer.engine``); each **tiling edit** frame changes
+the tiling, so it also looks the textures up again; each **drag** frame moves the sun (the
+mapping is cached). Medians over ``--frames``; the share outside the network is (mapping +
+encoding) / frame. Targets: under 20 % of the frame on CPU, under 1 ms on CUDA.
 """
 
 from __future__ import annotations
@@ -67,31 +68,38 @@ def material_folder(folder: Path, texture: int) -> Path:
 
 
 def measure(resolution: int, frames: int, texture: int, device: torch.device, tmp: Path):
-    """Median milliseconds of edit frames (mapping, network, encoding, frame) and drag frames."""
+    """Median milliseconds of value-edit frames (mapping, network, encoding, frame), the
+    mapping of tiling-edit frames, and drag frames."""
     suv = layout(resolution)
     renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
     library = Library([], [str(material_folder(tmp, texture))], tmp / "uploads")
     engine = Engine(renderer, ScreenMapper(suv, device), library, "fresh weights")
     mid = next(iter(library.entries))
     engine.frame(mid, Edits(roughness_scale=0.3), Light())  # warm-up: textures, grids, kernels
-    engine.frame(mid, Edits(roughness_scale=0.31), Light())
-    edit, drag = [], []
+    engine.frame(mid, Edits(roughness_scale=0.31, tiling=1.01), Light())
+    edit, tiling, drag = [], [], []
     for i in range(frames):
         f = engine.frame(mid, Edits(roughness_scale=0.4 + 0.01 * i), Light())
         assert not f.cached
         edit.append((f.mapping_ms, f.network_ms, f.encoding_ms))
     for i in range(frames):
+        f = engine.frame(mid, Edits(roughness_scale=0.4, tiling=1.1 + 0.1 * i), Light())
+        assert not f.cached
+        tiling.append(f.mapping_ms)
+    for i in range(frames):
         f = engine.frame(mid, Edits(roughness_scale=0.4), Light(azimuth=200 + 3 * i))
         assert f.cached
         drag.append(f.mapping_ms + f.network_ms + f.encoding_ms)
     parts = [statistics.median(x) for x in zip(*edit, strict=True)]
-    total = statistics.median(sum(x) for x in edit)
+    retile = statistics.median(tiling)
     return {
         "mapping": parts[0],
         "network": parts[1],
         "encoding": parts[2],
-        "frame": total,
-        "outside": (parts[0] + parts[2]) / (parts[0] + parts[1] + parts[2]),
+        "frame": statistics.median(sum(x) for x in edit),
+        "outside": (parts[0] + parts[2]) / sum(parts),
+        "tiling": retile,
+        "tiling_outside": (retile + parts[2]) / (retile + parts[1] + parts[2]),
         "drag": statistics.median(drag),
         "supersample": suv.supersample,
         "hits": int(suv.hit.sum()),
@@ -112,9 +120,9 @@ def main() -> None:
           f"texture {args.texture}²; medians of {args.frames} frames")  # fmt: skip
     print(
         "| resolution | sub-samples | mapping ms | network ms | encoding ms | edit frame ms "
-        "| outside the network | drag frame ms |"
+        "| outside the network | tiling edit: mapping ms | outside the network | drag frame ms |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for r in (int(v) for v in args.resolutions.split(",")):
             sub = Path(tmp) / str(r)
@@ -123,7 +131,8 @@ def main() -> None:
             print(
                 f"| {r}² | {m['supersample']}² ({m['hits']:,} hits) | {m['mapping']:.1f} | "
                 f"{m['network']:.1f} | {m['encoding']:.2f} | {m['frame']:.1f} | "
-                f"{100 * m['outside']:.1f} % | {m['drag']:.1f} |",
+                f"{100 * m['outside']:.1f} % | {m['tiling']:.1f} | "
+                f"{100 * m['tiling_outside']:.1f} % | {m['drag']:.1f} |",
                 flush=True,
             )
 

@@ -67,9 +67,8 @@ def test_edits_change_what_they_name_and_nothing_else():
     torch.testing.assert_close(red[..., 3:6], samples[..., 3:6] * 0.5)
 
 
-def test_an_edit_maps_as_the_edited_material(tmp_path):
-    """Mapping with a roughness edit equals mapping the texture with that roughness, within
-    the 8-bit rounding of the texture Blender would load."""
+def made_up_mapper():
+    """A :class:`ScreenMapper` on a made-up 16² layout (3² sub-samples, random UVs)."""
     from render_jobs.screen_uv import ScreenUV
     from trainer.mapping import ScreenMapper
 
@@ -78,13 +77,69 @@ def test_an_edit_maps_as_the_edited_material(tmp_path):
     hit = np.zeros((n, n), bool)
     hit[6:40, 6:40] = True
     uv = np.where(hit[..., None], rng.uniform(0, 1, (n, n, 2)), 0).astype(np.float32)
-    mapper = ScreenMapper(ScreenUV(uv, hit, 16, 3, 1.0, "made-up"))
+    return ScreenMapper(ScreenUV(uv, hit, 16, 3, 1.0, "made-up"))
+
+
+def test_an_edit_maps_as_the_edited_material(tmp_path):
+    """Mapping with a roughness edit equals mapping the texture with that roughness, within
+    the 8-bit rounding of the texture Blender would load."""
+    mapper = made_up_mapper()
     tex = textures_from_maps(procedural_maps(2, 32))
     halved = tex.clone()
     halved[6] *= 0.5
     a = mapper(tex, adjust=Edits(roughness_scale=0.5).adjust).int()
     b = mapper(halved).int()
     assert (a[6] - b[6]).abs().max() <= 1 and torch.equal(a[[0, 1, 2, 10]], b[[0, 1, 2, 10]])
+
+
+def test_lookups_split_over_threads_are_the_same_numbers_and_finish_keeps_them():
+    mapper = made_up_mapper()
+    prepared = mapper.prepare(textures_from_maps(procedural_maps(4, 40)))
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = mapper.lookup(prepared, 1.7)
+        torch.set_num_threads(3)  # 3 runs: the hits do not divide evenly
+        three = mapper.lookup(prepared, 1.7)
+    finally:
+        torch.set_num_threads(threads)
+    assert one.shape == (mapper.hits, 1, 10) and torch.equal(one, three)
+    kept = three.clone()
+    mapper.finish(three, Edits(roughness_scale=0.2, diffuse_tint=(1.0, 0.5, 0.0)).adjust)
+    assert torch.equal(three, kept)
+
+
+def test_the_engine_reuses_lookups_for_value_edits_and_maps_as_a_fresh_engine(tmp_path):
+    """An edit of values after another maps from the kept lookups, to the same maps a fresh
+    engine makes; a new tiling looks the textures up again."""
+    from trainer.infer import Renderer
+    from trainer.model import ModelConfig, NeuralRenderer
+    from trainer.targets import Tonemap
+    from trainer.viewer.engine import Engine
+
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    (lib / "m.png").write_bytes(panel(32))
+    renderer = Renderer(NeuralRenderer(ModelConfig(16, width=4)), Tonemap(), torch.device("cpu"))
+
+    def engine():
+        e = Engine(renderer, made_up_mapper(), Library([], [str(lib)], tmp_path / "up"), "-")
+        lookups = []
+        lookup = e.mapper.lookup
+        e.mapper.lookup = lambda *a: lookups.append(a[1:]) or lookup(*a)
+        return e, lookups
+
+    first, lookups = engine()
+    mid = next(iter(first.library.entries))
+    edited = Edits(roughness_scale=0.3, specular_scale=2.0)
+    first.maps(mid, Edits(roughness_scale=0.7))
+    maps, _, cached = first.maps(mid, edited)
+    assert not cached and lookups == [(1.0,)]
+    fresh, _ = engine()
+    assert torch.equal(maps, fresh.maps(mid, edited)[0])
+    assert first.maps(mid, edited)[2]  # the same edits again: the mapped maps are kept
+    tiled, _, _ = first.maps(mid, Edits(roughness_scale=0.3, specular_scale=2.0, tiling=2.0))
+    assert lookups == [(1.0,), (2.0,)] and not torch.equal(tiled, maps)
 
 
 def test_light_angles_round_trip_and_bad_suns_are_refused():

@@ -2,8 +2,10 @@
 timed in three parts. Plain code: no web server in it (``benchmarks/viewer.py`` times it).
 
 - **mapping**: the material's texture maps UV-mapped to the network's input, with its edits
-  (:class:`trainer.mapping.ScreenMapper`; the prepared textures are kept per material, the
-  result per (material, edits), so moving the sun costs no mapping);
+  (:class:`trainer.mapping.ScreenMapper`). Three caches: the prepared textures per material,
+  the looked-up sub-samples per (material, tiling), so that an edit of values (tints,
+  scales, normal strength) costs only the mapper's ``finish``, and the result per
+  (material, edits), so that moving the sun costs no mapping;
 - **network**: the trained network (:class:`trainer.infer.Renderer`, its fp32 inference
   path) on the mapped maps and the light;
 - **encoding**: the image's bytes (JPEG while the page follows the sun; PNG, with the
@@ -15,7 +17,6 @@ from __future__ import annotations
 import io
 import json
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +31,7 @@ from trainer.evaluate import psnr
 from trainer.infer import Renderer
 from trainer.targets import light_vector
 from trainer.viewer.materials import Edits, Library, direction
+from trainer.viewer.recent import Recent
 
 JPEG_QUALITY = 92
 FORMATS = ("jpeg", "png")
@@ -92,8 +94,9 @@ class Engine:
     def __init__(self, renderer: Renderer, mapper, library: Library, checkpoint: str):
         self.renderer, self.mapper, self.library = renderer, mapper, library
         self.checkpoint = checkpoint
-        self._maps: OrderedDict[tuple, torch.Tensor] = OrderedDict()  # mapped, by edits
-        self._prepared: OrderedDict[str, torch.Tensor] = OrderedDict()  # textures, by material
+        self._maps = Recent(32)  # (material, edits) → mapped maps
+        self._looked = Recent(2)  # (material, tiling) → looked-up sub-samples (16 MB at 400²)
+        self._prepared = Recent(8)  # material → prepared textures
 
     def _sync(self) -> None:
         if self.renderer.device.type == "cuda":
@@ -105,23 +108,24 @@ class Engine:
         key = (material_id, edits)
         hit = self._maps.get(key)
         if hit is not None:
-            self._maps.move_to_end(key)
             return hit, 0.0, True
         t0 = time.perf_counter()
-        prepared = self._prepared.get(material_id)
-        if prepared is None:
-            prepared = self._prepare(material_id, edits)
-        if prepared is None:  # a stored material whose source files are not here
+        looked = self._looked.get((material_id, edits.tiling))
+        if looked is None:
+            prepared = self._prepared.get(material_id)
+            if prepared is None:
+                prepared = self._prepare(material_id, edits)
+            if prepared is not None:
+                looked = self.mapper.lookup(prepared, edits.tiling)
+                self._looked.put((material_id, edits.tiling), looked)
+        if looked is None:  # a stored material whose source files are not here
             packed = torch.from_numpy(np.array(self.library.stored_maps(material_id)))[None]
             packed = packed.to(self.renderer.device)
         else:
-            adjust = edits.adjust if edits.changes_values else None
-            packed = self.mapper.finish(self.mapper.lookup(prepared, edits.tiling), adjust)
+            packed = self.mapper.finish(looked, edits.adjust if edits.changes_values else None)
         self._sync()
         seconds = time.perf_counter() - t0
-        self._maps[key] = packed
-        if len(self._maps) > 32:
-            self._maps.popitem(last=False)
+        self._maps.put(key, packed)
         return packed, seconds, False
 
     def _prepare(self, material_id: str, edits: Edits) -> torch.Tensor | None:
@@ -140,9 +144,7 @@ class Engine:
                 "materials can be shown (farm screen-uv STORE adds one to a store)"
             )
         prepared = self.mapper.prepare(tex)
-        self._prepared[material_id] = prepared
-        if len(self._prepared) > 8:
-            self._prepared.popitem(last=False)
+        self._prepared.put(material_id, prepared)
         return prepared
 
     def network(self, packed: torch.Tensor, light: np.ndarray) -> np.ndarray:

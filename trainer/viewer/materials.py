@@ -30,6 +30,7 @@ from render_jobs.specs import MaterialSpec, Sun
 from storage.reader import Store
 from trainer.mapping import textures_from_maps
 from trainer.targets import srgb_decode
+from trainer.viewer.recent import Recent
 
 #: the largest upload, all files together (bytes), and the largest image (pixels)
 MAX_UPLOAD_BYTES = 64 << 20
@@ -80,7 +81,7 @@ class Library:
         self.stores = [Store(u) for u in stores]
         self.upload_dir = upload_dir
         self.entries: OrderedDict[str, Entry] = OrderedDict()
-        self._textures: OrderedDict[str, torch.Tensor] = OrderedDict()
+        self._textures = Recent(16)  # material → (10, H, W) texture maps
         self.uploads = 0
         for i, store in enumerate(self.stores):
             self._add_store(i, store)
@@ -124,7 +125,6 @@ class Library:
         :meth:`stored_maps` then stands in."""
         cached = self._textures.get(material_id)
         if cached is not None:
-            self._textures.move_to_end(material_id)
             return cached
         e = self.entry(material_id)
         if e.path is not None:
@@ -139,9 +139,7 @@ class Library:
         else:
             return None
         tex = textures_from_maps(maps)
-        self._textures[material_id] = tex
-        if len(self._textures) > 16:
-            self._textures.popitem(last=False)
+        self._textures.put(material_id, tex)
         return tex
 
     def stored_maps(self, material_id: str) -> np.ndarray:
@@ -193,7 +191,7 @@ class Library:
         e = Entry(f"up{self.uploads}", Path(files[0][0]).name if len(files) == 1 else
                   f"upload {self.uploads}", "svbrdf", "upload", path=target)  # fmt: skip
         self.entries[e.id] = e
-        self._textures[e.id] = textures_from_maps(maps)
+        self._textures.put(e.id, textures_from_maps(maps))
         return e
 
 
