@@ -1,18 +1,21 @@
-"""Inference benchmark at 400²: ms per frame at batch 1, frames/s batched.
+"""Inference benchmark at 400² (or ``--resolution``): ms per frame at batch 1, frames/s batched.
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
-        [--gemm-at N]
+        [--gemm-at N] [--resolution 400] [--only TEXT]
 
-Rows: eager fp32 and the exact fp32 rewrite ``trainer.infer.Renderer`` runs
-(``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on every
-device; on CUDA also bf16 + channels_last eager (cudnn.benchmark), the same with BatchNorm
-folded, that with the weights cast to bf16 once and replayed as a CUDA graph
-(``trainer.infer.GraphedRenderer``), the rewrite so replayed, and with ``--compile`` both
-after torch.compile (Inductor ``max-autotune-no-cudagraphs``: fused pointwise work around the
-tuned convolutions, then captured).
+Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
+rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
+every device (``trainer.infer.Renderer`` runs one of the last two on CPU, by resolution:
+``trainer.infer.CPU_SUBPIXEL_FROM``); on CUDA also bf16 + channels_last eager
+(cudnn.benchmark), the same with BatchNorm folded, that with the weights cast to bf16 once
+and replayed as a CUDA graph (``trainer.infer.GraphedRenderer``), the rewrite so replayed,
+and with ``--compile`` both after torch.compile (Inductor ``max-autotune-no-cudagraphs``:
+fused pointwise work around the tuned convolutions, then captured).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
+At another ``--resolution`` the store's 400² maps are resized to it (nearest: speed does not
+depend on the values).
 Times are medians over ``--iters`` after warm-up, each synchronised on CUDA; ``max |diff|`` is
 the largest difference of each mode's batch-1 image from eager fp32 (display units, [0, 1]).
 """
@@ -24,6 +27,7 @@ import statistics
 import time
 
 import torch
+import torch.nn.functional as F
 
 from benchmarks.train import device_name
 from benchmarks.trainstore import DEFAULT, ensure_store
@@ -55,6 +59,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--iters", type=int, default=20)
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
+    ap.add_argument("--resolution", type=int, default=400, help="a multiple of 16 (default 400)")
     ap.add_argument(
         "--compile",
         action="store_true",
@@ -75,16 +80,20 @@ def main() -> None:
         help="run only the rows whose name contains TEXT (eager fp32 stays the reference)",
     )
     args = ap.parse_args()
+    if args.resolution < 16 or args.resolution % 16:
+        ap.error(f"--resolution {args.resolution} is not a positive multiple of 16")
     device = pick_device(args.device)
     cuda = device.type == "cuda"
     split = Catalog.snapshot([ensure_store(args.store)], 0, 0.0, None).split("train")
     data = SampleReader(split).batch(list(range(min(args.batch, len(split)))))
     reps = -(-args.batch // len(data["id"]))
-    x_all = model_inputs(data["maps"]).repeat(reps, 1, 1, 1)[: args.batch].to(device)
+    x_all = model_inputs(data["maps"]).repeat(reps, 1, 1, 1)[: args.batch]
+    x_all = F.interpolate(x_all, size=args.resolution, mode="nearest").to(device)
     l_all = data["light"].repeat(reps, 1)[: args.batch].to(device)
-    model = NeuralRenderer(ModelConfig(resolution=400)).to(device).eval()
+    model = NeuralRenderer(ModelConfig(resolution=args.resolution)).to(device).eval()
 
-    print(f"device: {device_name(args.device)}; 400², batch {args.batch} for frames/s")
+    r = args.resolution
+    print(f"device: {device_name(args.device)}; {r}², batch {args.batch} for frames/s")
     print(f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'max |diff|':>12}", flush=True)
 
     def report(name: str, one: float, many: float, err: float) -> None:
@@ -122,8 +131,9 @@ def main() -> None:
         report(name, one, many, error(g1(x_all[:1], l_all[:1])))
 
     eager_row("eager fp32", model, False, torch.contiguous_format)
+    eager_row("folded fp32 channels_last", fold_batchnorm(model), False, torch.channels_last)
     subpixel = SubpixelRenderer(fold_batchnorm(model))
-    eager_row("subpixel fp32 (Renderer)", subpixel, False, torch.channels_last)
+    eager_row("subpixel fp32 channels_last", subpixel, False, torch.channels_last)
     if cuda:
         torch.backends.cudnn.benchmark = True
         eager_row("eager bf16 channels_last", model, True, torch.channels_last)

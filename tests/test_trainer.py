@@ -308,16 +308,21 @@ def test_cuda_graph_path_refuses_a_cpu_model():
         GraphedRenderer(NeuralRenderer(ModelConfig(resolution=64)), 1)
 
 
-def test_inference_network_is_the_rewrite_on_cpu_and_the_folded_original_elsewhere():
+@pytest.mark.parametrize("resolution", [32, 288])
+def test_inference_network_on_cpu_is_the_rewrite_from_its_size_up_and_elsewhere_the_original(
+    resolution,
+):
     from trainer.fastnet import SubpixelRenderer
-    from trainer.infer import inference_network
+    from trainer.infer import CPU_SUBPIXEL_FROM, inference_network
 
     torch.manual_seed(0)
-    model = NeuralRenderer(ModelConfig(resolution=32)).eval()
-    x, light = torch.rand(2, 10, 32, 32), torch.rand(2, 4)
+    model = NeuralRenderer(ModelConfig(resolution=resolution, width=4)).eval()
+    x, light = torch.rand(2, 10, resolution, resolution), torch.rand(2, 4)
     cpu = inference_network(model, torch.device("cpu"))
     gpu = inference_network(model, torch.device("cuda"))  # chosen, not moved: runs here too
-    assert isinstance(cpu, SubpixelRenderer) and isinstance(gpu, NeuralRenderer)
+    rewrite = resolution >= CPU_SUBPIXEL_FROM
+    assert isinstance(cpu, SubpixelRenderer if rewrite else NeuralRenderer)
+    assert isinstance(gpu, NeuralRenderer) and rewrite == (resolution == 288)
     with torch.no_grad():
         want = model(x, light)
         torch.testing.assert_close(

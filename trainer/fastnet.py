@@ -18,10 +18,11 @@ convolves the concatenation of that with the skip. Both steps are linear, so for
 The output equals the original network's up to rounding (``tests/test_trainer.py`` checks
 fp32 to 1e-5; about 1e-7 in practice) with about the same FLOPs, without the high-resolution
 tensors of the original (upsampled features, concatenations, a 64-channel 400² input to the
-3-channel output convolution). ``trainer.infer.Renderer`` runs it in fp32 on CPU (1.34x faster
-there at batch 1); compiled in bf16 on an H100 it renders 1.53x the frames a second of the
-compiled original, but is slower at batch 1 (``docs/benchmarks.md``). BatchNorm must be folded
-first (:func:`trainer.model.fold_batchnorm`).
+3-channel output convolution). ``trainer.infer.Renderer`` runs it in fp32 on CPU from 288²
+up, where it is about 1.1x faster than the folded original at batch 1 (slower below:
+``trainer.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 on an H100 it renders 1.53x the frames
+a second of the compiled original, but is slower at batch 1 (``docs/benchmarks.md``).
+BatchNorm must be folded first (:func:`trainer.model.fold_batchnorm`).
 """
 
 from __future__ import annotations

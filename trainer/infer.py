@@ -24,17 +24,27 @@ def pick_device(name: str = "auto") -> torch.device:
     return torch.device(name)
 
 
+#: the smallest resolution at which :class:`Renderer` runs the sub-pixel rewrite on CPU; below
+#: it the folded original in channels_last is the faster (on a 2-core CPU, batch 1: the
+#: original 1.16x at 128² and 1.07x at 256², the rewrite 1.18x at 320² and 1.10x at 400²;
+#: ``docs/benchmarks.md``)
+CPU_SUBPIXEL_FROM = 288
+
+
 def inference_network(model: NeuralRenderer, device: torch.device) -> torch.nn.Module:
-    """The fp32 network :class:`Renderer` runs on ``device``, BatchNorm folded. On CPU the
-    exact sub-pixel rewrite of :mod:`trainer.fastnet` in channels_last (1.34x faster there);
-    elsewhere the original layout, since on an H100 the uncompiled rewrite was the slower
-    (2.76 against 1.96 ms a frame at batch 1, ``docs/benchmarks.md``)."""
+    """The fp32 network :class:`Renderer` runs on ``device``, BatchNorm folded. On CPU in
+    channels_last: from ``CPU_SUBPIXEL_FROM`` up the exact sub-pixel rewrite of
+    :mod:`trainer.fastnet`, below it the original layout; elsewhere the original layout,
+    since on an H100 the uncompiled rewrite was the slower (2.76 against 1.96 ms a frame at
+    batch 1, ``docs/benchmarks.md``)."""
     if not isinstance(model, NeuralRenderer):  # the baseline (trainer.zf) runs as it is
         return model.eval()
     folded = fold_batchnorm(model)
     if device.type != "cpu":
         return folded
-    return SubpixelRenderer(folded).to(memory_format=torch.channels_last)
+    if model.config.resolution >= CPU_SUBPIXEL_FROM:
+        folded = SubpixelRenderer(folded)
+    return folded.to(memory_format=torch.channels_last)
 
 
 class Renderer:
