@@ -19,6 +19,7 @@ from render_jobs.materials.uniform import uniform_maps
 from render_jobs.process import RenderProcess
 from render_jobs.sun import sun_from_angles
 from tests.conftest import TINY, grey_uniform, inside
+from tests.test_farm import wait_until
 
 pytestmark = pytest.mark.slow
 
@@ -189,9 +190,9 @@ def test_a_killed_parent_takes_its_rendering_blender_with_it(tmp_path):
     child = None
     try:
         child = psutil.Process(int(proc.stdout.readline()))
-        deadline = time.time() + 60  # until the render is under way
-        while time.time() < deadline and child.cpu_percent(interval=0.5) < 50:
-            pass
+        wait_until(
+            lambda: child.cpu_percent(interval=0.5) >= 50, 60, "the Blender child never rendered"
+        )
         proc.kill()
         proc.wait(10)
         child.wait(timeout=10)  # psutil.TimeoutExpired if it renders on

@@ -92,6 +92,19 @@ def test_an_edit_maps_as_the_edited_material(tmp_path):
     assert (a[6] - b[6]).abs().max() <= 1 and torch.equal(a[[0, 1, 2, 10]], b[[0, 1, 2, 10]])
 
 
+def test_recent_keeps_the_most_recently_used():
+    from trainer.viewer.recent import Recent
+
+    r = Recent(2)
+    r.put("a", 1)
+    r.put("b", 2)
+    assert r.get("a") == 1  # now the most recent
+    r.put("c", 3)
+    assert (r.get("a"), r.get("b"), r.get("c"), len(r)) == (1, None, 3, 2)
+    with pytest.raises(ValueError, match="size must be at least 1"):
+        Recent(0)
+
+
 def test_lookups_split_over_threads_are_the_same_numbers_and_finish_keeps_them():
     mapper = made_up_mapper()
     prepared = mapper.prepare(textures_from_maps(procedural_maps(4, 40)))
