@@ -253,6 +253,15 @@ def test_the_progress_history_stays_bounded_over_a_long_job():
     assert times == sorted(times) and times[len(times) // 2] > 2000  # spread over the life
 
 
+def test_store_settings_show_as_people_read_them():
+    from farm.dashboard import pages
+
+    page = pages.ENV.from_string("{% for v in values %}[{{ v|setting }}]{% endfor %}").render(
+        values=[None, False, True, 256, "HOSEK_WILKIE", {"lens_mm": 50.0}, [2.0, 10.0]]
+    )
+    assert page == "[-][no][yes][256][HOSEK_WILKIE][{&#34;lens_mm&#34;: 50.0}][[2.0, 10.0]]"
+
+
 def test_farm_cancel_asks_a_running_job_and_refuses_others(tmp_path):
     synthetic_job(tmp_path / "run.zarr")
     synthetic_job(tmp_path / "done.zarr", status="done")

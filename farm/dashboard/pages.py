@@ -5,6 +5,7 @@ is loaded from elsewhere."""
 from __future__ import annotations
 
 import datetime as dt
+import json
 
 from jinja2 import DictLoader, Environment, select_autoescape
 from markupsafe import Markup
@@ -106,9 +107,9 @@ class="num">recycles</th><th>last seen</th></tr>{% for w in workers %}<tr><td>{{
 {{ "%.2f"|format(w.mean_frame_s) }}</td><td class="num">{{ w.failures }}</td><td class="num">
 {{ w.recycled }}</td><td>{{ w.last_seen|when }}</td></tr>{% endfor %}</table>
 {% else %}<p>none</p>{% endif %}
-<h2>Store</h2><div class="grid"><table>{% for k, v in settings %}<tr><th>{{ k }}</th><td>{{ v }}
-</td></tr>{% endfor %}</table>{% for name, svg in hists %}<div><b>{{ name }}</b><br>{{ svg }}</div>
-{% endfor %}</div>{% endif %}</div>"""
+<h2>Store</h2><div class="grid"><table>{% for k, v in settings %}<tr><th>{{ k }}</th><td>
+{{ v|setting }}</td></tr>{% endfor %}</table><div>{% for name, svg in hists %}<div><b>{{ name }}
+</b><br>{{ svg }}</div>{% endfor %}</div></div>{% endif %}</div>"""
 
 RUNS = """{% extends "base" %}{% block main %}
 {% for r in runs %}<h2>{{ r.name }} <small>{{ r.path }}</small></h2>
@@ -136,6 +137,18 @@ def _dur(s) -> str:
     return f"{s / 3600:.1f} h"
 
 
+def _setting(v) -> str:
+    """A store setting as people read it: none as "-", yes / no, numbers and text as they
+    are, lists and mappings as compact JSON."""
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, dict | list | tuple):
+        return json.dumps(v, separators=(", ", ": "))
+    return str(v)
+
+
 def _when(t) -> str:
     return dt.datetime.fromtimestamp(float(t)).strftime("%Y-%m-%d %H:%M:%S") if t else "-"
 
@@ -146,6 +159,7 @@ ENV = Environment(
 )
 ENV.filters["dur"] = _dur
 ENV.filters["when"] = _when
+ENV.filters["setting"] = _setting
 
 
 def render(name: str, **ctx) -> str:
