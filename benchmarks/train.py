@@ -126,10 +126,9 @@ def main() -> None:
         )  # fmt: skip
         train(cfg)
         log = [json.loads(x) for x in (Path(run) / "log.jsonl").read_text().splitlines()]
-    per_window = args.batch * args.log_every
-    timed = [r for r in log if r["step"] - args.log_every >= args.warmup]
-    seconds = sum(per_window / r["images_per_second"] for r in timed)
-    wait = sum(r["data_wait"] * per_window / r["images_per_second"] for r in timed) / seconds
+    timed = [r for r in log if r["step"] - r["steps"] >= args.warmup]
+    seconds = sum(r["images"] / r["images_per_second"] for r in timed)
+    wait = sum(r["data_wait"] * r["images"] / r["images_per_second"] for r in timed) / seconds
     print(
         f"\ndevice: {device_name(args.device)}; 400², batch {args.batch}, {args.workers} "
         f"workers, loss {args.loss}, {len(split)} samples an epoch"
@@ -143,7 +142,8 @@ def main() -> None:
         rate, share, longest = ends[across]
         print(f"{row:<50}{rate:>10.1f}{share:>11.1%}{longest * 1000:>11.0f} ms")
     row = f"train (steps {args.warmup + 1}-{args.steps})"
-    print(f"{row:<50}{len(timed) * per_window / seconds:>10.2f}{wait:>11.1%}{'-':>14}")
+    rate = sum(r["images"] for r in timed) / seconds
+    print(f"{row:<50}{rate:>10.2f}{wait:>11.1%}{'-':>14}")
 
 
 if __name__ == "__main__":

@@ -260,6 +260,8 @@ def test_store_settings_show_as_people_read_them():
         values=[None, False, True, 256, "HOSEK_WILKIE", {"lens_mm": 50.0}, [2.0, 10.0]]
     )
     assert page == "[-][no][yes][256][HOSEK_WILKIE][{&#34;lens_mm&#34;: 50.0}][[2.0, 10.0]]"
+    numbers = pages.ENV.from_string('{{ a|num("%.1f %%", 100) }} {{ b|num("%.4f") }}')
+    assert numbers.render(a=0.0123, b=None) == "1.2 % -"
 
 
 def test_farm_cancel_asks_a_running_job_and_refuses_others(tmp_path):

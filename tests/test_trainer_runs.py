@@ -100,6 +100,8 @@ def test_training_lowers_the_loss(tiny_store, trained):
     assert len(checkpoint.listing(trained)) <= 3
     log = [json.loads(line) for line in (trained / "log.jsonl").read_text().splitlines()]
     assert log[-1]["step"] == 54 and all(0 <= r["data_wait"] <= 1 for r in log)
+    assert sum(r["steps"] for r in log) == 54  # every step in one line, epoch tails included
+    assert [r["step"] for r in log[:6]] == [2, 4, 6, 8, 9, 10]  # 9 steps an epoch, log_every 2
     assert list((trained / "tb").glob("events.out.tfevents.*"))
 
 

@@ -207,6 +207,8 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
                     save(cfg, rk, t, out, log)
                 if _at_max_steps(cfg, t):
                     break
+            if log.window["n"]:  # the steps since the last log line: every step is logged
+                log.flush(t, bar)
         if not _at_max_steps(cfg, t):
             t.epoch, t.position = t.epoch + 1, 0
         save(cfg, rk, t, out, log)
@@ -379,7 +381,8 @@ def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None
 
 class RunLog:
     """What a run records as it goes. Rank 0: ``config.json``, ``log.jsonl`` (one line every
-    ``log_every`` steps: rank 0's mean loss, images/s over all ranks, data-wait share),
+    ``log_every`` steps and at the end of each epoch, for the steps since the line before:
+    their count, rank 0's mean loss, images and images/s over all ranks, data-wait share),
     TensorBoard under ``tb/`` and the progress bar's postfix. Every rank, with
     ``--log-samples``: ``samples/rank-R.txt``, the sample ids of each step and, at the end, a
     hash of the final parameters (identical on every rank of a DDP run)."""
@@ -445,6 +448,8 @@ def _log(out: Path, writer, bar, step: int, epoch: int, window: dict, world: int
     rec = {
         "step": step,
         "epoch": epoch,
+        "steps": window["n"],
+        "images": window["images"] * world,
         "loss": round(float(window["loss"]) / max(window["n"], 1), 6),
         "images_per_second": round(window["images"] * world / dt, 2),
         "data_wait": round(window["wait"] / dt, 4),

@@ -180,9 +180,10 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         rows = await _blocking(dash.run_rows)
         for r in rows:
             r["curves"] = [
-                (k, pages.line_chart([(x["step"], x[k]) for x in r["log"] if k in x]))
-                for k in ("loss", "images_per_second", "data_wait")
-            ]
+                (label, pages.line_chart([(x["step"], x[k]) for x in r["log"] if k in x]))
+                for k, label in (("loss", "loss"), ("images_per_second", "images/s"),
+                                 ("data_wait", "data wait (share of the time)"))
+            ]  # fmt: skip
         return html(text=pages.render("runs", runs=rows, secret=secret, title="runs"))
 
     async def run_file(request):

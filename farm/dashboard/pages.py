@@ -25,6 +25,7 @@ border:1px solid #e3e6eb;border-radius:6px} .card b{display:block;font-size:20px
 .thumbs img{width:128px;height:128px;margin:0 6px 6px 0;border:1px solid #ccd;image-rendering:auto}
 button{background:#c62828;color:#fff;border:0;padding:6px 14px;border-radius:4px;cursor:pointer}
 .grid{display:flex;gap:24px;flex-wrap:wrap} svg text{font-size:11px;fill:#555}
+.curves{margin-top:12px}
 """
 
 JS = """
@@ -113,10 +114,11 @@ class="num">recycles</th><th>last seen</th></tr>{% for w in workers %}<tr><td>{{
 
 RUNS = """{% extends "base" %}{% block main %}
 {% for r in runs %}<h2>{{ r.name }} <small>{{ r.path }}</small></h2>
-<div class="cards"><div class="card">step<b>{{ r.step }}</b></div><div class="card">epoch<b>
-{{ r.epoch }}</b></div><div class="card">loss<b>{{ r.loss }}</b></div><div class="card">images/s
-<b>{{ r.images_per_second }}</b></div><div class="card">data wait<b>{{ r.data_wait }}</b></div>
-</div><div class="grid">{% for name, svg in r.curves %}<div><b>{{ name }}</b><br>{{ svg }}</div>
+<div class="cards"><div class="card">step<b>{{ r.step|setting }}</b></div><div class="card">
+epoch<b>{{ (r.epoch + 1) if r.epoch is not none else "-" }}</b></div><div class="card">loss<b>
+{{ r.loss|num("%.4f") }}</b></div><div class="card">images/s<b>{{ r.images_per_second|num("%.1f")
+}}</b></div><div class="card">data wait<b>{{ r.data_wait|num("%.1f %%", 100) }}</b></div></div>
+<div class="grid curves">{% for name, svg in r.curves %}<div><b>{{ name }}</b><br>{{ svg }}</div>
 {% endfor %}</div>
 <p>checkpoints: {% for c in r.checkpoints %}{{ c.name }} ({{ (c.bytes / 1e6)|round(1) }} MB) {%
 else %}none{% endfor %}</p>{% if r.eval %}<p>eval at step {{ r.eval.checkpoint_step }}: PSNR
@@ -149,6 +151,11 @@ def _setting(v) -> str:
     return str(v)
 
 
+def _num(v, fmt: str, scale: float = 1.0) -> str:
+    """A number in ``fmt`` after multiplying by ``scale``; "-" when there is none yet."""
+    return "-" if v is None else fmt % (float(v) * scale)
+
+
 def _when(t) -> str:
     return dt.datetime.fromtimestamp(float(t)).strftime("%Y-%m-%d %H:%M:%S") if t else "-"
 
@@ -160,6 +167,7 @@ ENV = Environment(
 ENV.filters["dur"] = _dur
 ENV.filters["when"] = _when
 ENV.filters["setting"] = _setting
+ENV.filters["num"] = _num
 
 
 def render(name: str, **ctx) -> str:
