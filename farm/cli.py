@@ -1,4 +1,4 @@
-"""``farm``: the render farm's command line (thin over ``render_jobs`` and, later, the farm)."""
+"""``farm``: the render farm's command line (thin over ``farm`` and ``render_jobs``)."""
 
 from __future__ import annotations
 

@@ -51,7 +51,7 @@ device_option = click.option(
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
-    """Train and run the neural material renderer on shard stores made by ``farm submit``.
+    """Train and run the neural material renderer on shard stores made by `farm submit`.
 
     \b
       trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
@@ -69,7 +69,7 @@ def main() -> None:
 @main.command()
 @train_config.options
 def train(**kwargs) -> None:
-    """Train on one process: the per-rank entry that ``trainer launch`` runs under torchrun.
+    """Train on one process: the per-rank entry that `trainer launch` runs under torchrun.
 
     Run it directly for a single CPU/GPU process. Example:
 
