@@ -44,6 +44,12 @@ def _me() -> dict:
     }
 
 
+def read_lease(backend: Backend) -> dict | None:
+    """The store's lease record, or ``None`` when no driver holds or held one."""
+    raw = backend.get(LEASE_KEY)
+    return json.loads(raw) if raw else None
+
+
 def holder_alive(rec: dict, now: float, here: str | None = None) -> bool:
     """Whether the lease ``rec`` still binds: renewed within ``LEASE_S``, and, when its
     driver ran on this host (``here``), that very process still running."""
@@ -73,8 +79,7 @@ class Lease:
     record: dict
 
     def _read(self) -> dict | None:
-        raw = self.backend.get(LEASE_KEY)
-        return json.loads(raw) if raw else None
+        return read_lease(self.backend)
 
     def _write(self) -> None:
         self.record["renewed"] = time.time()

@@ -14,6 +14,7 @@ import socket
 import time
 from dataclasses import asdict, dataclass, field
 
+from farm.lease import holder_alive, read_lease
 from storage.backend import Backend
 
 STATE_KEY = "farm/job.json"
@@ -94,16 +95,29 @@ def add_point(history: list, t: float, frames: int, limit: int = HISTORY_POINTS)
 
 
 #: a running driver rewrites the state every few seconds; this long without, it is gone
+#: (for a state without a lease record beside it: otherwise the lease decides)
 LOST_AFTER_S = 60.0
 
 
 def load_state(url: str, storage_options: dict | None = None) -> dict | None:
-    """The job state as saved, plus ``effective_status``: ``lost`` when it says ``running``
-    but its driver has not updated it for :data:`LOST_AFTER_S` (a killed driver or machine)."""
-    raw = Backend(url, storage_options).get(STATE_KEY)
+    """The job state as saved, plus ``effective_status`` (:func:`effective_status`)."""
+    backend = Backend(url, storage_options)
+    lease = read_lease(backend)  # first: a driver saves its last state, then lets the lease go
+    raw = backend.get(STATE_KEY)
     if raw is None:
         return None
     st = json.loads(raw)
-    stale = st["status"] == "running" and now() - st["updated"] > LOST_AFTER_S
-    st["effective_status"] = "lost" if stale else st["status"]
+    st["effective_status"] = effective_status(st, lease, now())
     return st
+
+
+def effective_status(st: dict, lease: dict | None, at: float) -> str:
+    """The state's status, or ``lost`` when it says ``running`` but its driver is gone: its
+    lease is dead (not renewed for ``LEASE_S``, or its driver ran on this machine and that
+    process has ended: ``farm.lease.holder_alive``), or it has no lease and the state has
+    not been updated for :data:`LOST_AFTER_S`."""
+    if st["status"] != "running":
+        return st["status"]
+    if lease is None:
+        return "running" if at - st["updated"] <= LOST_AFTER_S else "lost"
+    return "running" if holder_alive(lease, at) else "lost"

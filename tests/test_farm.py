@@ -6,6 +6,7 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -18,7 +19,7 @@ import pytest
 from farm.faults import FAULTS_ENV
 from farm.lease import LEASE_S, holder_alive
 from farm.plan import JobConfig, layout_for, material_specs, task_for
-from farm.state import LOST_AFTER_S
+from farm.state import LOST_AFTER_S, effective_status
 from render_jobs.specs import derive_seed
 from storage.reader import Store
 from storage.verify import verify
@@ -133,6 +134,22 @@ def test_a_lease_binds_while_renewed_and_its_driver_lives():
     dead = {"host": "here", "pid": gone.pid, "started": 0.0, "renewed": 100.0}
     assert not holder_alive(dead, now=101.0, here="here")  # a killed driver frees it at once
     assert holder_alive({**dead, "host": "elsewhere"}, now=101.0, here="here")  # can't tell
+
+
+def test_a_running_state_is_lost_once_its_drivers_lease_is_dead():
+    host = socket.gethostname()
+    me = {"host": host, "pid": os.getpid(), "started": psutil.Process().create_time()}
+    running = {"status": "running", "updated": 100.0}
+    assert effective_status(running, {**me, "renewed": 100.0}, 105.0) == "running"
+    assert effective_status(running, {**me, "renewed": 100.0}, 100.0 + LEASE_S + 1) == "lost"
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    dead = {"host": host, "pid": gone.pid, "started": 0.0, "renewed": 100.0}
+    assert effective_status(running, dead, 101.0) == "lost"  # killed here: lost at once
+    # no lease record beside the state: its age decides
+    assert effective_status(running, None, 100.0 + LOST_AFTER_S - 1) == "running"
+    assert effective_status(running, None, 100.0 + LOST_AFTER_S + 1) == "lost"
+    assert effective_status({"status": "done", "updated": 0.0}, dead, 1e9) == "done"
 
 
 def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):
@@ -353,13 +370,9 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
         subprocess.run([str(BIN / "ray"), "stop", "--force"], capture_output=True)
     done_before = len(Store(str(out)).committed_shards())
     assert 2 <= done_before < 5
-    # the dead driver's state still says running; once it is older than LOST_AFTER_S (set
-    # back here rather than waited for), `farm status` calls the job lost and says what to do
-    path = Path(out) / "farm" / "job.json"
-    st = json.loads(path.read_text())
-    assert st["status"] == "running"
-    st["updated"] -= LOST_AFTER_S + 5
-    path.write_text(json.dumps(st))
+    # the dead driver's state still says running, but its lease names a process gone from
+    # this machine: `farm status` calls the job lost at once and says what to do
+    assert json.loads((Path(out) / "farm" / "job.json").read_text())["status"] == "running"
     s = farm("status", out)
     assert s.returncode == 0 and "lost: says running" in s.stdout and "farm submit" in s.stdout
     assert json.loads(farm("status", out, "--json").stdout)["effective_status"] == "lost"
