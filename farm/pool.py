@@ -36,6 +36,14 @@ def keep_ray_on_loopback(address: str | None) -> None:
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
 
+def say_token_auth(address: str | None) -> None:
+    """For the embedded Ray: token authentication, Ray's own default for a new local
+    cluster, set explicitly before ``ray`` is imported, so that Ray does not warn that it
+    chose it. ``RAY_AUTH_MODE=disabled`` in the environment still opts out."""
+    if not (address or os.environ.get("RAY_ADDRESS")) and "ray" not in sys.modules:
+        os.environ.setdefault("RAY_AUTH_MODE", "token")
+
+
 def connect(address: str | None, dashboard: bool = True) -> str | None:
     """Join the Ray cluster at ``address`` (or ``RAY_ADDRESS``), else start an embedded one
     (with its dashboard unless ``dashboard`` is false). Returns the dashboard URL."""
