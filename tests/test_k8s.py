@@ -93,6 +93,35 @@ def test_every_manifest_fits_the_real_schemas(overlay):
         check(doc)
 
 
+def containers(node):
+    """Every container spec under ``node`` (a dict with a name and an image, env or envFrom)."""
+    if isinstance(node, dict):
+        if "name" in node and ({"image", "env", "envFrom"} & node.keys()):
+            yield node
+        for v in node.values():
+            yield from containers(v)
+    elif isinstance(node, list):
+        for v in node:
+            yield from containers(v)
+
+
+@pytest.mark.parametrize("overlay", ["dev", "prod"])
+def test_every_container_that_reaches_the_store_gets_the_s3_client_retries(overlay):
+    docs = rendered(overlay)
+    config = next(d for d in docs if d["metadata"]["name"] == "shaderball-s3-client")
+    assert config["data"] == {"AWS_RETRY_MODE": "standard", "AWS_MAX_ATTEMPTS": "10"}
+    reach = set()
+    for d in docs:
+        for c in containers(d):
+            text = yaml.safe_dump(c)
+            if "shaderball-store" in text and "minio" not in c.get("image", ""):  # not MinIO's
+                reach.add((d["kind"], c["name"]))
+                assert "shaderball-s3-client" in text, (d["kind"], c["name"])
+    assert reach == {("RayCluster", "ray-head"), ("RayCluster", "ray-worker"),
+                     ("RayJob", "ray-job-submitter"), ("TrainJob", "node"),
+                     ("Deployment", "dashboard")}  # fmt: skip
+
+
 def test_a_misspelled_field_fails_the_check():
     docs = {d["kind"]: d for d in rendered("dev")}
     bad = copy.deepcopy(docs["RayCluster"])
