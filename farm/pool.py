@@ -36,7 +36,7 @@ def keep_ray_on_loopback(address: str | None) -> None:
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
 
-def say_token_auth(address: str | None) -> None:
+def embedded_token_auth(address: str | None) -> None:
     """For the embedded Ray: token authentication, Ray's own default for a new local
     cluster, set explicitly before ``ray`` is imported, so that Ray does not warn that it
     chose it. ``RAY_AUTH_MODE=disabled`` in the environment still opts out."""
