@@ -214,19 +214,21 @@ def test_bad_partition_arguments():
         epoch_order([np.arange(3)], 0, 0, 0)
 
 
-@pytest.mark.parametrize("size", [(1, 1), (2, 3), (5, 4), (25, 25)])
+@pytest.mark.parametrize("size", [1, 2, 3, 25])
 def test_upconv_is_upsampling_then_convolution(size):
     from trainer.fastnet import UpConv
 
-    z = torch.randn(2, 6, *size, dtype=torch.float64)
+    z = torch.randn(2, 6, size, size, dtype=torch.float64)
     w = torch.randn(5, 6, 3, 3, dtype=torch.float64)
     want = F.conv2d(F.interpolate(z, scale_factor=2, mode="bilinear"), w, padding=1)
-    got = UpConv(w)(z)
+    up = UpConv(w)
+    got = up(z)
     assert got.shape == want.shape
     torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
-    up = UpConv(w)
     up.phases.gemm = True  # the im2col GEMM form of the same convolution
     torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="the ring needs a square input, not 3x4"):
+        up(torch.randn(1, 6, 3, 4, dtype=torch.float64))
 
 
 @pytest.mark.parametrize(

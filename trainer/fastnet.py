@@ -53,27 +53,39 @@ def subpixel_weight(w: torch.Tensor) -> torch.Tensor:
     return k.reshape(4 * w.shape[0], w.shape[1], 3, 3).to(w.dtype)
 
 
-def ring(z: torch.Tensor, w: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """``y`` with its outermost ring replaced by the exact ``conv(up(z), w, padding=1)``.
+def ring_weight(w: torch.Tensor) -> torch.Tensor:
+    """``(O, I, 3, 3)`` → the ``(2·O, I, 3, 3)`` weights :func:`ring` takes: ``w`` for the
+    top and bottom rows, ``w`` transposed for the left and right columns (as strips)."""
+    return torch.cat([w, w.transpose(2, 3)])
+
+
+def ring(z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """``y`` with its outermost ring overwritten, in place, by the exact ``conv(up(z), w,
+    padding=1)``, for a square ``z`` and ``w2 = ring_weight(w)``; returns ``y``.
 
     Each border row of the output sees the conv's zero padding and two rows of ``up(z)``,
     made by upsampling two rows of ``z`` (the clamped edge included): a three-row strip
-    convolved to one row. Top and bottom go through one convolution, left and right through
-    another; together about 2/h of the sub-pixel convolution's work for a ``z`` h wide."""
-    n = z.shape[0]
-
-    def edges(a: torch.Tensor, b: torch.Tensor, dim: int) -> tuple[torch.Tensor, torch.Tensor]:
-        up = F.interpolate(torch.cat([a, b]), scale_factor=2, mode="bilinear", align_corners=False)
-        first, last = up[:n].narrow(dim, 0, 2), up[n:].narrow(dim, up.shape[dim] - 2, 2)
-        zero = torch.zeros_like(first.narrow(dim, 0, 1))
-        strips = torch.cat([torch.cat([zero, first], dim), torch.cat([last, zero], dim)])
-        out = F.conv2d(strips, w, padding=(0, 1) if dim == 2 else (1, 0))
-        return out[:n], out[n:]
-
-    top, bottom = edges(z[:, :, :2], z[:, :, -2:], 2)
-    left, right = edges(z[:, :, :, :2], z[:, :, :, -2:], 3)
-    y = torch.cat([top, y[:, :, 1:-1], bottom], 2)
-    return torch.cat([left, y[:, :, :, 1:-1], right], 3)
+    convolved to one row. A border column is the same with rows and columns swapped, so the
+    left and right columns go transposed, as rows: one upsampling of all four edges, then
+    one grouped convolution (rows with ``w``, transposed columns with ``w`` transposed);
+    about 2/h of the sub-pixel convolution's work for a ``z`` h wide."""
+    n, h = z.shape[0], z.shape[2]
+    if z.shape[3] != h:
+        raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
+    o = w2.shape[0] // 2
+    firsts = torch.cat([z[:, :, :2], z[:, :, :, :2].transpose(2, 3)])  # top; left, as rows
+    lasts = torch.cat([z[:, :, -2:], z[:, :, :, -2:].transpose(2, 3)])  # bottom; right
+    up = F.interpolate(
+        torch.cat([firsts, lasts]), scale_factor=2, mode="bilinear", align_corners=False
+    )
+    first, last = up[: 2 * n, :, :2], up[2 * n :, :, -2:]
+    zero = torch.zeros_like(first[:, :, :1])
+    a, b = torch.cat([zero, first], 2), torch.cat([last, zero], 2)  # (2n, C, 3, 2h) strips
+    rows_cols = torch.cat([torch.cat([a[:n], b[:n]]), torch.cat([a[n:], b[n:]])], 1)
+    out = F.conv2d(rows_cols, w2, padding=(0, 1), groups=2)  # (2n, 2·O, 1, 2h)
+    y[:, :, 0], y[:, :, -1] = out[:n, :o, 0], out[n:, :o, 0]  # top, bottom
+    y[:, :, :, 0], y[:, :, :, -1] = out[:n, o:, 0], out[n:, o:, 0]  # left, right
+    return y
 
 
 class Conv(nn.Module):
@@ -112,15 +124,16 @@ class Conv(nn.Module):
 
 
 class UpConv(nn.Module):
-    """``conv(up(z), weight, padding=1)`` (no bias) without building ``up(z)``."""
+    """``conv(up(z), weight, padding=1)`` (no bias) of a square ``z`` without building
+    ``up(z)``."""
 
     def __init__(self, weight: torch.Tensor):
         super().__init__()
-        self.weight = nn.Parameter(weight.detach().clone(), requires_grad=False)
+        self.ring = nn.Parameter(ring_weight(weight.detach()), requires_grad=False)
         self.phases = Conv(subpixel_weight(weight.detach()), pad="replicate")
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        return ring(z, self.weight, F.pixel_shuffle(self.phases(z), 2))
+        return ring(z, self.ring, F.pixel_shuffle(self.phases(z), 2))
 
 
 class SubpixelRenderer(nn.Module):
