@@ -29,8 +29,9 @@ def format_status(st: dict) -> str:
         f" ETA {eta}",
         f"shards    {st['shards_committed']}/{st['shards_total']} committed"
         + (f", failed: {st['shards_failed']}" if st["shards_failed"] else ""),
-        f"dashboard {st.get('dashboard') or '-'}",
     ]
+    if st.get("effective_status", st["status"]) == "running" and st.get("dashboard"):
+        lines.append(f"ray       {st['dashboard']} (the Ray dashboard, while the job runs)")
     if st["failures"] or st.get("commit_failures"):
         lines.append("failures")
         for m, f in sorted(st["failures"].items(), key=lambda kv: int(kv[0])):

@@ -99,7 +99,7 @@ def info(store, as_json):
         f"bytes        {_human(b['stored'])} stored, {_human(b['raw'])} raw ({ratio}), "
         f"{_human(b['disk'])} on disk",
         "screen UV    " + _screen_uv_line(data["screen_uv"]),
-        "settings     " + json.dumps(data["settings"], sort_keys=True),
+        *_settings_lines(data["settings"]),
         "software     " + ", ".join(f"{k} {v}" for k, v in data["software"].items()),
         "sun elevation (degrees):",
         text_histogram(data["sun_elevation_deg"]),
@@ -107,6 +107,15 @@ def info(store, as_json):
         text_histogram(data["turbidity"], fmt="{:>4.1f}-{:<4.1f}"),
     ]
     click.echo("\n".join(lines))
+
+
+def _settings_lines(settings: dict) -> list[str]:
+    """The dataset settings, one a line under ``settings`` (values as JSON)."""
+    width = max(map(len, settings), default=0)
+    return [
+        f"{'settings' if i == 0 else '':<13}{k:<{width}}  {json.dumps(v)}"
+        for i, (k, v) in enumerate(sorted(settings.items()))
+    ] or ["settings     none"]
 
 
 def _screen_uv_line(suv: dict | None) -> str:

@@ -157,6 +157,18 @@ def test_a_running_state_is_lost_once_its_drivers_lease_is_dead():
     assert effective_status({"status": "done", "updated": 0.0}, dead, 1e9) == "done"
 
 
+def test_status_names_the_ray_dashboard_only_while_the_job_runs():
+    from farm.status import format_status
+
+    st = {"status": "running", "driver": "vm:1", "updated": time.time(), "store": "s.zarr",
+          "frames_done": 4, "frames_skipped": 0, "frames_total": 8, "frames_per_s": 1.0,
+          "eta_s": 4.0, "shards_committed": 1, "shards_total": 2, "shards_failed": [],
+          "dashboard": "http://127.0.0.1:8265", "failures": {}, "workers": {}}  # fmt: skip
+    assert "ray       http://127.0.0.1:8265" in format_status(st)
+    for status in ("done", "lost"):
+        assert "8265" not in format_status({**st, "effective_status": status})
+
+
 def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):
     out = tmp_path / "set.zarr"
     args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "-o", out]

@@ -291,6 +291,10 @@ def test_ls_info_show_export(tmp_path):
     assert sum(h["count"] for h in info["turbidity"]) == 21
     text = shards("info", path).stdout
     assert "sun elevation" in text and "turbidity" in text
+    lines = text.splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith("settings "))
+    keys = [line[13:].split()[0] for line in lines[first : first + len(info["settings"])]]
+    assert keys == sorted(info["settings"])  # one setting a line
     assert f"{info['bytes']['compression_ratio']:.2f}x" in text
     r = shards("show", path, "--sample", "5", "-o", tmp_path / "s5.png")
     assert r.returncode == 0 and (tmp_path / "s5.png").stat().st_size > 0
