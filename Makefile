@@ -73,13 +73,14 @@ bench-viewer: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.viewer
 
 # For a GPU machine with CUDA torch but no package registry (benchmarks/gpu.sh says how):
-# the store's packages as wheels for its Python (GPU_PYTHON, the device's is 3.12) in .whl/.
+# the packages of the store and the viewer benchmark as wheels for its Python (GPU_PYTHON, the
+# device's is 3.12) in .whl/.
 GPU_PYTHON ?= 3.12
 gpu-wheels: $(BIN)/.installed
 	$(BIN)/pip download --quiet --only-binary=:all: --no-deps --python-version $(GPU_PYTHON) \
 		--platform manylinux2014_x86_64 --platform manylinux_2_28_x86_64 \
 		--platform manylinux1_x86_64 -d .whl 'zarr>=3.1,<3.2' 'numcodecs>=0.14' donfig crc32c \
-		'zstandard>=0.22' 'google-crc32c>=1.5'
+		'zstandard>=0.22' 'google-crc32c>=1.5' pillow click tenacity fsspec tqdm
 
 # MDS (mosaicml-streaming) needs torchvision, so the storage benchmark has its own environment:
 # torch 2.14.1 + torchvision 0.29.1 (about 6 GB), kept apart from the project's.

@@ -8,6 +8,8 @@
 #
 #     bash benchmarks/gpu.sh infer [ARGS]   # benchmarks.infer at batch 1 and 128, compiled rows
 #     bash benchmarks/gpu.sh train          # benchmarks.train, L1 (2,000 samples), then L1 + VGG16
+#     bash benchmarks/gpu.sh viewer         # benchmarks.viewer --device cuda (carry benchmarks/.cache
+#                                           # too: the screen UV layouts `make bench-viewer` renders)
 #
 # ARGS go to benchmarks.infer after its defaults (e.g. --only "subpixel compiled", --gemm-at 50).
 # Output is printed and appended to ${OUT:-out}/gpu-bench.txt. The compiled rows leave the
@@ -26,14 +28,18 @@ cd "$(dirname "$0")/.."
 py=${PYTHON:-python3}
 store=out/bench-400.zarr
 part=${1:-}
-[[ $part == infer || $part == train ]] || { echo "usage: bash benchmarks/gpu.sh infer|train [ARGS]" >&2; exit 2; }
+[[ $part == infer || $part == train || $part == viewer ]] || { echo "usage: bash benchmarks/gpu.sh infer|train|viewer [ARGS]" >&2; exit 2; }
 shift
-[[ $part == infer || $# -eq 0 ]] || { echo "gpu.sh: train takes no arguments" >&2; exit 2; }
-[[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make bench-train, then carry it)" >&2; exit 2; }
-if ! "$py" -c "import zarr, numcodecs, zstandard, google_crc32c" 2>/dev/null; then
-    [[ -d .whl ]] || { echo "gpu.sh: zarr is not installed and .whl/ is missing (make gpu-wheels)" >&2; exit 2; }
+[[ $part == infer || $# -eq 0 ]] || { echo "gpu.sh: $part takes no arguments" >&2; exit 2; }
+if [[ $part == viewer ]]; then
+    compgen -G "benchmarks/.cache/screen_uv-*.npz" >/dev/null || { echo "gpu.sh: benchmarks/.cache has no screen UV layouts (make bench-viewer, then carry benchmarks/.cache)" >&2; exit 2; }
+else
+    [[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make bench-train, then carry it)" >&2; exit 2; }
+fi
+if ! "$py" -c "import zarr, numcodecs, zstandard, google_crc32c, PIL, click, tenacity, fsspec, tqdm" 2>/dev/null; then
+    [[ -d .whl ]] || { echo "gpu.sh: zarr or the viewer's packages are not installed and .whl/ is missing (make gpu-wheels)" >&2; exit 2; }
     "$py" -m pip install --quiet --no-index --find-links .whl zarr numcodecs donfig crc32c \
-        zstandard google-crc32c
+        zstandard google-crc32c pillow click tenacity fsspec tqdm
 fi
 out=${OUT:-out}
 log=$out/gpu-bench.txt
@@ -54,6 +60,7 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
         train) "$py" "${train[@]}" --replicate 50 --steps 240 --warmup 40 --sim-epochs 4
                "$py" "${train[@]}" --replicate 200 --loss l1+vgg --steps 120 --warmup 20 \
                    --sim-epochs 0 ;;
+        viewer) "$py" -m benchmarks.viewer --device cuda ;;
     esac
 } 2>&1 | tee -a "$log"
 [[ $part == infer ]] || exit 0
