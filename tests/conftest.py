@@ -19,6 +19,14 @@ TINY = RenderSettings(resolution=64, samples=8, threads=2)
 BIN = Path(sys.executable).parent
 
 
+def pytest_configure(config) -> None:
+    """Once, before any test worker starts: the Ray token that token-authenticated Ray
+    clusters share (``~/.ray/auth_token``), so that two tests starting the first such
+    clusters of a fresh machine at once do not each write a different one."""
+    if not hasattr(config, "workerinput") and not (Path.home() / ".ray" / "auth_token").exists():
+        subprocess.run([str(BIN / "ray"), "get-auth-token", "--generate"], capture_output=True)
+
+
 @pytest.fixture(scope="session")
 def worker():
     """A kept-loaded shaderball renderer in a Blender worker process."""
