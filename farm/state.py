@@ -102,11 +102,13 @@ LOST_AFTER_S = 60.0
 def load_state(url: str, storage_options: dict | None = None) -> dict | None:
     """The job state as saved, plus ``effective_status`` (:func:`effective_status`)."""
     backend = Backend(url, storage_options)
-    lease = read_lease(backend)  # first: a driver saves its last state, then lets the lease go
     raw = backend.get(STATE_KEY)
     if raw is None:
         return None
     st = json.loads(raw)
+    # only a running job's lease matters (one read fewer for the finished ones); a driver
+    # ending between the two reads has let its lease go: no lease, a fresh state, "running"
+    lease = read_lease(backend) if st["status"] == "running" else None
     st["effective_status"] = effective_status(st, lease, now())
     return st
 
