@@ -153,9 +153,9 @@ class SimWorker:
 
 def simulated(store: str, workers: int, materials: int) -> dict:
     """The real driver over a local Ray cluster of ``workers`` :class:`SimWorker` actors."""
-    from farm.pool import keep_ray_on_loopback
+    from farm.pool import ray_environment
 
-    keep_ray_on_loopback("127.0.0.1")  # before Ray is imported
+    ray_environment("127.0.0.1")  # before Ray is imported
     from ray.cluster_utils import Cluster
 
     from farm.driver import submit

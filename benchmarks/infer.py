@@ -130,14 +130,14 @@ def main() -> None:
         many = timed(lambda: gb(x_all, l_all), args.iters, cuda)
         report(name, one, many, error(g1(x_all[:1], l_all[:1])))
 
+    folded = fold_batchnorm(model)  # its own weights: the rewrite below copies them
     eager_row("eager fp32", model, False, torch.contiguous_format)
-    eager_row("folded fp32 channels_last", fold_batchnorm(model), False, torch.channels_last)
-    subpixel = SubpixelRenderer(fold_batchnorm(model))
+    eager_row("folded fp32 channels_last", folded, False, torch.channels_last)
+    subpixel = SubpixelRenderer(folded)
     eager_row("subpixel fp32 channels_last", subpixel, False, torch.channels_last)
     if cuda:
         torch.backends.cudnn.benchmark = True
         eager_row("eager bf16 channels_last", model, True, torch.channels_last)
-        folded = fold_batchnorm(model)
         eager_row("  + BatchNorm folded", folded, True, torch.channels_last)
         graph_row("  + bf16 weights, CUDA graph")
         graph_row("subpixel bf16, CUDA graph", subpixel=True)

@@ -37,7 +37,7 @@ from farm.assembly import ShardAssembly
 from farm.cancel import cancel_requested, clear_cancel
 from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
-from farm.pool import WorkerPool, connect, embedded_token_auth, keep_ray_on_loopback
+from farm.pool import WorkerPool, connect, ray_environment
 from farm.scheduler import Scheduler
 from farm.state import JobState, now
 from render_jobs.errors import MaterialError
@@ -165,8 +165,7 @@ def submit(
     the render actor (a benchmark's simulated one; :class:`farm.pool.WorkerPool`)."""
     t_start = time.perf_counter()
     stop_on_sigterm()
-    keep_ray_on_loopback(cfg.address)
-    embedded_token_auth(cfg.address)
+    ray_environment(cfg.address)
     try:
         specs = validate(cfg, progress)  # nothing is written on bad input
     except MaterialError as exc:

@@ -29,18 +29,19 @@ def _is_loopback(address: str | None) -> bool:
     return host in ("localhost", "::1") or host.startswith("127.")
 
 
-def keep_ray_on_loopback(address: str | None) -> None:
-    """For the embedded Ray and clusters on 127.0.0.1: Ray on Linux rewrites a loopback
-    address to the machine's outward IP unless this is set before ``ray`` is imported."""
-    if _is_loopback(address or os.environ.get("RAY_ADDRESS")) and "ray" not in sys.modules:
+def ray_environment(address: str | None) -> None:
+    """What Ray reads from the environment once, when ``ray`` is imported, for a job at
+    ``address`` (``None``: the embedded Ray). For the embedded Ray and clusters on 127.0.0.1,
+    ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``: Ray on Linux rewrites a loopback address to the
+    machine's outward IP otherwise. For the embedded Ray, ``RAY_AUTH_MODE=token``: Ray's own
+    default for a new local cluster, said explicitly so that Ray does not warn that it chose
+    it (``RAY_AUTH_MODE=disabled`` in the environment still opts out)."""
+    if "ray" in sys.modules:
+        return
+    address = address or os.environ.get("RAY_ADDRESS")
+    if _is_loopback(address):
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-
-
-def embedded_token_auth(address: str | None) -> None:
-    """For the embedded Ray: token authentication, Ray's own default for a new local
-    cluster, set explicitly before ``ray`` is imported, so that Ray does not warn that it
-    chose it. ``RAY_AUTH_MODE=disabled`` in the environment still opts out."""
-    if not (address or os.environ.get("RAY_ADDRESS")) and "ray" not in sys.modules:
+    if not address:
         os.environ.setdefault("RAY_AUTH_MODE", "token")
 
 

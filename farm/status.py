@@ -17,20 +17,21 @@ def format_status(st: dict) -> str:
     total = st["frames_total"]
     eta = f"{st['eta_s']:.0f} s" if st.get("eta_s") else "-"
     status = st.get("effective_status", st["status"])
+    shown = status
     if status == "lost":
-        status = (
-            "lost: says running, but its driver stopped updating it (killed?); "
+        shown = (
+            "lost: says running, but its driver is gone (killed?); "
             "run the same `farm submit` again to resume"
         )
     lines = [
-        f"job       {status}  (driver {st['driver']}, updated {_ago(st['updated'])})",
+        f"job       {shown}  (driver {st['driver']}, updated {_ago(st['updated'])})",
         f"store     {st['store']}",
         f"frames    {done}/{total} ({100 * done / total:.1f}%), {st['frames_per_s']:.2f} frames/s,"
         f" ETA {eta}",
         f"shards    {st['shards_committed']}/{st['shards_total']} committed"
         + (f", failed: {st['shards_failed']}" if st["shards_failed"] else ""),
     ]
-    if st.get("effective_status", st["status"]) == "running" and st.get("dashboard"):
+    if status == "running" and st.get("dashboard"):
         lines.append(f"ray       {st['dashboard']} (the Ray dashboard, while the job runs)")
     if st["failures"] or st.get("commit_failures"):
         lines.append("failures")
