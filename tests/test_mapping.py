@@ -85,6 +85,18 @@ def test_mapper_matches_the_numpy_reference_on_a_made_up_layout():
     assert roundtrip.meta() == layout.meta()
 
 
+def test_the_table_decode_is_the_srgb_curve_from_0_to_1_into_a_strided_output():
+    from trainer.targets import srgb_decode
+
+    hit = np.ones((6, 6), bool)
+    mapper = ScreenMapper(ScreenUV(np.zeros((6, 6, 2), np.float32), hit, 3, 2, 1.0, "flat"))
+    x = torch.cat([torch.linspace(0, 1, 100_001), torch.tensor([0.04045, 1.0 - 1e-7, 1.0])])
+    out = torch.full((x.numel(), 2), -1.0)  # decoded into column 1: a stride of 2
+    mapper._decode(x[None], out=out[:, 1][None])
+    want = srgb_decode(x.double())
+    assert (out[:, 1].double() - want).abs().max() < 1e-7 and (out[:, 0] == -1).all()
+
+
 # ---- against Blender --------------------------------------------------------------------
 
 

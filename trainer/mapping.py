@@ -67,11 +67,10 @@ class ScreenMapper:
         self.hits = len(index)
         self.filter = _filter_matrix(screen_uv, index).to(self.device)
         ones = torch.ones(self.hits, 1, dtype=torch.float32, device=self.device)
-        self.coverage = (self.filter @ ones).view(1, 1, self.r, self.r)
+        coverage = (self.filter @ ones).view(self.r, self.r)
+        self.coverage = (coverage.clamp(0.0, 1.0) * 255.0).round_().to(torch.uint8)
         self._grids: dict[tuple[int, int, float], torch.Tensor] = {}
-        steps = torch.linspace(0.0, 1.0, _LUT_STEPS + 1, dtype=torch.float64)
-        lut = srgb_decode(steps).to(self.device, torch.float32)
-        self._lut_base, self._lut_slope = lut[:-1].contiguous(), lut[1:] - lut[:-1]
+        self._lut_words = _decode_table().to(self.device).view(torch.int64).view(-1)
 
     def _grid(self, height: int, width: int, tiling: float) -> torch.Tensor:
         """grid_sample coordinates ``(1, 1, hits, 2)`` into a texture padded by one texel
@@ -87,7 +86,8 @@ class ScreenMapper:
             scale = 2.0 * size / (size + 2.0)
             offset = 2.0 / (size + 2.0) - 1.0
             scale[1], offset[1] = -scale[1], offset[1] + scale[1]
-            frac = torch.remainder(self.st * tiling, 1.0)
+            frac = self.st * tiling
+            frac.sub_(frac.floor())  # the remainder of 1, exactly (floor is the faster op)
             grid = torch.addcmul(offset, frac, scale).to(torch.float32)
             if len(self._grids) >= 4:
                 self._grids.pop(next(iter(self._grids)))
@@ -126,11 +126,14 @@ class ScreenMapper:
         grid = self._grid(h - 2, w - 2, float(tiling))
         parts = torch.get_num_threads() if self.device.type == "cpu" and b == 1 else 1
         looked = _lookup(prepared, grid, parts)  # (B or parts, C, n): colours in one block
-        looked[:, COLOUR] = self._decode(looked[:, COLOUR])
-        looked = looked.permute(2, 0, 1)  # (n, B or parts, C)
-        if parts == 1:
-            return looked.contiguous()
-        return looked.transpose(0, 1).reshape(-1, 1, c)[: self.hits]
+        p, _, n = looked.shape
+        # the result's layout (n, B, C) or (parts, n, C) written as a view in the lookup's
+        # (·, C, n) order: the decode and the copy of the other channels are its one pass
+        out = looked.new_empty((n, p, c) if parts == 1 else (p, n, c))
+        view = out.permute(1, 2, 0) if parts == 1 else out.permute(0, 2, 1)
+        view[:, COLOUR.stop :].copy_(looked[:, COLOUR.stop :])
+        self._decode(looked[:, COLOUR], out=view[:, COLOUR])
+        return out if parts == 1 else out.view(-1, 1, c)[: self.hits]
 
     @torch.inference_mode()
     def finish(self, looked: torch.Tensor, adjust=None) -> torch.Tensor:
@@ -143,22 +146,36 @@ class ScreenMapper:
         if adjust is not None:
             looked = looked.clone()
             adjust(looked)
-        maps = self.filter @ looked.view(hits, b * c)  # (R², B·10)
-        maps = maps.view(self.r * self.r, b, c).permute(1, 2, 0).contiguous()
-        maps[:, COLOUR] = srgb_encode(maps[:, COLOUR])
-        maps = maps.view(b, c, self.r, self.r)
-        maps = torch.cat([maps, self.coverage.expand(b, -1, -1, -1)], 1)
-        return (maps.clamp(0.0, 1.0) * 255.0).round_().to(torch.uint8)
+        maps = (self.filter @ looked.view(hits, b * c)).view(self.r * self.r, b, c)
+        maps[..., COLOUR] = srgb_encode(maps[..., COLOUR])
+        maps = maps.clamp_(0.0, 1.0).mul_(255.0).round_()
+        out = torch.empty(b, c + 1, self.r, self.r, dtype=torch.uint8, device=self.device)
+        out[:, :c] = maps.permute(1, 2, 0).view(b, c, self.r, self.r)  # one transposing cast
+        out[:, c] = self.coverage
+        return out
 
-    def _decode(self, x: torch.Tensor) -> torch.Tensor:
-        """sRGB decode of values in [0, 1] by linear interpolation in a 4,097-entry table
-        (off by under 1e-7: the curve's second derivative is below 4)."""
+    def _decode(self, x: torch.Tensor, out: torch.Tensor) -> None:
+        """sRGB decode of values in [0, 1] into ``out``, by linear interpolation in a
+        4,097-entry table (off by under 1e-7: the curve's second derivative is below 4).
+        Each entry's value and slope are read as one 64-bit word, with 32-bit indices: the
+        fastest gather on CPU (2-4x ``take``)."""
         scaled = x * _LUT_STEPS
-        i = scaled.long().clamp_(max=_LUT_STEPS - 1)
-        return self._lut_base.take(i).addcmul_(self._lut_slope.take(i), scaled.sub_(i))
+        i = scaled.int()
+        entry = self._lut_words.index_select(0, i.reshape(-1)).view(torch.float32)
+        entry = entry.view(*i.shape, 2)
+        torch.addcmul(entry[..., 0], entry[..., 1], scaled.sub_(i), out=out)
 
 
 _LUT_STEPS = 4096
+
+
+def _decode_table() -> torch.Tensor:
+    """``(_LUT_STEPS + 1, 2) float32``: the sRGB decode at ``k / _LUT_STEPS`` and its slope
+    to the next entry (0 past the last, so that 1.0 needs no clamp)."""
+    steps = torch.linspace(0.0, 1.0, _LUT_STEPS + 1, dtype=torch.float64)
+    lut = srgb_decode(steps).to(torch.float32)
+    slope = torch.cat([lut[1:] - lut[:-1], lut.new_zeros(1)])
+    return torch.stack([lut, slope], 1).contiguous()
 
 
 def _lookup(prepared: torch.Tensor, grid: torch.Tensor, parts: int) -> torch.Tensor:
@@ -200,4 +217,9 @@ def _filter_matrix(screen_uv: ScreenUV, index: torch.Tensor) -> torch.Tensor:
     )
     with warnings.catch_warnings():  # "sparse CSR support is in beta"
         warnings.simplefilter("ignore", UserWarning)
-        return coo.coalesce().to_sparse_csr()
+        csr = coo.coalesce().to_sparse_csr()
+        # 32-bit indices: the CPU product converts 64-bit ones on every call (1.4x slower)
+        return torch.sparse_csr_tensor(
+            csr.crow_indices().int(), csr.col_indices().int(), csr.values(), csr.shape,
+            check_invariants=False,
+        )  # fmt: skip
