@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-dashboard bench-render bench-farm bench-farm-scale bench-train bench-infer bench-viewer bench-storage gpu-wheels clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-train bench-infer bench-viewer bench-storage gpu-wheels clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -47,6 +47,10 @@ lint: $(BIN)/.installed
 # The paper's Table 1 here: renders, trainings, scores, docs/quality.md (hours; resumes).
 quality: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.quality
+
+# The quality table's frame times, re-timed side by side in one run (about a minute).
+bench-frames: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.frame_times
 
 bench-render: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.render

@@ -15,14 +15,13 @@ import datetime as dt
 import json
 import os
 import platform
-import statistics
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
+from benchmarks import frame_times
 from benchmarks.quality import baseline_store
 from render_jobs.tonemap import to_uint8
 from storage.reader import Store
@@ -131,21 +130,13 @@ def network_ms(run: Path, store: Store, iters: int = 20) -> tuple[float, int]:
     """Median ms of one frame at batch 1 on the CPU (all threads), and the parameter count."""
     r = Renderer.from_checkpoint(run, "cpu")
     maps = torch.from_numpy(np.array(store.packed_maps(0)))[None]
-    light = torch.tensor([[0.0, -0.6, 0.8, 0.3]])
-    times = []
-    for i in range(iters + 3):
-        t0 = time.perf_counter()
-        r.render_batch(maps, light)
-        if i >= 3:
-            times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times), count_parameters(r.model)
+    return frame_times.network_ms(r, maps, iters), count_parameters(r.model)
 
 
 def cycles_ms(plan, samples: int, denoise: bool) -> float:
     """Median ms of a whole Cycles render call with all threads, over test samples (kept in
     ``timings.json``)."""
     from render_jobs.materials import load_maps
-    from render_jobs.process import RenderProcess
     from render_jobs.specs import MaterialSpec, RenderSettings
 
     key = f"cycles-{samples}spp{'-oidn' if denoise else ''}"
@@ -158,15 +149,12 @@ def cycles_ms(plan, samples: int, denoise: bool) -> float:
     specs = store.materials()
     settings = RenderSettings(resolution=s.resolution, samples=samples, denoise=denoise,
                               texture_tiling=store.settings.get("texture_tiling", 2.0))  # fmt: skip
-    ids = reference_samples(store, s.timing_count + 1)
-    times = []
-    with RenderProcess(settings) as worker:
-        for i in ids:  # the first frame of a fresh Blender warms it up and is not counted
-            sample = store.sample(i)
-            maps = load_maps(MaterialSpec.from_dict(specs[sample.material_index]["spec"]))
-            times.append(worker.render_material(maps, [sample.sun], [sample.seed]).renders[0])
-    ms = 1e3 * statistics.median(r.seconds for r in times[1:] or times)
-    known[key] = ms
+    frames = []
+    for i in reference_samples(store, s.timing_count + 1):
+        sample = store.sample(i)
+        maps = load_maps(MaterialSpec.from_dict(specs[sample.material_index]["spec"]))
+        frames.append((maps, sample.sun, sample.seed))
+    ms = known[key] = frame_times.cycles_ms(settings, frames)
     path.write_text(json.dumps(known, indent=1))
     return ms
 
@@ -274,7 +262,8 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
         "",
         f"ms / frame on this machine's CPU ({cpu}), batch 1; no GPU was available for this "
         "run. Cycles times are whole render calls (scene changes, path tracing, denoising, "
-        "EXR).",
+        "EXR). Each time is taken at its step of the run, so days apart for a run that spans "
+        "sessions; `make bench-frames` re-times every method side by side in one run.",
         "",
         "| method | PSNR dB | SSIM | FLIP | ms / frame |",
         "|---|---|---|---|---|",

@@ -103,3 +103,20 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
     grid = Image.open(doc.parent / "img" / "quality-grid.png")
     rows = scale.fixed[1] + scale.test[1]  # fixed-sun uniform rows, then procedural ones
     assert grid.size == (5 * 256, 26 + rows * 256)
+
+
+def test_frame_times_rows_every_method_from_one_run_and_refuses_bad_settings():
+    """``benchmarks.frame_times`` on real networks and a real Blender (32², tiny spp): a row
+    for each network and each Cycles setting, positive times, ours the unit."""
+    cmd = [sys.executable, "-m", "benchmarks.frame_times", "--resolution", "32", "--spp", "1",
+           "--truth", "2", "--frames", "1", "--iters", "2"]  # fmt: skip
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = dict(re.findall(r"^\| ([^|]+?) \| (\d+\.\d) \| \d+\.\d\d \|$", r.stdout, re.M))
+    assert list(rows) == ["ours (U-Net)", "ours without skips", "Zsolnai-Fehér", "Cycles 1 spp",
+                          "Cycles 1 spp + OIDN", "Cycles 2 spp (the ground truth)"]  # fmt: skip
+    assert all(float(ms) > 0 for ms in rows.values())
+    assert "| ours (U-Net) | " in r.stdout and " | 1.00 |" in r.stdout
+    for bad, says in ((["--spp", "1,x"], "--spp '1,x' is not"), (["--resolution", "40"], "16")):
+        r = subprocess.run([*cmd[:3], *bad], capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and says in r.stderr.strip().splitlines()[-1], r.stderr
