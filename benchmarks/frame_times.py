@@ -9,10 +9,10 @@ machine: the networks of the table (the U-Net, the U-Net without skips, Zsolnai-
 fresh weights (a network's time does not depend on its weights) through
 ``trainer.infer.Renderer`` at batch 1 on CPU, all threads; Cycles at each ``--spp``, raw and
 with OpenImageDenoise, and at ``--truth`` spp, as one kept-loaded ``RenderProcess`` a
-setting, over ``--frames`` materials of the test set's sources (``uniform:`` and
-``procedural:`` at seed 1, each under its first sun). The first frame of each Blender warms it
-up and is not counted. Cycles times are whole render calls (scene changes, path tracing,
-denoising, EXR out and in), as in the quality table.
+setting, over ``--frames`` materials of the full run's test set (uniform and procedural in
+turn, each under its first sun). The first frame of each Blender warms it up and is not
+counted. Cycles times are whole render calls (scene changes, path tracing, denoising, EXR
+out and in), as in the quality table.
 """
 
 from __future__ import annotations
@@ -55,16 +55,19 @@ def cycles_ms(settings: RenderSettings, frames: list) -> float:
 
 
 def sample_frames(count: int, resolution: int) -> list:
-    """``count`` frames of the quality run's test set (its sources at seed 1, alternating
-    uniform and procedural materials, each under its first sun): ``(maps, sun, seed)``."""
+    """The first ``count`` frames of the full quality run's test set, alternating its
+    uniform and procedural materials, each under its first sun: ``(maps, sun, seed)``."""
+    from benchmarks.quality import SCALES
     from farm.plan import JobConfig, material_specs, task_for
     from render_jobs.materials import load_maps
 
-    half = (count + 1) // 2
-    cfg = JobConfig(sources=(f"uniform:{half}", f"procedural:{half}"), out="-", suns=1,
-                    resolution=resolution, seed=1)  # fmt: skip
+    scale = SCALES["full"]
+    uniform, procedural = scale.test
+    cfg = JobConfig(sources=(f"uniform:{uniform}", f"procedural:{procedural}"), out="-",
+                    suns=scale.suns, resolution=resolution, seed=1)  # fmt: skip
     specs = material_specs(cfg)
-    order = [k for pair in zip(range(half), range(half, 2 * half), strict=True) for k in pair]
+    pairs = zip(range(uniform), range(uniform, uniform + procedural), strict=True)
+    order = [k for pair in pairs for k in pair]
     frames = []
     for index in order[:count]:
         job = task_for(cfg, index, specs[index])
