@@ -168,7 +168,7 @@ def train_all(plan: Plan) -> None:
     from trainer import checkpoint
 
     s = plan.scale
-    times = _load(plan.work / "train-seconds.json")
+    times = load_json(plan.work / "train-seconds.json")
     for name, store, extra in plan.trainings():
         run = plan.run(name)
         last = checkpoint.latest(run)
@@ -183,14 +183,16 @@ def train_all(plan: Plan) -> None:
         t0 = time.perf_counter()
         sh(cmd, plan.work / "logs" / f"train-{name}.log")
         times[name] = times.get(name, 0.0) + time.perf_counter() - t0
-        _save(plan.work / "train-seconds.json", times)
+        save_json(plan.work / "train-seconds.json", times)
 
 
-def _load(path: Path) -> dict:
+def load_json(path: Path) -> dict:
+    """A work folder's JSON record (``{}`` before its first :func:`save_json`)."""
     return json.loads(path.read_text()) if path.exists() else {}
 
 
-def _save(path: Path, data: dict) -> None:
+def save_json(path: Path, data: dict) -> None:
+    """Replace a work folder's JSON record whole: a run killed while writing leaves the old."""
     from storage.backend import write_atomic
 
     write_atomic(path, lambda f: f.write(json.dumps(data, indent=1).encode()))

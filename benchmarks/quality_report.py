@@ -22,8 +22,9 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from benchmarks import frame_times
-from benchmarks.quality import baseline_store
+from benchmarks.quality import baseline_store, load_json, save_json
 from render_jobs.tonemap import to_uint8
+from storage.backend import write_atomic
 from storage.reader import Store
 from trainer.evaluate import Tally, evaluate
 from trainer.infer import Renderer
@@ -106,8 +107,9 @@ def reference(plan) -> None:
             r = worker.render_material(maps, [sample.sun], [sample.seed]).renders[0]
             renders.append(r.radiance)
             seconds.append(r.seconds)
-    np.savez(path, samples=np.array(samples), spp=s.reference_spp, renders=np.stack(renders),
-             seconds=np.array(seconds))  # fmt: skip
+    arrays = {"samples": np.array(samples), "spp": s.reference_spp,
+              "renders": np.stack(renders), "seconds": np.array(seconds)}  # fmt: skip
+    write_atomic(path, lambda f: np.savez(f, **arrays))  # a killed run leaves no part of it
 
 
 def score_reference(plan, tonemap: Tonemap) -> dict:
@@ -141,7 +143,7 @@ def cycles_ms(plan, samples: int, denoise: bool) -> float:
 
     key = f"cycles-{samples}spp{'-oidn' if denoise else ''}"
     path = plan.work / "timings.json"
-    known = json.loads(path.read_text()) if path.exists() else {}
+    known = load_json(path)
     if key in known:
         return known[key]
     s = plan.scale
@@ -155,7 +157,7 @@ def cycles_ms(plan, samples: int, denoise: bool) -> float:
         maps = load_maps(MaterialSpec.from_dict(specs[sample.material_index]["spec"]))
         frames.append((maps, sample.sun, sample.seed))
     ms = known[key] = frame_times.cycles_ms(settings, frames)
-    path.write_text(json.dumps(known, indent=1))
+    save_json(path, known)
     return ms
 
 
@@ -216,8 +218,7 @@ def _metrics(m: dict | None) -> str:
 def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
     s = plan.scale
     train, test = Store(plan.store("train")), Store(plan.store("test"))
-    seconds = json.loads((plan.work / "train-seconds.json").read_text()) if (
-        plan.work / "train-seconds.json").exists() else {}  # fmt: skip
+    seconds = load_json(plan.work / "train-seconds.json")
     steps = {n: rows[n].get("checkpoint_step") for n in rows if "checkpoint_step" in rows[n]}
     cpu = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
     named = [("ours (U-Net, L1)", "unet"), ("ours without skips (L1)", "unet-noskips")]

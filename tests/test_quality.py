@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from benchmarks.quality import SCALES
+from benchmarks.quality import SCALES, load_json, save_json
 from benchmarks.quality_report import QualityError, check_pairs, findings
 from storage.reader import Store
 from storage.schema import Layout
@@ -68,6 +68,16 @@ def test_the_findings_name_the_cheapest_cycles_setting_that_matches_the_network(
 
 
 @pytest.mark.slow
+def test_a_work_record_write_that_fails_leaves_the_old_record_and_no_part(tmp_path):
+    path = tmp_path / "timings.json"
+    assert load_json(path) == {}
+    save_json(path, {"cycles-1spp": 60.7})
+    with pytest.raises(TypeError):
+        save_json(path, {"cycles-2spp": object()})  # fails while the new file is written
+    assert load_json(path) == {"cycles-1spp": 60.7}
+    assert [p.name for p in tmp_path.iterdir()] == ["timings.json"]
+
+
 def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
     """Every step on real stores, runs and renders: the report has a row for each method
     with finite numbers, the picture grid has every row; a second run trains nothing."""
