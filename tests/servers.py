@@ -14,13 +14,16 @@ class ServerProcess:
     """A server command run with ``--port 0``: the port is the one it names in its line
     ``NAME: http://HOST:PORT/``, printed once it listens, so no two servers race for a port."""
 
-    def __init__(self, cmd: list, name: str, env: dict | None = None, timeout: float = 60):
+    def __init__(
+        self, cmd: list, name: str, env: dict | None = None, timeout: float = 60, cwd=None
+    ):
         self.name = name
         self.proc = subprocess.Popen(
             [*map(str, cmd), "--port", "0"],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             env=env,
+            cwd=cwd,
         )
         self.early = b""  # stderr up to and with the line that names the port
         self.port = self._wait_for_port(timeout)

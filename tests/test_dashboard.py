@@ -55,8 +55,8 @@ def synthetic_job(path: Path, committed=(0, 1), status="running", pending=()) ->
 class Server(ServerProcess):
     """``farm dashboard`` in a subprocess on a port of its own."""
 
-    def __init__(self, *args, host="127.0.0.1"):
-        super().__init__([BIN / "farm", "dashboard", *args, "--host", host], "dashboard")
+    def __init__(self, *args, host="127.0.0.1", cwd=None):
+        super().__init__([BIN / "farm", "dashboard", *args, "--host", host], "dashboard", cwd=cwd)
 
     def get(self, path: str, headers: dict | None = None, method="GET") -> tuple[int, bytes]:
         req = urllib.request.Request(self.base + path, headers=headers or {}, method=method)
@@ -92,9 +92,10 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets):
     with Server(sets) as s:
         code, body = s.get("/")
         page = body.decode()
-        assert code == 200 and 'href="/job/0/a.zarr"' in page
+        assert code == 200 and f'href="/job/0/a.zarr">{sets}/a.zarr</a>' in page  # as given
         assert "broken.zarr" in page and "not valid JSON" in page  # an error row, a page
         code, body = s.get("/job/0/a.zarr")
+        assert f"<title>{sets}/a.zarr - shaderball</title>".encode() in body
         assert code == 200 and b"shardmap" in body and b"boom" in body and b"(stale)" not in body
         assert b"uniform:seed=77" in body  # the failed material's source
         assert b"committed 2" in body and b"pending 1" in body  # the shard map's legend
@@ -165,7 +166,7 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
         for f in families.values()
         for x in f.samples
     }
-    store = (("store", "0/a.zarr"),)
+    store = (("store", f"{sets}/a.zarr"),)  # the root as given, then the store's path
     assert value[("shaderball_farm_frames_committed_total", store)] == 8
     assert value[("shaderball_farm_frames_planned", store)] == 12
     assert value[("shaderball_farm_failures_total", store)] == 2
@@ -173,28 +174,30 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert value[("shaderball_farm_workers", (("status", "busy"), *store))] == 1
     assert value[("shaderball_farm_shards_committed_total", store)] == 2
     assert value[("shaderball_farm_frame_seconds_count", store)] == 8
-    assert value[("shaderball_train_step", (("run", "0/r1"),))] == 20
-    assert value[("shaderball_train_loss", (("run", "0/r1"),))] == pytest.approx(0.05)
+    run = (("run", f"{tmp_path / 'runs'}/r1"),)
+    assert value[("shaderball_train_step", run)] == 20
+    assert value[("shaderball_train_loss", run)] == pytest.approx(0.05)
     assert not any("material=" in str(k) for k in value)  # never a material label
-    assert "0/r1" in runs_page and "<svg" in runs_page
+    assert f"{tmp_path / 'runs'}/r1 <small>" in runs_page and "<svg" in runs_page
 
 
 @pytest.mark.slow
 def test_the_job_page_in_chromium_follows_a_running_job_and_cancels_it(tmp_path):
     from playwright.sync_api import sync_playwright
 
-    out = tmp_path / "live.zarr"
+    out = tmp_path / "out" / "live.zarr"
     args = ["submit", "-m", "uniform:30", *TINY, "--workers", "2", "--no-ray-dashboard", "-o", out]
     job = farm(*args, faults={"slow_s": 2.0}, wait=False)
     try:
         wait_for_commits(out, 1)
-        with Server(tmp_path) as s, sync_playwright() as p:
+        with Server("out", cwd=tmp_path) as s, sync_playwright() as p:  # as the README runs it
             browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
             page = browser.new_page(viewport={"width": 1200, "height": 900})
             page.goto(s.base + "/")
             row = page.locator("#jobs tr", has_text="live.zarr")
             assert "running" in row.inner_text()
             page.goto(s.base + "/job/0/live.zarr")
+            assert page.locator("#live h2").first.inner_text().startswith("out/live.zarr running")
             first = page.locator("#frames").inner_text()
             page.wait_for_function(  # the page refreshes itself as the job goes on
                 f"document.getElementById('frames').textContent.trim() !== '{first}'",
@@ -288,6 +291,7 @@ def test_an_s3_prefix_of_stores_is_a_root(s3, monkeypatch):
     dash = Dashboard(["s3://shaderball/dash"], [])
     rows = dash.job_rows()
     assert [r["name"] for r in rows] == ["0/one.zarr"] and rows[0]["error"] is None
+    assert rows[0]["label"] == "s3://shaderball/dash/one.zarr"
     assert rows[0]["frames_done"] == 4 and rows[0]["status"] == "no state"
     ctx = dash.job_context("0/one.zarr")
     assert ctx["committed"] == 1 and ctx["thumbs"] == [0, 1, 2, 3]

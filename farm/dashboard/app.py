@@ -3,9 +3,10 @@
 Routes: ``/`` (jobs, ``?status=`` filters), ``/job/<name>`` (``?fragment=1``: the part that
 refreshes), ``/thumb/<name>?sample=i`` (a tonemapped render, as ``shards show``),
 ``/sheet/<name>?sample=i`` (its contact sheet), ``POST /cancel/<name>``, ``/runs``,
-``/runfile/<name>?file=eval.png``, ``/metrics``, ``/api/job/<name>`` (JSON). A store's
-``<name>`` is ``<root index>[/<path below the root>]``. Reads are blocking (zarr, fsspec) and
-run in a thread pool so one slow store does not hold the others.
+``/runfile/<name>?file=eval.png``, ``/metrics``, ``/api/job/<name>`` (JSON). A store's or a
+run's ``<name>`` is ``<root index>[/<path below the root>]``; pages and metrics show it as the
+root as given on the command line plus that path (its ``label``). Reads are blocking (zarr,
+fsspec) and run in a thread pool so one slow store does not hold the others.
 """
 
 from __future__ import annotations
@@ -30,8 +31,9 @@ THUMB_CACHE = 256
 
 class Dashboard:
     def __init__(self, roots: list[str], run_dirs: list[str]):
-        self.roots = [jobs.Root(i, r) for i, r in enumerate(roots)]
-        self.run_dirs = [Path(r) for r in run_dirs]
+        # a root given twice would list its stores twice under one label
+        self.roots = [jobs.Root(i, r) for i, r in enumerate(dict.fromkeys(roots))]
+        self.run_dirs = [Path(r) for r in dict.fromkeys(run_dirs)]
         self.samples = jobs.PerSample()
 
     # ---- names ----------------------------------------------------------------------------
@@ -41,6 +43,11 @@ class Dashboard:
         if not index.isdigit() or int(index) >= len(self.roots):
             raise Refused(name)
         return self.roots[int(index)].store_url(rel or ".")
+
+    def job_row(self, name: str) -> dict:
+        index, _, rel = name.partition("/")
+        url = self.store_url(name)
+        return jobs.job_row(name, url, self.roots[int(index)].label(rel or "."))
 
     def run_path(self, name: str) -> Path:
         index, _, rel = name.partition("/")
@@ -56,7 +63,8 @@ class Dashboard:
             try:
                 names = root.find()
             except Exception as exc:  # noqa: BLE001 - an unreachable root shows as a row
-                rows.append({"name": str(root.index), "error": f"{root.url}: {exc}"})
+                rows.append({"name": str(root.index), "label": root.url,
+                             "error": f"{root.url}: {exc}"})  # fmt: skip
                 continue
             for rel in names:
                 name = str(root.index) if rel == "." else f"{root.index}/{rel}"
@@ -64,7 +72,7 @@ class Dashboard:
                     url = root.store_url(rel)
                 except Refused:  # a symlink that leads outside the root: not served
                     continue
-                rows.append(jobs.job_row(name, url))
+                rows.append(jobs.job_row(name, url, root.label(rel)))
         rows.sort(key=lambda r: -(r.get("started") or 0))
         return rows
 
@@ -73,7 +81,8 @@ class Dashboard:
         for i, base in enumerate(self.run_dirs):
             for rel in runs.find_runs(base):
                 name = str(i) if rel == "." else f"{i}/{rel}"
-                out.append(runs.run_summary(name, self.run_path(name)))
+                label = str(base) if rel == "." else f"{base}/{rel}"
+                out.append(runs.run_summary(name, self.run_path(name), label))
         return out
 
     def frame_seconds(self, row: dict):
@@ -85,9 +94,9 @@ class Dashboard:
             return None
 
     def job_context(self, name: str) -> dict:
-        url = self.store_url(name)
-        row = jobs.job_row(name, url)
-        ctx = {"row": row, "title": name, "state": row.get("state")}
+        row = self.job_row(name)
+        url = row["url"]
+        ctx = {"row": row, "title": row["label"], "state": row.get("state")}
         if row["error"]:
             return ctx
         store = Store(url)
@@ -153,8 +162,7 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         return html(text=pages.render(name, secret=secret, **ctx))
 
     async def api_job(request):
-        row = await _blocking(jobs.job_row, request.match_info["name"],
-                              dash.store_url(request.match_info["name"]))  # fmt: skip
+        row = await _blocking(dash.job_row, request.match_info["name"])
         return web.json_response(row, dumps=lambda o: json.dumps(o, default=str))
 
     async def picture(request, sheet: bool):
@@ -170,7 +178,7 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         from storage.backend import Backend
 
         url = dash.store_url(request.match_info["name"])
-        st = (await _blocking(jobs.job_row, request.match_info["name"], url)).get("status")
+        st = (await _blocking(dash.job_row, request.match_info["name"])).get("status")
         if st != "running":
             return web.Response(status=409, text=f"the job is {st}, not running")
         await _blocking(request_cancel, Backend(url), "dashboard")

@@ -3,7 +3,9 @@
 corrupt, half-written or not a store gives an ``error`` instead of a row's numbers.
 
 A ROOT is a store, a folder of stores (searched two levels down), or an ``s3://`` prefix of
-them. Stores are named ``<root index>/<path below the root>`` (``.``: the root itself).
+them. Stores are named ``<root index>/<path below the root>`` (``.``: the root itself) in
+URLs, and labelled with the root as given plus that path (``out/demo.zarr``) on the pages and in
+the metrics.
 """
 
 from __future__ import annotations
@@ -41,6 +43,13 @@ class Root:
             rel = confine_key(rel)
             return self.url.rstrip("/") if rel == "." else f"{self.url.rstrip('/')}/{rel}"
         return str(confine(Path(self.url), rel))
+
+    def label(self, rel: str) -> str:
+        """What pages and metrics call store ``rel``: the root as given, then the path."""
+        if not self.remote:
+            return os.path.normpath(os.path.join(self.url, rel))  # ``.``, ``out/``: as typed
+        root = self.url.rstrip("/")
+        return root if rel == "." else f"{root}/{rel}"
 
     def find(self) -> list[str]:
         """Relative names of the stores under this root, sorted."""
@@ -97,9 +106,10 @@ def commit_times(backend: Backend) -> dict[int, float]:
     return out
 
 
-def job_row(name: str, url: str) -> dict:
-    """One line of the jobs page (``error`` set when the store cannot be read)."""
-    row = {"name": name, "url": url, "error": None, "status": "no state"}
+def job_row(name: str, url: str, label: str | None = None) -> dict:
+    """One line of the jobs page (``error`` set when the store cannot be read); ``name`` is the
+    store's key in URLs, ``label`` what the page shows (``name`` when not given)."""
+    row = {"name": name, "label": label or name, "url": url, "error": None, "status": "no state"}
     try:
         state = load_state(url)
         store = Store(url)

@@ -66,7 +66,7 @@ class Collector:
         for row in self.jobs():
             if row.get("error"):
                 continue
-            name = row["name"]
+            name = row["label"]
             planned.add_metric([name], row["frames_total"])
             committed.add_metric([name], row["frames_done"])
             running.add_metric([name], 1.0 if row["status"] == "running" else 0.0)
@@ -94,8 +94,8 @@ class Collector:
         for run in self.runs():
             if run["step"] is None:
                 continue
-            step.add_metric([run["name"]], run["step"])
-            loss.add_metric([run["name"]], run["loss"])
-            ips.add_metric([run["name"]], run["images_per_second"])
-            wait.add_metric([run["name"]], run["data_wait"])
+            step.add_metric([run["label"]], run["step"])
+            loss.add_metric([run["label"]], run["loss"])
+            ips.add_metric([run["label"]], run["images_per_second"])
+            wait.add_metric([run["label"]], run["data_wait"])
         yield from (step, loss, ips, wait)

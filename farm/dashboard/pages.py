@@ -59,8 +59,8 @@ JOBS = """{% extends "base" %}{% block main %}
 <table id="jobs"><tr><th>store</th><th>status</th><th class="num">frames</th><th class="num">
 frames/s</th><th class="num">ETA</th><th class="num">failed materials</th><th class="num">workers
 </th><th class="num">age</th></tr>
-{% for r in rows %}<tr>{% if r.error %}<td>{{ r.name }}</td><td class="err" colspan="7">
-{{ r.error }}</td>{% else %}<td><a href="/job/{{ r.name }}">{{ r.name }}</a></td>
+{% for r in rows %}<tr>{% if r.error %}<td>{{ r.label }}</td><td class="err" colspan="7">
+{{ r.error }}</td>{% else %}<td><a href="/job/{{ r.name }}">{{ r.label }}</a></td>
 <td class="s-{{ r.status }}">{{ r.status }}</td>
 <td class="num">{{ r.frames_done }}/{{ r.frames_total }}</td>
 <td class="num">{{ "%.2f"|format(r.frames_per_s) }}</td><td class="num">{{ r.eta_s|dur }}</td>
@@ -71,7 +71,7 @@ frames/s</th><th class="num">ETA</th><th class="num">failed materials</th><th cl
 JOB = """{% extends "base" %}{% block main %}{% include "job_live" %}{% endblock %}"""
 
 JOB_LIVE = """<div id="live" data-live="{{ 1 if row.status == 'running' else 0 }}">
-<h2 style="margin-top:0">{{ row.name }} <span class="s-{{ row.status }}">{{ row.status }}</span>
+<h2 style="margin-top:0">{{ row.label }} <span class="s-{{ row.status }}">{{ row.status }}</span>
 {% if row.status == 'running' %}
 <button onclick="cancelJob('/cancel/{{ row.name }}')">cancel</button>{% endif %}
 <span id="cancel-msg"></span></h2>
@@ -113,7 +113,7 @@ class="num">recycles</th><th>last seen</th></tr>{% for w in workers %}<tr><td>{{
 </b><br>{{ svg }}</div>{% endfor %}</div></div>{% endif %}</div>"""
 
 RUNS = """{% extends "base" %}{% block main %}
-{% for r in runs %}<h2>{{ r.name }} <small>{{ r.path }}</small></h2>
+{% for r in runs %}<h2>{{ r.label }} <small>{{ r.path }}</small></h2>
 <div class="cards"><div class="card">step<b>{{ r.step|setting }}</b></div><div class="card">
 epoch<b>{{ (r.epoch + 1) if r.epoch is not none else "-" }}</b></div><div class="card">loss<b>
 {{ r.loss|num("%.4f") }}</b></div><div class="card">images/s<b>{{ r.images_per_second|num("%.1f")

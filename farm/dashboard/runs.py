@@ -1,7 +1,8 @@
 """What the dashboard knows of trainer runs: each run folder's ``log.jsonl`` (loss, images/s,
 data wait), ``checkpoints/``, and ``eval.json`` / ``eval.png`` where ``trainer eval`` wrote
 them. A ``--runs`` folder is a run (it holds ``log.jsonl`` or ``config.json``) or a folder of
-runs. Runs are named ``<runs index>/<path below it>``."""
+runs. Runs are named ``<runs index>/<path below it>`` in URLs and labelled with the folder as
+given plus that path on the page and in the metrics."""
 
 from __future__ import annotations
 
@@ -45,7 +46,9 @@ def thin(rows: list, limit: int = CURVE_POINTS) -> list:
     return [rows[int(i * step)] for i in range(limit)] + [rows[-1]]
 
 
-def run_summary(name: str, run: Path) -> dict:
+def run_summary(name: str, run: Path, label: str | None = None) -> dict:
+    """What the runs page and the metrics show of ``run``: ``name`` is its key in URLs,
+    ``label`` its name on the page and in the metrics (``name`` when not given)."""
     log = read_log(run)
     last = log[-1] if log else {}
     ckpts = sorted((run / "checkpoints").glob("*.pt")) if (run / "checkpoints").is_dir() else []
@@ -57,6 +60,7 @@ def run_summary(name: str, run: Path) -> dict:
             ev = None
     return {
         "name": name,
+        "label": label or name,
         "path": str(run),
         "step": last.get("step"),
         "epoch": last.get("epoch"),
