@@ -264,6 +264,14 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
     env = {"TORCH_HOME": str(tmp_path / "torch-home")}
     msg = one_line_error(["train", "--out", str(run), "--store", tiny_store.url], env=env)
     assert "needs ImageNet VGG16 weights" in msg and "--vgg-weights FILE" in msg
+    nope = tmp_path / "nope.zarr"  # the store typed wrong is named before the missing weights
+    r = CliRunner().invoke(
+        trainer_main, ["launch", "--out", str(run), "--store", str(nope)], env=env
+    )
+    assert (
+        r.exit_code == 1
+        and r.output.splitlines()[-1] == f"Error: {nope}: not a shard store (no zarr.json)"
+    )
     assert "missing.pth does not exist" in one_line_error(
         [*base[:1], "--vgg-weights", str(tmp_path / "missing.pth"), "--store", tiny_store.url]
     )

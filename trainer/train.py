@@ -140,11 +140,12 @@ class Trainee:
 def preflight(cfg: TrainConfig) -> None:
     """Every check the ranks would make before training, made once here (no process group):
     the stores open and have committed samples at a usable resolution, the run folder can be
-    used (or resumed), the VGG weights load. Raises as :func:`train` would."""
+    used (or resumed), the VGG weights load. Raises as :func:`train` would, the inputs named
+    on the command line (run folder, stores) before the weights."""
     state, found = _resume_state(cfg, Path(cfg.out))
+    _catalog(cfg, Rank(0, 1, torch.device("cpu"), False), state, found)
     if cfg.loss == "l1+vgg":
         load_vgg(cfg.vgg_weights)
-    _catalog(cfg, Rank(0, 1, torch.device("cpu"), False), state, found)
 
 
 def _train(cfg: TrainConfig, rk: Rank) -> dict:
