@@ -75,9 +75,10 @@ def _grey(img: images.Image, name: str) -> np.ndarray:
     px = img.pixels
     if px.shape[2] >= 3:
         rgb = px[..., :3]
-        if np.abs(rgb - rgb.mean(axis=2, keepdims=True)).max() > GREY_TOLERANCE:
+        grey = rgb.mean(axis=2, keepdims=True)
+        if np.abs(rgb - grey).max() > GREY_TOLERANCE:
             raise MaterialError(f"{img.path}: {name} map is not greyscale (its R, G, B differ)")
-        px = rgb.mean(axis=2, keepdims=True)
+        px = grey
     if img.is_float:
         _check_range(img, px, name)
     return np.ascontiguousarray(np.clip(px, 0.0, 1.0), dtype=np.float32)
