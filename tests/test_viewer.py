@@ -85,7 +85,7 @@ def test_an_edit_maps_as_the_edited_material(tmp_path):
     the 8-bit rounding of the texture Blender would load."""
     mapper = made_up_mapper()
     tex = textures_from_maps(procedural_maps(2, 32))
-    halved = tex.clone()
+    halved = tex.float() / 255.0
     halved[6] *= 0.5
     a = mapper(tex, adjust=Edits(roughness_scale=0.5).adjust).int()
     b = mapper(halved).int()
@@ -103,6 +103,40 @@ def test_recent_keeps_the_most_recently_used():
     assert (r.get("a"), r.get("b"), r.get("c"), len(r)) == (1, None, 3, 2)
     with pytest.raises(ValueError, match="size must be at least 1"):
         Recent(0)
+
+
+def test_recent_with_a_byte_budget_drops_the_oldest_bytes_and_keeps_the_newest():
+    from trainer.viewer.recent import Recent
+
+    r = Recent(8, max_bytes=100)
+    r.put("a", np.zeros(40, np.uint8))
+    r.put("b", np.zeros(40, np.uint8))
+    assert r.bytes == 80 and len(r) == 2
+    r.get("a")  # now the most recent
+    r.put("c", np.zeros(40, np.uint8))  # 120 bytes: "b", the least recent, goes
+    assert r.get("b") is None and r.bytes == 80 and r.get("a") is not None
+    r.put("a", np.zeros(10, np.uint8))  # a new value for a key counts once
+    assert r.bytes == 50 and len(r) == 2
+    r.put("big", torch.zeros(50, dtype=torch.float32))  # 200 bytes alone: kept, the rest go
+    assert len(r) == 1 and r.bytes == 200 and r.get("big") is not None
+    with pytest.raises(ValueError, match="max_bytes must be at least 1"):
+        Recent(2, max_bytes=0)
+
+
+def test_textures_are_the_8_bit_values_and_prepare_the_same_from_bytes_or_floats():
+    """The library keeps a material's textures as bytes (a quarter of floats); the mapper
+    prepares the same floats from them as from the float maps, so it maps the same."""
+    maps = procedural_maps(5, 24)
+    tex = textures_from_maps(maps)
+    floats = np.concatenate([maps.diffuse, maps.specular, maps.roughness, maps.normal], axis=2)
+    want = np.round(np.clip(floats, 0, 1) * 255).astype(np.uint8).transpose(2, 0, 1)
+    assert tex.dtype == torch.uint8 and np.array_equal(tex.numpy(), want)
+    mapper = made_up_mapper()
+    from_floats = mapper.prepare(torch.from_numpy(floats.transpose(2, 0, 1).copy()))
+    from_bytes = mapper.prepare(tex)
+    assert torch.equal(from_bytes, from_floats) and from_bytes.dtype == torch.float32
+    assert from_bytes.is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(tex, torch.from_numpy(want))  # prepare left its input as it was
 
 
 def test_lookups_split_over_threads_are_the_same_numbers_and_finish_keeps_them():
@@ -213,6 +247,69 @@ def test_bad_uploads_get_one_line_naming_the_file_and_leave_nothing(tmp_path, fi
     assert not any((tmp_path / "uploads").rglob("*.png"))
     good = lib.add_upload([("good.png", panel())])
     assert good.id in lib.entries and lib.textures(good.id).shape == (10, 16, 16)
+
+
+def solid(rgb: tuple[int, int, int], size: int = 16) -> np.ndarray:
+    return np.full((size, size, 3), np.array(rgb, np.float32) / 255.0, np.float32)
+
+
+def test_gallery_pictures_of_file_materials_are_their_colour_maps_and_kept(tmp_path):
+    """A 5-panel file shows its diffuse panel, a spec-gloss folder its diffuse map, a
+    metal-rough folder its base colour (a metal is not black); a colour map Pillow cannot
+    show (EXR) falls back to the material's diffuse map. Pictures are made once, on their
+    own thread, so a frame in the works does not hold them back."""
+    import asyncio
+    import threading
+    from types import SimpleNamespace
+
+    from render_jobs.materials.maps import linear_to_srgb
+    from tests.test_material_libraries import write
+    from trainer.viewer.app import THUMB
+    from trainer.viewer.app import Viewer as App
+
+    lib_dir = tmp_path / "lib"
+    strip = np.concatenate([solid(c) for c in [(9, 9, 9), (128, 128, 255), (200, 30, 40),
+                                                (90, 90, 90), (20, 20, 20)]], 1)  # fmt: skip
+    write(lib_dir / "five.png", strip)
+    write(lib_dir / "gloss" / "a_diffuse.png", solid((10, 200, 30)))
+    write(lib_dir / "gloss" / "a_specular.png", solid((40, 40, 40)))
+    write(lib_dir / "gloss" / "a_glossiness.png", solid((100, 100, 100))[..., 0])
+    write(lib_dir / "metal" / "b_Color.png", solid((230, 180, 60)))
+    write(lib_dir / "metal" / "b_Metalness.png", np.ones((16, 16), np.float32))
+    write(lib_dir / "metal" / "b_Roughness.png", solid((60, 60, 60))[..., 0])
+    write(lib_dir / "exr" / "c_Color.exr", solid((255, 255, 255)) * 0.2)
+    write(lib_dir / "exr" / "c_Roughness.png", solid((60, 60, 60))[..., 0])
+    lib = Library([], [str(lib_dir)], tmp_path / "uploads")
+    by_label = {e.label: e.id for e in lib.entries.values()}
+    viewer = App(SimpleNamespace(library=lib), tmp_path / "uploads", {})
+    try:
+        grey = round(255 * float(linear_to_srgb(np.float32(0.2))))  # EXR colour is linear
+        want = {"five.png": (200, 30, 40), "gloss": (10, 200, 30), "metal": (230, 180, 60),
+                "exr": (grey, grey, grey)}  # fmt: skip
+        for label, rgb in want.items():
+            body = viewer.thumb(by_label[label])
+            pic = np.asarray(Image.open(io.BytesIO(body)))
+            assert pic.shape[2] == 3 and max(pic.shape[:2]) <= THUMB
+            assert np.abs(pic.astype(int) - rgb).max() <= 1, (label, pic[0, 0])
+        (lib_dir / "five.png").unlink()
+        assert viewer.thumb(by_label["five.png"]) == viewer.thumb(by_label["five.png"])  # kept
+
+        busy, done = threading.Event(), threading.Event()
+        viewer.pool.submit(busy.wait, 30)  # a long frame on the frames thread
+        fresh = App(SimpleNamespace(library=lib), tmp_path / "uploads", {})
+        fresh.pool = viewer.pool
+
+        async def picture():
+            body = await fresh.run(fresh.thumb, by_label["gloss"], pool=fresh.thumb_pool)
+            done.set()
+            return body
+
+        assert asyncio.run(asyncio.wait_for(picture(), 20))[:4] == b"\x89PNG"
+        assert done.is_set() and not busy.is_set()  # made while the frame was still running
+        busy.set()
+        fresh.thumb_pool.shutdown()
+    finally:
+        viewer.close()
 
 
 # ---- the server --------------------------------------------------------------------------------

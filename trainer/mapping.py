@@ -37,10 +37,24 @@ COLOUR = slice(0, 6)  # diffuse and specular: sRGB-encoded
 
 
 def textures_from_maps(maps: MaterialMaps) -> torch.Tensor:
-    """A material's maps ``(H, W, C)`` float32 → ``(10, H, W) float32``: diffuse, specular
-    (sRGB-encoded), roughness, normal, in [0, 1], file row 0 first."""
-    arr = np.concatenate([maps.diffuse, maps.specular, maps.roughness, maps.normal], axis=2)
-    return torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 0, 1)))
+    """A material's maps ``(H, W, C)`` float32 in [0, 1] → ``(10, H, W) uint8``: diffuse,
+    specular (sRGB-encoded), roughness, normal, file row 0 first, as the 8-bit values
+    Blender loads (what :meth:`ScreenMapper.prepare` would round them to; a quarter of the
+    memory of floats). Converted a map at a time, so no float copy of all ten is made."""
+    parts = (maps.diffuse, maps.specular, maps.roughness, maps.normal)
+    h, w = maps.diffuse.shape[:2]
+    out = torch.empty(TEXTURE_CHANNELS, h, w, dtype=torch.uint8)
+    start = 0
+    for part in parts:
+        c = part.shape[2]
+        out[start : start + c] = _bytes(torch.from_numpy(part)).permute(2, 0, 1)
+        start += c
+    return out
+
+
+def _bytes(x: torch.Tensor) -> torch.Tensor:
+    """Values in [0, 1] → the nearest of the 256 8-bit levels, as float32 (0 to 255)."""
+    return torch.round(x.to(torch.float32).clamp(0.0, 1.0) * 255.0)
 
 
 class ScreenMapper:
@@ -106,14 +120,16 @@ class ScreenMapper:
         """The textures as Blender loads them (8-bit values), padded by one texel on every
         side for the repeat wrap: ``(B, 10, Ht + 2, Wt + 2) float32`` on ``device``,
         channels_last (a lookup then reads its 10 values from one place: 1.7x faster on CPU
-        for 1K textures). Kept by callers that map one material many times."""
+        for 1K textures). ``textures`` are floats in [0, 1] (rounded to 8 bits here) or
+        :func:`textures_from_maps`' uint8, which go to the device as bytes. Kept by callers
+        that map one material many times."""
         x = textures[None] if textures.dim() == 3 else textures
         if x.dim() != 4 or x.shape[1] != TEXTURE_CHANNELS:
             raise ValueError(f"textures have shape {tuple(textures.shape)}, expected (B, 10, H, W)")
-        x = x.to(self.device, torch.float32)
-        x = torch.round(x.clamp(0.0, 1.0) * 255.0) / 255.0
+        x = x.to(self.device) if x.dtype == torch.uint8 else _bytes(x.to(self.device))
         x = F.pad(x, (1, 1, 1, 1), mode="circular")
-        return x.contiguous(memory_format=torch.channels_last)
+        x = x.to(torch.float32, memory_format=torch.channels_last)  # one converting copy
+        return x.div_(255.0)
 
     @torch.inference_mode()
     def lookup(self, prepared: torch.Tensor, tiling: float = 1.0) -> torch.Tensor:

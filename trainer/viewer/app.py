@@ -6,9 +6,10 @@ gallery picture), ``/api/frame?m=ID&az=&el=&t=&<edits>&fmt=jpeg|png[&download=1]
 k-th stored sun: Cycles, network, error, PSNR; JSON with base64 PNGs), ``POST /api/upload``
 (multipart files; the server's POST secret in ``X-Shaderball-Secret``). Built on
 :mod:`farm.web` like the farm dashboard: 127.0.0.1 by default, a token on any other address.
-Frames are made one at a time on one worker thread (the network uses every core); a request
-that fails gets its one-line reason with status 400 (413 for an upload that is too big), and
-the server goes on.
+Frames are made one at a time on one worker thread (the network uses every core); gallery
+pictures on another, so a gallery of large materials never holds a frame back, and are kept
+once made. A request that fails gets its one-line reason with status 400 (413 for an upload
+that is too big), and the server goes on.
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
 from aiohttp import web
 from PIL import Image
 
@@ -33,6 +33,8 @@ from render_jobs.tonemap import to_uint8, tonemap
 from trainer.viewer import page
 from trainer.viewer.engine import Engine, Light
 from trainer.viewer.materials import MAX_UPLOAD_BYTES, Edits, Library
+from trainer.viewer.recent import Recent
+from trainer.viewer.thumbs import colour_preview
 
 THUMB = 96
 
@@ -43,30 +45,45 @@ class Viewer:
     def __init__(self, engine: Engine, upload_dir: Path, info: dict):
         self.engine, self.upload_dir, self.info = engine, upload_dir, info
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frames")
+        self.thumb_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="thumbs")
+        self._thumbs = Recent(1024)  # material → PNG bytes (a few KB each)
 
-    async def run(self, fn, *args):
+    async def run(self, fn, *args, pool=None):
         return await asyncio.get_running_loop().run_in_executor(
-            self.pool, functools.partial(fn, *args)
+            pool or self.pool, functools.partial(fn, *args)
         )
 
     def thumb(self, material_id: str) -> bytes:
-        """The stored render under its first sun, or the material's diffuse map."""
+        """The gallery picture: a stored material's render under its first sun, a file
+        material's colour map (:mod:`trainer.viewer.thumbs`), or else its diffuse map."""
+        body = self._thumbs.get(material_id)
+        if body is None:
+            body = _png(self._thumb_image(material_id))
+            self._thumbs.put(material_id, body)
+        return body
+
+    def _thumb_image(self, material_id: str) -> Image.Image:
         lib = self.engine.library
         e = lib.entry(material_id)
         if e.store is not None:
-            img = to_uint8(tonemap(lib.truth(material_id, 0)[0]))
+            pic = Image.fromarray(to_uint8(tonemap(lib.truth(material_id, 0)[0])))
         else:
-            tex = lib.textures(material_id)
-            img = (tex[:3].numpy().transpose(1, 2, 0) * 255 + 0.5).astype(np.uint8)
-        pic = Image.fromarray(img)
+            pic = colour_preview(e.path, THUMB) if e.path is not None else None
+            if pic is None:
+                pic = Image.fromarray(lib.textures(material_id)[:3].permute(1, 2, 0).numpy())
         pic.thumbnail((THUMB, THUMB))
-        buf = io.BytesIO()
-        pic.save(buf, format="PNG")
-        return buf.getvalue()
+        return pic
 
     def close(self) -> None:
+        self.thumb_pool.shutdown(wait=False, cancel_futures=True)
         self.pool.shutdown(wait=False, cancel_futures=True)
         shutil.rmtree(self.upload_dir, ignore_errors=True)
+
+
+def _png(pic: Image.Image) -> bytes:
+    buf = io.BytesIO()
+    pic.save(buf, format="PNG")
+    return buf.getvalue()
 
 
 def _error(status: int, message: str) -> web.Response:
@@ -89,7 +106,8 @@ def make_app(viewer: Viewer, token: str | None) -> web.Application:
 
     async def thumb(request):
         try:
-            body = await viewer.run(viewer.thumb, request.query.get("m", ""))
+            m = request.query.get("m", "")
+            body = await viewer.run(viewer.thumb, m, pool=viewer.thumb_pool)
         except MaterialError as exc:
             return _error(404, str(exc))
         return web.Response(body=body, content_type="image/png")

@@ -35,6 +35,8 @@ from trainer.viewer.recent import Recent
 
 JPEG_QUALITY = 92
 FORMATS = ("jpeg", "png")
+#: the most bytes of prepared textures kept (float32: 42 MB a 1K material, 670 MB a 4K one)
+PREPARED_BYTES = 2 << 30
 
 
 @dataclass(frozen=True)
@@ -96,7 +98,7 @@ class Engine:
         self.checkpoint = checkpoint
         self._maps = Recent(32)  # (material, edits) → mapped maps
         self._looked = Recent(2)  # (material, tiling) → looked-up sub-samples (16 MB at 400²)
-        self._prepared = Recent(8)  # material → prepared textures
+        self._prepared = Recent(8, PREPARED_BYTES)  # material → prepared textures
 
     def _sync(self) -> None:
         if self.renderer.device.type == "cuda":

@@ -35,6 +35,8 @@ from trainer.viewer.recent import Recent
 #: the largest upload, all files together (bytes), and the largest image (pixels)
 MAX_UPLOAD_BYTES = 64 << 20
 MAX_PIXELS = 8192 * 8192
+#: the most bytes of texture maps kept (uint8: 10 MB a 1K material, 168 MB a 4K one)
+TEXTURE_BYTES = 1 << 30
 _SAFE_NAME = re.compile(r"[^A-Za-z0-9._ -]")
 
 
@@ -81,7 +83,7 @@ class Library:
         self.stores = [Store(u) for u in stores]
         self.upload_dir = upload_dir
         self.entries: OrderedDict[str, Entry] = OrderedDict()
-        self._textures = Recent(16)  # material → (10, H, W) texture maps
+        self._textures = Recent(16, TEXTURE_BYTES)  # material → (10, H, W) uint8 maps
         self.uploads = 0
         for i, store in enumerate(self.stores):
             self._add_store(i, store)
@@ -120,7 +122,7 @@ class Library:
         raise MaterialError(f"{material_id}: no such material in this viewer")
 
     def textures(self, material_id: str) -> torch.Tensor | None:
-        """``(10, H, W) float32`` texture maps of the material (cached), or ``None`` for a
+        """``(10, H, W) uint8`` texture maps of the material (cached), or ``None`` for a
         stored material whose source cannot be read here (a file on another machine):
         :meth:`stored_maps` then stands in."""
         cached = self._textures.get(material_id)
