@@ -528,5 +528,19 @@ def test_the_page_in_chromium_drags_the_sun_edits_uploads_and_compares(run, tiny
         assert page.locator(".tile").count() == tiles + 1
         assert page.evaluate(DIGEST) != before
         assert "good.png" in page.locator("#material").inner_text()
+
+        # a frame that takes long (held here) dims the image and says so, until it comes
+        held = []
+        page.route("**/api/frame?*", lambda route: held.append(route))
+        n = frames(page)
+        page.locator(".tile >> nth=1").click()
+        page.wait_for_function("document.getElementById('frame').classList.contains('waiting')")
+        assert "working" in page.locator("#timing").inner_text()
+        for route in held:
+            route.continue_()
+        page.unroute("**/api/frame?*")
+        wait_new_frame(page, n)
+        assert "network" in page.locator("#timing").inner_text()
+        assert page.evaluate("!document.getElementById('frame').classList.contains('waiting')")
         browser.close()
         assert not errors, errors

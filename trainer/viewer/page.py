@@ -28,7 +28,8 @@ aspect-ratio:1} .tile.on{border-color:#5aa0ff} label{display:flex;justify-conten
 align-items:center;gap:8px;margin:4px 0;font-size:13px} input[type=range]{width:150px}
 .err{color:#ff7b72;min-height:1.2em;font-size:12px} .ok{color:#7ee787}
 #view{text-align:center} #frame{width:min(100%,560px);aspect-ratio:1;background:#000;
-border-radius:6px;image-rendering:auto} #timing{font:12px ui-monospace,monospace;color:#9aa3b2;
+border-radius:6px;image-rendering:auto;transition:opacity .2s} #frame.waiting{opacity:.55}
+#timing{font:12px ui-monospace,monospace;color:#9aa3b2;
 margin:6px 0} button,.button{background:#2f6fd6;color:#fff;border:0;padding:6px 12px;
 border-radius:5px;cursor:pointer;font-size:13px;text-decoration:none}
 button.quiet{background:#3a3f4a} #sky{touch-action:none;cursor:crosshair;display:block;
@@ -68,6 +69,10 @@ async function requestFrame() {
   if (!state.m) return;
   if (inFlight) { pending = true; return; }
   inFlight = true;
+  const slow = setTimeout(() => {  // a large material's first frame reads its files: seconds
+    $('frame').classList.add('waiting');
+    $('timing').textContent = 'working… (a material is read from its files when first shown)';
+  }, 300);
   try {
     const r = await fetch('/api/frame?' + query());
     if (r.ok) {
@@ -86,6 +91,8 @@ async function requestFrame() {
       $('frame-msg').textContent = (await r.json()).error;
     }
   } finally {
+    clearTimeout(slow);
+    $('frame').classList.remove('waiting');
     inFlight = false;
     if (pending) { pending = false; requestFrame(); }
   }
