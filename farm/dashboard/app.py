@@ -38,16 +38,19 @@ class Dashboard:
 
     # ---- names ----------------------------------------------------------------------------
 
-    def store_url(self, name: str) -> str:
+    def _root(self, name: str) -> tuple[jobs.Root, str]:
         index, _, rel = name.partition("/")
         if not index.isdigit() or int(index) >= len(self.roots):
             raise Refused(name)
-        return self.roots[int(index)].store_url(rel or ".")
+        return self.roots[int(index)], rel or "."
+
+    def store_url(self, name: str) -> str:
+        root, rel = self._root(name)
+        return root.store_url(rel)
 
     def job_row(self, name: str) -> dict:
-        index, _, rel = name.partition("/")
-        url = self.store_url(name)
-        return jobs.job_row(name, url, self.roots[int(index)].label(rel or "."))
+        root, rel = self._root(name)
+        return jobs.job_row(name, root.store_url(rel), jobs.label(root.url, rel))
 
     def run_path(self, name: str) -> Path:
         index, _, rel = name.partition("/")
@@ -72,7 +75,7 @@ class Dashboard:
                     url = root.store_url(rel)
                 except Refused:  # a symlink that leads outside the root: not served
                     continue
-                rows.append(jobs.job_row(name, url, root.label(rel)))
+                rows.append(jobs.job_row(name, url, jobs.label(root.url, rel)))
         rows.sort(key=lambda r: -(r.get("started") or 0))
         return rows
 
@@ -81,7 +84,7 @@ class Dashboard:
         for i, base in enumerate(self.run_dirs):
             for rel in runs.find_runs(base):
                 name = str(i) if rel == "." else f"{i}/{rel}"
-                label = str(base) if rel == "." else f"{base}/{rel}"
+                label = jobs.label(str(base), rel)
                 out.append(runs.run_summary(name, self.run_path(name), label))
         return out
 

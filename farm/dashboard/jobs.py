@@ -28,6 +28,15 @@ STALE_S = 60.0
 STATUSES = ("running", "done", "failed", "cancelled", "lost", "interrupted", "no state")
 
 
+def label(root: str, rel: str) -> str:
+    """What pages and metrics call the store or run ``rel`` below ``root``: the root as
+    given on the command line, then the path (``out/demo.zarr``; ``.``: the root itself)."""
+    if not is_remote(root):
+        return os.path.normpath(os.path.join(root, rel))  # ``.``, ``out/``: as typed
+    root = root.rstrip("/")
+    return root if rel == "." else f"{root}/{rel}"
+
+
 @dataclass(frozen=True)
 class Root:
     index: int
@@ -43,13 +52,6 @@ class Root:
             rel = confine_key(rel)
             return self.url.rstrip("/") if rel == "." else f"{self.url.rstrip('/')}/{rel}"
         return str(confine(Path(self.url), rel))
-
-    def label(self, rel: str) -> str:
-        """What pages and metrics call store ``rel``: the root as given, then the path."""
-        if not self.remote:
-            return os.path.normpath(os.path.join(self.url, rel))  # ``.``, ``out/``: as typed
-        root = self.url.rstrip("/")
-        return root if rel == "." else f"{root}/{rel}"
 
     def find(self) -> list[str]:
         """Relative names of the stores under this root, sorted."""
