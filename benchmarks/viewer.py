@@ -1,7 +1,7 @@
 """Viewer benchmark: the time from an edit to the new image's bytes, in three parts.
 
     .venv/bin/python -m benchmarks.viewer [--resolutions 128,256,400] [--frames 12]
-        [--texture 1024] [--device auto]
+        [--texture 1024] [--device auto] [--library N]
 
 For each resolution: the screen UV layout rendered by Blender at the farm's sub-sampling
 (``render_jobs.screen_uv.default_supersample``; cached in ``benchmarks/.cache``), the paper's
@@ -14,13 +14,21 @@ viewer`` answers the page (``trainer.viewer.engine``); each **tiling edit** fram
 the tiling, so it also looks the textures up again; each **drag** frame moves the sun (the
 mapping is cached). Medians over ``--frames``; the share outside the network is (mapping +
 encoding) / frame. Targets: under 20 % of the frame on CPU, under 1 ms on CUDA.
+
+``--library N`` measures a gallery of large materials instead, at the first resolution: N
+procedural ``--texture``² materials in a ``--materials`` folder, picked one after the other.
+For each: its gallery picture (``trainer.viewer.app.Viewer.thumb``), its first frame (the
+files read, mapped, rendered) and the process's resident memory after it, which the
+viewer's caches bound (``trainer.viewer.recent``).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -55,16 +63,46 @@ def layout(resolution: int) -> ScreenUV:
     return suv
 
 
-def material_folder(folder: Path, texture: int) -> Path:
+def material_folder(folder: Path, texture: int, seed: int = 7) -> Path:
     """A 5-panel PNG of a procedural material at ``texture``² (photo, normal, diffuse,
     roughness, specular)."""
     from render_jobs.materials.procedural import procedural_maps
 
-    m = procedural_maps(7, texture)
+    m = procedural_maps(seed, texture)
     panels = [m.diffuse, m.normal, m.diffuse, np.repeat(m.roughness, 3, 2), m.specular]
     strip = (np.concatenate(panels, 1) * 255 + 0.5).astype(np.uint8)
-    Image.fromarray(strip).save(folder / "bench.png")
+    Image.fromarray(strip).save(folder / f"bench-{seed}.png")
     return folder
+
+
+def resident_mb() -> float:
+    """This process's resident memory (Linux ``/proc/self/statm``), MB."""
+    pages = int(Path("/proc/self/statm").read_text().split()[1])
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def library(resolution: int, count: int, texture: int, device: torch.device, tmp: Path):
+    """Per material of a ``count``-material folder: (gallery picture s, first frame s,
+    resident MB after it)."""
+    from trainer.viewer.app import Viewer
+
+    for seed in range(count):
+        material_folder(tmp, texture, seed)
+    renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
+    library = Library([], [str(tmp)], tmp / "uploads")
+    engine = Engine(renderer, ScreenMapper(layout(resolution), device), library, "fresh")
+    viewer = Viewer(engine, tmp / "uploads", {})
+    rows = []
+    try:
+        for mid in library.entries:
+            t0 = time.perf_counter()
+            viewer.thumb(mid)
+            t1 = time.perf_counter()
+            engine.frame(mid, Edits(), Light())
+            rows.append((t1 - t0, time.perf_counter() - t1, resident_mb()))
+    finally:
+        viewer.close()
+    return rows
 
 
 def measure(resolution: int, frames: int, texture: int, device: torch.device, tmp: Path):
@@ -106,16 +144,33 @@ def measure(resolution: int, frames: int, texture: int, device: torch.device, tm
     }
 
 
+def print_library(resolution: int, args, device: torch.device) -> None:
+    print(f"device: {device_name(device)}; {resolution}²; {args.library} materials, "
+          f"{args.texture}² maps (5-panel PNGs)")  # fmt: skip
+    print("| material | gallery picture s | first frame s | resident MB after |")
+    print("|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = library(resolution, args.library, args.texture, device, Path(tmp))
+        for i, (pic, first, mb) in enumerate(rows):
+            print(f"| {i + 1} | {pic:.2f} | {first:.2f} | {mb:,.0f} |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--resolutions", default="128,256,400")
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--texture", type=int, default=1024)
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
+    ap.add_argument("--library", type=int, default=0, metavar="N",
+                    help="time a gallery of N --texture² materials (see above)")  # fmt: skip
     args = ap.parse_args()
     if args.frames < 1:
         ap.error("--frames must be at least 1")
+    if args.library < 0:
+        ap.error("--library must be 0 or more")
     device = pick_device(args.device)
+    if args.library:
+        return print_library(int(args.resolutions.split(",")[0]), args, device)
     print(f"device: {device_name(device)}; torch threads {torch.get_num_threads()}; "
           f"texture {args.texture}²; medians of {args.frames} frames")  # fmt: skip
     print(
