@@ -54,7 +54,7 @@ def textures_from_maps(maps: MaterialMaps) -> torch.Tensor:
 
 def _bytes(x: torch.Tensor) -> torch.Tensor:
     """Values in [0, 1] → the nearest of the 256 8-bit levels, as float32 (0 to 255)."""
-    return torch.round(x.to(torch.float32).clamp(0.0, 1.0) * 255.0)
+    return x.to(torch.float32).clamp(0.0, 1.0).mul_(255.0).round_()  # clamp's copy, in place
 
 
 class ScreenMapper:
