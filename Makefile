@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-train bench-infer bench-viewer bench-storage gpu-wheels clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-train bench-infer bench-viewer bench-materials bench-storage gpu-wheels clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -75,6 +75,10 @@ bench-infer: $(BIN)/.installed
 # The viewer: an edit's mapping, network and encoding times at 128², 256², 400².
 bench-viewer: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.viewer
+
+# The material reader: time and peak memory of reading one 4K library material, two layouts.
+bench-materials: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.materials
 
 # For a GPU machine with CUDA torch but no package registry (benchmarks/gpu.sh says how):
 # the packages of the store and the viewer benchmark as wheels for its Python (GPU_PYTHON, the

@@ -18,23 +18,22 @@ encoding) / frame. Targets: under 20 % of the frame on CPU, under 1 ms on CUDA.
 ``--library N`` measures a gallery of large materials instead, at the first resolution: N
 procedural ``--texture``² materials in a ``--materials`` folder, picked one after the other.
 For each: its gallery picture (``trainer.viewer.app.Viewer.thumb``), its first frame (the
-files read, mapped, rendered) and the process's resident memory after it, which the
-viewer's caches bound (``trainer.viewer.recent``).
+files read, mapped, rendered), the process's resident memory after it, which the viewer's
+caches bound (``trainer.viewer.recent``), and its peak resident memory so far (``ru_maxrss``:
+the caches plus what reading a material holds for a moment).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
-from PIL import Image
 
+from benchmarks.materials import panel_png, peak_mb, resident_mb, write_apart
 from benchmarks.train import device_name
 from render_jobs.screen_uv import ScreenUV, default_supersample
 from trainer.infer import Renderer, pick_device
@@ -63,31 +62,12 @@ def layout(resolution: int) -> ScreenUV:
     return suv
 
 
-def material_folder(folder: Path, texture: int, seed: int = 7) -> Path:
-    """A 5-panel PNG of a procedural material at ``texture``² (photo, normal, diffuse,
-    roughness, specular)."""
-    from render_jobs.materials.procedural import procedural_maps
-
-    m = procedural_maps(seed, texture)
-    panels = [m.diffuse, m.normal, m.diffuse, np.repeat(m.roughness, 3, 2), m.specular]
-    strip = (np.concatenate(panels, 1) * 255 + 0.5).astype(np.uint8)
-    Image.fromarray(strip).save(folder / f"bench-{seed}.png")
-    return folder
-
-
-def resident_mb() -> float:
-    """This process's resident memory (Linux ``/proc/self/statm``), MB."""
-    pages = int(Path("/proc/self/statm").read_text().split()[1])
-    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
 def library(resolution: int, count: int, texture: int, device: torch.device, tmp: Path):
     """Per material of a ``count``-material folder: (gallery picture s, first frame s,
-    resident MB after it)."""
+    resident MB after it, peak resident MB so far)."""
     from trainer.viewer.app import Viewer
 
-    for seed in range(count):
-        material_folder(tmp, texture, seed)
+    write_apart(tmp, texture, count)  # apart: the peak column is the viewer's own
     renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
     library = Library([], [str(tmp)], tmp / "uploads")
     engine = Engine(renderer, ScreenMapper(layout(resolution), device), library, "fresh")
@@ -99,7 +79,7 @@ def library(resolution: int, count: int, texture: int, device: torch.device, tmp
             viewer.thumb(mid)
             t1 = time.perf_counter()
             engine.frame(mid, Edits(), Light())
-            rows.append((t1 - t0, time.perf_counter() - t1, resident_mb()))
+            rows.append((t1 - t0, time.perf_counter() - t1, resident_mb(), peak_mb()))
     finally:
         viewer.close()
     return rows
@@ -110,7 +90,8 @@ def measure(resolution: int, frames: int, texture: int, device: torch.device, tm
     mapping of tiling-edit frames, and drag frames."""
     suv = layout(resolution)
     renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
-    library = Library([], [str(material_folder(tmp, texture))], tmp / "uploads")
+    panel_png(tmp, texture)
+    library = Library([], [str(tmp)], tmp / "uploads")
     engine = Engine(renderer, ScreenMapper(suv, device), library, "fresh weights")
     mid = next(iter(library.entries))
     engine.frame(mid, Edits(roughness_scale=0.3), Light())  # warm-up: textures, grids, kernels
@@ -147,12 +128,12 @@ def measure(resolution: int, frames: int, texture: int, device: torch.device, tm
 def print_library(resolution: int, args, device: torch.device) -> None:
     print(f"device: {device_name(device)}; {resolution}²; {args.library} materials, "
           f"{args.texture}² maps (5-panel PNGs)")  # fmt: skip
-    print("| material | gallery picture s | first frame s | resident MB after |")
-    print("|---|---|---|---|")
+    print("| material | gallery picture s | first frame s | resident MB after | peak MB so far |")
+    print("|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         rows = library(resolution, args.library, args.texture, device, Path(tmp))
-        for i, (pic, first, mb) in enumerate(rows):
-            print(f"| {i + 1} | {pic:.2f} | {first:.2f} | {mb:,.0f} |", flush=True)
+        for i, (pic, first, mb, peak) in enumerate(rows):
+            print(f"| {i + 1} | {pic:.2f} | {first:.2f} | {mb:,.0f} | {peak:,.0f} |", flush=True)
 
 
 def main() -> None:

@@ -14,6 +14,7 @@ import pytest
 from farm.materials import dry_run
 from render_jobs.errors import MaterialError
 from render_jobs.exr import write_image_exr
+from render_jobs.materials import files
 from render_jobs.materials.files import metal_rough_to_spec_gloss, read_svbrdf
 from render_jobs.materials.library import role_of
 from render_jobs.materials.maps import linear_to_srgb, srgb_to_linear
@@ -215,6 +216,32 @@ def test_a_metal_rough_uniform_material_equals_its_spec_gloss_equivalent(tmp_pat
     assert (how_a.workflow, how_b.workflow) == ("metal-rough", "spec-gloss")
     for name in ("diffuse", "specular", "roughness", "normal"):
         np.testing.assert_allclose(getattr(a, name), getattr(b, name), atol=1e-4, err_msg=name)
+
+
+def test_reading_in_bands_of_rows_gives_the_same_maps(library, tmp_path, monkeypatch):
+    """Files are converted a few rows at a time: the maps equal those of one whole pass (a
+    float material, polyhaven's EXR normal, is always one pass), and a map that is coloured
+    only in its last rows is still caught."""
+    panels = rand(S, 5 * S, 3)
+    panels[:, 3 * S : 4 * S] = panels[:, 3 * S : 4 * S, :1]  # a grey roughness panel
+    five = write(tmp_path / "five.png", panels)
+    whole = {p.name: read_svbrdf(p) for p in [*sorted(library.iterdir()), five]}
+    monkeypatch.setattr(files, "BAND_PIXELS", 5 * S)  # 5 rows of a 16-wide map, 1 of a panel
+    ints = [files.images.read(library / "leather" / "leather_diffuse.png")]
+    assert files.band_rows((S, S), ints) == 5 and files.band_rows((S, 5 * S), ints) == 1
+    exr = files.images.read(library / "metal_plate" / "metal_plate_nor_gl_1k.exr")
+    assert files.band_rows((S, S), [*ints, exr]) == S  # a float file: one pass
+    for name, (maps, how) in whole.items():
+        banded, how_banded = read_svbrdf(library / name if name != "five.png" else five)
+        assert how_banded == how, name
+        for m in ("diffuse", "specular", "roughness", "normal"):
+            np.testing.assert_array_equal(getattr(banded, m), getattr(maps, m), err_msg=name)
+    d = spec_gloss(tmp_path / "late")
+    gloss = np.repeat(rand(S, S)[..., None], 3, 2)
+    gloss[-1, -1] = [0.1, 0.9, 0.5]
+    write(d / "leather_glossiness.tif", gloss, bits=16)
+    with pytest.raises(MaterialError, match="leather_glossiness.tif: glossiness map is not grey"):
+        read_svbrdf(d)
 
 
 def broken(root: Path) -> dict[str, tuple[Path, str]]:

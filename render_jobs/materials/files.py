@@ -16,6 +16,11 @@ renderer's maps, every step recorded in a :class:`Reading` for ``farm materials`
   linear colour;
 - maps of different sizes are resampled (bilinear) to the largest.
 
+Files are converted a band of rows at a time (:func:`by_bands`): every step above is per
+texel, so the maps come out the same, and a 4K material costs its files' bytes and its maps,
+not float copies of every file and every step. A material with a float file (EXR) is converted
+whole, because its range checks and a normal map's encoding are decided over the whole image.
+
 Every problem raises :class:`MaterialError` as ``"<file or folder>: <problem>"``.
 """
 
@@ -29,7 +34,12 @@ import numpy as np
 from render_jobs.errors import MaterialError
 from render_jobs.materials import images
 from render_jobs.materials.library import FolderPlan, looks_like_material, plan_folder
-from render_jobs.materials.maps import MaterialMaps, linear_to_srgb, srgb_to_linear
+from render_jobs.materials.maps import (
+    MAP_CHANNELS,
+    MaterialMaps,
+    linear_to_srgb,
+    srgb_to_linear,
+)
 
 PANELS = ("photo", "normal", "diffuse", "roughness", "specular")
 #: how far a grey map's R, G and B may differ (JPEG noise) before it counts as coloured
@@ -37,6 +47,8 @@ GREY_TOLERANCE = 6.0 / 255.0
 #: float data maps may overshoot [0, 1] by this much (rounding) and are clipped
 FLOAT_SLACK = 1e-3
 DIELECTRIC_F0 = 0.04
+#: texels converted at a time: a band's float temporaries stay small (12 MB for RGB)
+BAND_PIXELS = 1 << 20
 
 
 @dataclass
@@ -106,24 +118,51 @@ def _resize(px: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 def load_panel_png(path: Path) -> MaterialMaps:
     """A Deschaintre-style 5-panel PNG as maps."""
     img = images.read(path)
-    arr = img.pixels
-    h, w, c = arr.shape
+    h, w = img.size
     if w != 5 * h:
         raise MaterialError(
             f"{path}: expected 5 square panels side by side (width = 5 x height), "
             f"got {w}x{h} ({w / h:.2f} panels)"
         )
-    if c not in (3, 4):
-        raise MaterialError(f"{path}: expected an RGB image, got {c} channel(s)")
-    panel = {name: arr[:, i * h : (i + 1) * h, :3] for i, name in enumerate(PANELS)}
-    rough = images.Image(path, np.ascontiguousarray(panel["roughness"]), img.bits)
-    return MaterialMaps(
-        diffuse=np.ascontiguousarray(panel["diffuse"]),
-        specular=np.ascontiguousarray(panel["specular"]),
-        roughness=_grey(rough, "roughness panel"),
-        normal=np.ascontiguousarray(panel["normal"]),
-        source_id=path.name,
-    )
+    if img.channels not in (3, 4):
+        raise MaterialError(f"{path}: expected an RGB image, got {img.channels} channel(s)")
+
+    def convert(start: int, stop: int) -> dict[str, np.ndarray]:
+        px = img.rows(start, stop)
+        panel = {name: px[:, i * h : (i + 1) * h, :3] for i, name in enumerate(PANELS)}
+        rough = images.Image(path, np.ascontiguousarray(panel["roughness"]), img.bits)
+        return {
+            "diffuse": panel["diffuse"],
+            "specular": panel["specular"],
+            "roughness": _grey(rough, "roughness panel"),
+            "normal": panel["normal"],
+        }
+
+    maps = by_bands((h, h), band_rows(img.size, [img]), convert)
+    return MaterialMaps(**{k: maps[k] for k in MAP_CHANNELS}, source_id=path.name)
+
+
+def band_rows(size: tuple[int, int], imgs) -> int:
+    """Rows a band of images of ``size`` (height, width): about :data:`BAND_PIXELS` texels,
+    or every row when an image is float."""
+    if any(img.is_float for img in imgs):
+        return size[0]
+    return max(1, BAND_PIXELS // size[1])
+
+
+def by_bands(size: tuple[int, int], rows: int, convert) -> dict[str, np.ndarray]:
+    """Maps of ``size`` (height, width), made ``rows`` rows at a time by ``convert(start, stop)``
+    (name to ``(stop - start, width, C)`` floats); contiguous ``float32``."""
+    if rows >= size[0]:
+        return {k: np.ascontiguousarray(v, np.float32) for k, v in convert(0, size[0]).items()}
+    out: dict[str, np.ndarray] = {}
+    for start in range(0, size[0], rows):
+        stop = min(start + rows, size[0])
+        for name, band in convert(start, stop).items():
+            if name not in out:
+                out[name] = np.empty((*size, band.shape[2]), np.float32)
+            out[name][start:stop] = band
+    return out
 
 
 def read_map_folder(folder: Path) -> tuple[MaterialMaps, Reading]:
@@ -140,21 +179,46 @@ def read_map_folder(folder: Path) -> tuple[MaterialMaps, Reading]:
                 f"{img.path.name} resampled from {img.size[1]}x{img.size[0]} to {size[1]}x{size[0]}"
             )
             imgs[role] = images.Image(img.path, _resize(img.pixels, size), img.bits)
-    maps = _convert(plan, imgs, size, reading)
+    packed = imgs.get("packed")
+    if packed is not None and packed.channels < 3:
+        raise MaterialError(f"{packed.path}: a packed ARM/ORM map needs 3 channels")
+
+    def convert(start: int, stop: int) -> dict[str, np.ndarray]:
+        band = {role: img.band(start, stop) for role, img in imgs.items()}
+        return _convert(plan, band, (stop - start, size[1]))
+
+    maps = by_bands(size, band_rows(size, imgs.values()), convert)
+    reading.conversions.extend(_notes(plan, imgs))
     return MaterialMaps(**maps, source_id=folder.name), reading
 
 
-def _convert(plan: FolderPlan, imgs: dict, size: tuple[int, int], reading: Reading) -> dict:
-    """The plan's images as this renderer's four maps."""
-    packed = imgs.get("packed")
-    if packed is not None and packed.pixels.shape[2] < 3:
-        raise MaterialError(f"{packed.path}: a packed ARM/ORM map needs 3 channels")
+def _notes(plan: FolderPlan, imgs: dict) -> list[str]:
+    """What :func:`_convert` does to the plan's images, in its order, for the dry run."""
+    notes = []
     if plan.roughness_from == "packed":
-        rough = np.clip(packed.pixels[..., 1:2], 0.0, 1.0)
-        reading.conversions.append(f"roughness from the green channel of {packed.path.name}")
+        notes.append(f"roughness from the green channel of {imgs['packed'].path.name}")
+    elif plan.roughness_from == "glossiness":
+        notes.append("roughness = 1 - glossiness")
+    if "normal" in imgs and plan.normal_from == "normal_dx":
+        notes.append("DirectX normal map: green flipped to OpenGL")
+    elif "normal" in imgs and plan.normal_from == "normal":
+        notes.append("normal map taken as OpenGL (its name does not say)")
+    if plan.workflow == "metal-rough":
+        if plan.metallic_from == "packed":
+            notes.append(f"metallic from the blue channel of {imgs['packed'].path.name}")
+        notes.append(
+            "metal-rough to diffuse/specular (glTF 2.0): diffuse = base x (1 - metallic), "
+            "specular = lerp(0.04, base, metallic)"
+        )
+    return notes
+
+
+def _convert(plan: FolderPlan, imgs: dict, size: tuple[int, int]) -> dict:
+    """The plan's images (or the same rows of each) as this renderer's four maps."""
+    if plan.roughness_from == "packed":
+        rough = np.clip(imgs["packed"].pixels[..., 1:2], 0.0, 1.0)
     elif plan.roughness_from == "glossiness":
         rough = 1.0 - _grey(imgs["glossiness"], "glossiness")
-        reading.conversions.append("roughness = 1 - glossiness")
     else:
         rough = _grey(imgs["roughness"], "roughness")
     if "normal" in imgs:
@@ -162,42 +226,39 @@ def _convert(plan: FolderPlan, imgs: dict, size: tuple[int, int], reading: Readi
         if plan.normal_from == "normal_dx":
             normal = normal.copy()
             normal[..., 1] = 1.0 - normal[..., 1]
-            reading.conversions.append("DirectX normal map: green flipped to OpenGL")
-        elif plan.normal_from == "normal":
-            reading.conversions.append("normal map taken as OpenGL (its name does not say)")
     else:
-        normal = np.broadcast_to(np.array([0.5, 0.5, 1.0], np.float32), (*size, 3)).copy()
+        normal = np.broadcast_to(np.array([0.5, 0.5, 1.0], np.float32), (*size, 3))
     if plan.workflow == "spec-gloss":
         diffuse = _colour(imgs["diffuse"], "diffuse")
         specular = _colour(imgs["specular"], "specular")
     else:
-        diffuse, specular = _metal_rough(plan, imgs, size, reading)
+        diffuse, specular = _metal_rough(plan, imgs, size)
     return {"diffuse": diffuse, "specular": specular, "roughness": rough, "normal": normal}
 
 
-def _metal_rough(plan: FolderPlan, imgs: dict, size: tuple[int, int], reading: Reading):
+def _metal_rough(plan: FolderPlan, imgs: dict, size: tuple[int, int]):
     base = srgb_to_linear(_colour(imgs["basecolor"], "base colour"))
     if plan.metallic_from == "packed":
         metal = np.clip(imgs["packed"].pixels[..., 2:3], 0.0, 1.0)
-        reading.conversions.append(f"metallic from the blue channel of {imgs['packed'].path.name}")
     elif plan.metallic_from == "metallic":
         metal = _grey(imgs["metallic"], "metallic")
     else:
         metal = np.zeros((*size, 1), np.float32)
     diffuse, specular = metal_rough_to_spec_gloss(base, metal)
-    reading.conversions.append(
-        "metal-rough to diffuse/specular (glTF 2.0): diffuse = base x (1 - metallic), "
-        "specular = lerp(0.04, base, metallic)"
-    )
     return linear_to_srgb(diffuse), linear_to_srgb(specular)
 
 
 def metal_rough_to_spec_gloss(base: np.ndarray, metallic: np.ndarray):
     """Linear base colour ``(..., 3)`` and metallic ``(..., 1)`` → linear (diffuse,
     specular), as glTF 2.0 (Appendix B) mixes its dielectric and metal BRDFs."""
-    diffuse = base * (1.0 - metallic)
-    specular = DIELECTRIC_F0 * (1.0 - metallic) + base * metallic
-    return diffuse.astype(np.float32), specular.astype(np.float32)
+    # metallic repeated to 3 channels: numpy's broadcast of a last axis of 1 is a few times
+    # slower than the plain elementwise loop, which gives the same values
+    metallic = np.repeat(np.asarray(metallic, np.float32), base.shape[-1], axis=-1)
+    dielectric = 1.0 - metallic
+    diffuse = base * dielectric
+    specular = DIELECTRIC_F0 * dielectric
+    specular += base * metallic
+    return diffuse.astype(np.float32, copy=False), specular.astype(np.float32, copy=False)
 
 
 def read_svbrdf(path: Path) -> tuple[MaterialMaps, Reading]:

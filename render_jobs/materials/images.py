@@ -1,10 +1,15 @@
 """Reading texture files as they come from material libraries: 8- and 16-bit PNG, JPEG, TIFF
-(8-, 16-bit and float), BMP, TGA and OpenEXR, into ``(H, W, C) float32`` arrays.
+(8-, 16-bit and float), BMP, TGA and OpenEXR.
 
-Integer images are scaled to [0, 1] by their bit depth; float images (EXR, float TIFF) are kept
-as stored and must be finite. Which values are colour (sRGB) and which are data is not decided
-here but by the map each file is (:mod:`render_jobs.materials.library`): :class:`Image` says
-whether the file held floats, since a float colour map is linear by convention (EXR).
+An :class:`Image` keeps the samples as stored (``uint8``, ``uint16`` or ``float32``) and gives
+``float32`` rows on demand: integer samples scaled to [0, 1] by their bit depth, float ones
+(EXR, float TIFF) as stored, which must be finite. Keeping the stored samples lets a reader
+convert a large image a band of rows at a time (:mod:`render_jobs.materials.files`), so a 4K
+map costs its bytes plus one band of floats, not a float copy of the whole image.
+
+Which values are colour (sRGB) and which are data is not decided here but by the map each file
+is (:mod:`render_jobs.materials.library`): :class:`Image` says whether the file held floats,
+since a float colour map is linear by convention (EXR).
 
 OpenCV reads PNG, JPEG, TIFF and BMP (Pillow reads 16-bit RGB PNG as 8 bits); Pillow reads
 TGA; the ``OpenEXR`` package reads EXR. Every problem raises :class:`MaterialError` as
@@ -27,11 +32,12 @@ MAX_PIXELS = 16384 * 16384
 
 @dataclass(frozen=True)
 class Image:
-    """``pixels``: ``(H, W, C) float32``, C = 1, 3 or 4; ``bits``: 8, 16 or 32 (float);
-    ``is_float``: stored as floats (linear by convention)."""
+    """``data``: ``(H, W, C)``, C = 1, 3 or 4, as stored (``uint8``, ``uint16``) or as floats
+    (``float32``: a float file, or an image already converted); ``bits``: the file's 8, 16
+    or 32 (float); ``is_float``: stored as floats (linear by convention)."""
 
     path: Path
-    pixels: np.ndarray
+    data: np.ndarray
     bits: int
 
     @property
@@ -41,12 +47,34 @@ class Image:
     @property
     def size(self) -> tuple[int, int]:
         """(height, width)."""
-        return self.pixels.shape[0], self.pixels.shape[1]
+        return self.data.shape[0], self.data.shape[1]
+
+    @property
+    def channels(self) -> int:
+        return self.data.shape[2]
+
+    def rows(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """Rows ``start:stop`` as ``float32``: integers scaled to [0, 1], floats as they are."""
+        band = self.data[start:stop]
+        if band.dtype not in (np.uint8, np.uint16):
+            return band
+        out = band.astype(np.float32)
+        out /= 255.0 if band.dtype == np.uint8 else 65535.0  # in place: no second copy
+        return out
+
+    def band(self, start: int, stop: int) -> Image:
+        """The same image's rows ``start:stop`` (a view of its samples)."""
+        return Image(self.path, self.data[start:stop], self.bits)
+
+    @property
+    def pixels(self) -> np.ndarray:
+        """The whole image as ``float32`` (:meth:`rows`)."""
+        return self.rows()
 
     def describe(self) -> str:
         h, w = self.size
         kind = "float" if self.is_float else f"{self.bits}-bit"
-        return f"{w}x{h} {kind}, {self.pixels.shape[2]} channel(s)"
+        return f"{w}x{h} {kind}, {self.channels} channel(s)"
 
 
 def read(path: Path) -> Image:
@@ -69,9 +97,11 @@ def read(path: Path) -> Image:
         raise MaterialError(f"{path}: {pixels.shape[2]} channels (expected 1 to 4)")
     if pixels.shape[2] == 2:  # grey + alpha
         pixels = pixels[..., :1]
-    if bits == 32 and not np.all(np.isfinite(pixels)):
-        raise MaterialError(f"{path}: holds NaN or Inf values")
-    return Image(path, np.ascontiguousarray(pixels, dtype=np.float32), bits)
+    if bits == 32:
+        pixels = pixels.astype(np.float32, copy=False)
+        if not np.all(np.isfinite(pixels)):
+            raise MaterialError(f"{path}: holds NaN or Inf values")
+    return Image(path, np.ascontiguousarray(pixels), bits)
 
 
 def _read_cv2(path: Path) -> tuple[np.ndarray, int]:
@@ -86,22 +116,20 @@ def _read_cv2(path: Path) -> tuple[np.ndarray, int]:
     if arr.ndim == 3 and arr.shape[2] >= 3:  # OpenCV keeps BGR(A)
         arr = _rgb(arr)
     if arr.dtype in (np.uint8, np.uint16):
-        out = arr.astype(np.float32)
-        out /= 255.0 if arr.dtype == np.uint8 else 65535.0  # in place: no second copy
-        return out, 8 if arr.dtype == np.uint8 else 16
+        return arr, 8 if arr.dtype == np.uint8 else 16
     if arr.dtype in (np.float32, np.float64, np.float16):
-        return arr.astype(np.float32), 32
+        return arr.astype(np.float32, copy=False), 32
     raise MaterialError(f"{path}: unsupported sample type {arr.dtype} (use 8/16-bit or float)")
 
 
 def _rgb(arr: np.ndarray) -> np.ndarray:
-    """OpenCV's BGR(A) as RGB(A): ``cvtColor`` for the types it takes (a few times faster
-    than an indexed copy), the indexed copy for the others."""
+    """OpenCV's BGR(A) as RGB(A), in place by ``cvtColor`` for the types it takes (a few times
+    faster than an indexed copy, and no second image), an indexed copy for the others."""
     import cv2
 
     if arr.shape[2] in (3, 4) and arr.dtype in (np.uint8, np.uint16, np.float32):
         code = cv2.COLOR_BGR2RGB if arr.shape[2] == 3 else cv2.COLOR_BGRA2RGBA
-        return cv2.cvtColor(arr, code)
+        return cv2.cvtColor(arr, code, dst=arr)
     return arr[..., [2, 1, 0, *range(3, arr.shape[2])]]
 
 
@@ -117,7 +145,7 @@ def _read_pillow(path: Path) -> tuple[np.ndarray, int]:
             arr = np.asarray(img, dtype=np.uint8)
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise MaterialError(f"{path}: not a readable image ({exc})") from None
-    return arr.astype(np.float32) / 255.0, 8
+    return arr, 8
 
 
 def _read_exr(path: Path) -> tuple[np.ndarray, int]:

@@ -1,0 +1,144 @@
+"""Material reader benchmark: the time and peak memory of reading one large library material.
+
+    .venv/bin/python -m benchmarks.materials [--texture 4096] [--repeat 2]
+
+Writes one procedural material at ``--texture``² in two library layouts: a 5-panel PNG
+(photo | normal | diffuse | roughness | specular) and a metal-rough per-map folder of 8-bit
+PNGs (base colour, OpenGL normal, roughness, metalness). Each is read by
+``render_jobs.materials.files.read_svbrdf``, as a farm worker and the viewer read them, in a
+fresh process per read so that its peak resident memory (``ru_maxrss``) is that read's.
+Reported: seconds (best of ``--repeat``), the process's resident memory before the read, its
+peak, and the maps' own size (four ``float32`` maps, 40 bytes a texel). The peak over the
+resident memory before and the maps is what the reader holds for a moment.
+
+The materials are written by a child process too (:func:`write_apart`): on Linux a child
+starts with its parent's peak, so a parent that made 4K maps would lend its children its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+LAYOUTS = ("panel", "metal-rough")
+
+
+def panel_png(folder: Path, texture: int, seed: int = 7) -> Path:
+    """A 5-panel PNG of a procedural material at ``texture``² (photo, normal, diffuse,
+    roughness, specular), ``folder/bench-<seed>.png``."""
+    from render_jobs.materials.procedural import procedural_maps
+
+    m = procedural_maps(seed, texture)
+    panels = [m.diffuse, m.normal, m.diffuse, np.repeat(m.roughness, 3, 2), m.specular]
+    strip = (np.concatenate(panels, 1) * 255 + 0.5).astype(np.uint8)
+    path = folder / f"bench-{seed}.png"
+    Image.fromarray(strip).save(path)
+    return path
+
+
+def metal_rough_folder(folder: Path, texture: int, seed: int = 7) -> Path:
+    """A metal-rough per-map folder of 8-bit PNGs named as ambientCG names them,
+    ``folder/bench-<seed>/``."""
+    from render_jobs.materials.procedural import procedural_maps
+
+    m = procedural_maps(seed, texture)
+    out = folder / f"bench-{seed}"
+    out.mkdir()
+    maps = {"Color": m.diffuse, "NormalGL": m.normal, "Roughness": m.roughness[..., 0],
+            "Metalness": m.roughness[..., 0] * 0.5}  # fmt: skip
+    for name, arr in maps.items():
+        Image.fromarray((arr * 255 + 0.5).astype(np.uint8)).save(out / f"bench_{name}.png")
+    return out
+
+
+def write_apart(folder: Path, texture: int, count: int = 1, layout: str = "panel") -> list[Path]:
+    """``count`` materials (seeds 0, 1, ...) in ``layout``, written by a child process so that
+    this one's peak memory stays its own; their paths."""
+    subprocess.run(
+        [sys.executable, "-m", "benchmarks.materials", "--write", str(folder),
+         "--texture", str(texture), "--count", str(count), "--layout", layout],
+        check=True,
+    )  # fmt: skip
+    return sorted(folder.glob("bench-*"))
+
+
+def resident_mb() -> float:
+    """This process's resident memory (Linux ``/proc/self/statm``), MB."""
+    pages = int(Path("/proc/self/statm").read_text().split()[1])
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def peak_mb() -> float:
+    """This process's peak resident memory so far (Linux ``ru_maxrss``, KiB), MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def read_once(path: Path) -> dict:
+    """Read ``path`` in this process: seconds, MB resident before, peak MB, maps MB."""
+    from render_jobs.materials.files import read_svbrdf
+
+    before = resident_mb()
+    t0 = time.perf_counter()
+    maps, _ = read_svbrdf(path)
+    seconds = time.perf_counter() - t0
+    nbytes = sum(getattr(maps, k).nbytes for k in ("diffuse", "specular", "roughness", "normal"))
+    return {"seconds": seconds, "before_mb": before, "peak_mb": peak_mb(),
+            "maps_mb": nbytes / 2**20}  # fmt: skip
+
+
+def measure(path: Path, repeat: int) -> dict:
+    """The best of ``repeat`` reads of ``path``, each in a fresh process."""
+    runs = []
+    for _ in range(repeat):
+        out = subprocess.run(
+            [sys.executable, "-m", "benchmarks.materials", "--read", str(path)],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        runs.append(json.loads(out.stdout))
+    return min(runs, key=lambda r: r["seconds"])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--texture", type=int, default=4096, help="maps' size in texels (4096)")
+    ap.add_argument("--repeat", type=int, default=2, help="reads of each layout (2)")
+    ap.add_argument("--read", type=Path, help=argparse.SUPPRESS)  # one read, as JSON
+    ap.add_argument("--write", type=Path, help=argparse.SUPPRESS)  # materials, for write_apart
+    ap.add_argument("--count", type=int, default=1, help=argparse.SUPPRESS)
+    ap.add_argument("--layout", choices=LAYOUTS, default="panel", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.read is not None:
+        print(json.dumps(read_once(args.read)))
+        return
+    if args.write is not None:
+        make = panel_png if args.layout == "panel" else metal_rough_folder
+        for seed in range(args.count):
+            make(args.write, args.texture, seed)
+        return
+    if args.texture < 8 or args.repeat < 1:
+        ap.error("--texture must be at least 8 and --repeat at least 1")
+    print(f"{args.texture}² maps, best of {args.repeat} reads, each in a fresh process")
+    print("| layout | read s | resident MB before | peak MB | maps MB |")
+    print("|---|---|---|---|---|")
+    names = {"panel": "5-panel PNG", "metal-rough": "metal-rough folder (4 PNGs)"}
+    with tempfile.TemporaryDirectory() as tmp:
+        for layout in LAYOUTS:
+            (Path(tmp) / layout).mkdir()
+            path = write_apart(Path(tmp) / layout, args.texture, 1, layout)[0]
+            r = measure(path, args.repeat)
+            print(f"| {names[layout]} | {r['seconds']:.2f} | {r['before_mb']:,.0f} | "
+                  f"{r['peak_mb']:,.0f} | {r['maps_mb']:,.0f} |", flush=True)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
