@@ -526,6 +526,7 @@ def test_the_page_in_chromium_drags_the_sun_edits_uploads_and_compares(run, tiny
         wait_new_frame(page, n)
         page.wait_for_timeout(1000)
         assert page.locator(".tile").count() == tiles + 1
+        assert page.locator("#gallery-count").inner_text() == str(tiles + 1)
         assert page.evaluate(DIGEST) != before
         assert "good.png" in page.locator("#material").inner_text()
 
@@ -536,10 +537,16 @@ def test_the_page_in_chromium_drags_the_sun_edits_uploads_and_compares(run, tiny
         page.locator(".tile >> nth=1").click()
         page.wait_for_function("document.getElementById('frame').classList.contains('waiting')")
         assert "working" in page.locator("#timing").inner_text()
+        page.wait_for_function(  # the time waited so far counts up
+            "parseFloat((/working… ([0-9.]+) s/.exec("
+            "document.getElementById('timing').textContent) || [0, 0])[1]) >= 0.8"
+        )
+        page.screenshot(path=str(ARTIFACTS / "viewer-working.png"))
         for route in held:
             route.continue_()
         page.unroute("**/api/frame?*")
         wait_new_frame(page, n)
+        page.wait_for_timeout(300)  # the counter has stopped: it does not write over the times
         assert "network" in page.locator("#timing").inner_text()
         assert page.evaluate("!document.getElementById('frame').classList.contains('waiting')")
         browser.close()

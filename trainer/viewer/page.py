@@ -69,9 +69,17 @@ async function requestFrame() {
   if (!state.m) return;
   if (inFlight) { pending = true; return; }
   inFlight = true;
+  const started = performance.now();
+  let ticking = null;
+  const working = () => {
+    const s = ((performance.now() - started) / 1000).toFixed(1);
+    $('timing').textContent =
+      'working… ' + s + ' s (a material is read from its files when first shown)';
+  };
   const slow = setTimeout(() => {  // a large material's first frame reads its files: seconds
     $('frame').classList.add('waiting');
-    $('timing').textContent = 'working… (a material is read from its files when first shown)';
+    working();
+    ticking = setInterval(working, 100);
   }, 300);
   try {
     const r = await fetch('/api/frame?' + query());
@@ -92,6 +100,7 @@ async function requestFrame() {
     }
   } finally {
     clearTimeout(slow);
+    clearInterval(ticking);
     $('frame').classList.remove('waiting');
     inFlight = false;
     if (pending) { pending = false; requestFrame(); }
@@ -143,6 +152,7 @@ $('upload-go').onclick = async () => {
   if (!r.ok) { $('upload-msg').textContent = body.error; return; }
   $('upload-msg').className = 'ok'; $('upload-msg').textContent = 'loaded ' + body.label;
   byId[body.id] = body; $('gallery').prepend(tile(body)); pick(body);
+  $('gallery-count').textContent = String($('gallery').children.length);
 };
 
 function uniformId() {
@@ -248,7 +258,8 @@ materials only (no screen UV layout){% endif %}</span></header>
 <main>
 <div>
 <section><h2>Material</h2><div id="gallery"></div>
-<p><small>{{ materials|length }} in the gallery; pick one, upload one, or build one.</small></p>
+<p><small><span id="gallery-count">{{ materials|length }}</span> in the gallery; pick one,
+upload one, or build one.</small></p>
 </section>
 <section><h2>Upload</h2>
 <input type="file" id="upload" multiple accept="image/*,.exr,.tif,.tiff,.tga">
