@@ -1,6 +1,6 @@
 """Material reader benchmark: the time and peak memory of reading one large library material.
 
-    .venv/bin/python -m benchmarks.materials [--texture 4096] [--repeat 2]
+    .venv/bin/python -m benchmarks.materials [--texture 4096] [--repeat 2] [--no-render]
 
 Writes one procedural material at ``--texture``² in two library layouts: a 5-panel PNG
 (photo | normal | diffuse | roughness | specular) and a metal-rough per-map folder of 8-bit
@@ -10,6 +10,11 @@ fresh process per read so that its peak resident memory (``ru_maxrss``) is that 
 Reported: seconds (best of ``--repeat``), the process's resident memory before the read, its
 peak, and the maps' own size (four ``float32`` maps, 40 bytes a texel). The peak over the
 resident memory before and the maps is what the reader holds for a moment.
+
+The second table follows each read into a render worker (``render_jobs.process.RenderProcess``,
+as a farm worker holds one): the material is sent to its Blender process and rendered once at
+32² and 1 sample, so the time is the textures' swap (``material_seconds``: PNGs written and
+loaded) and the peaks are the worker's (``ru_maxrss``) and its Blender process's (``VmHWM``).
 
 The materials are written by a child process too (:func:`write_apart`): on Linux a child
 starts with its parent's peak, so a parent that made 4K maps would lend its children its own.
@@ -83,8 +88,9 @@ def peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def read_once(path: Path) -> dict:
-    """Read ``path`` in this process: seconds, MB resident before, peak MB, maps MB."""
+def read_once(path: Path, render: bool) -> dict:
+    """Read ``path`` in this process (seconds, MB resident before, peak MB, maps MB) and, with
+    ``render``, render it once in a fresh render worker (texture swap seconds, peaks after)."""
     from render_jobs.materials.files import read_svbrdf
 
     before = resident_mb()
@@ -92,19 +98,35 @@ def read_once(path: Path) -> dict:
     maps, _ = read_svbrdf(path)
     seconds = time.perf_counter() - t0
     nbytes = sum(getattr(maps, k).nbytes for k in ("diffuse", "specular", "roughness", "normal"))
-    return {"seconds": seconds, "before_mb": before, "peak_mb": peak_mb(),
-            "maps_mb": nbytes / 2**20}  # fmt: skip
+    out = {"seconds": seconds, "before_mb": before, "peak_mb": peak_mb(),
+           "maps_mb": nbytes / 2**20}  # fmt: skip
+    if render:
+        out.update(render_once(maps))
+    return out
 
 
-def measure(path: Path, repeat: int) -> dict:
+def render_once(maps) -> dict:
+    """Render ``maps`` once at 32², 1 sample, in a fresh render worker."""
+    from render_jobs.process import RenderProcess
+    from render_jobs.specs import RenderSettings
+    from render_jobs.sun import sun_from_angles
+
+    with RenderProcess(RenderSettings(resolution=32, samples=1)) as worker:
+        result = worker.render_material(maps, [sun_from_angles(40, 30, 3.0)], [0])
+        status = Path(f"/proc/{worker.pid}/status").read_text().splitlines()
+    hwm = next(int(line.split()[1]) for line in status if line.startswith("VmHWM"))
+    return {"swap_s": result.material_seconds, "worker_peak_mb": peak_mb(),
+            "blender_peak_mb": hwm / 1024}  # fmt: skip
+
+
+def measure(path: Path, repeat: int, render: bool) -> dict:
     """The best of ``repeat`` reads of ``path``, each in a fresh process."""
     runs = []
     for _ in range(repeat):
-        out = subprocess.run(
-            [sys.executable, "-m", "benchmarks.materials", "--read", str(path)],
-            capture_output=True, text=True, check=True,
-        )  # fmt: skip
-        runs.append(json.loads(out.stdout))
+        cmd = [sys.executable, "-m", "benchmarks.materials", "--read", str(path)]
+        out = subprocess.run(cmd + ([] if render else ["--no-render"]),
+                             capture_output=True, text=True, check=True)  # fmt: skip
+        runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
     return min(runs, key=lambda r: r["seconds"])
 
 
@@ -112,13 +134,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--texture", type=int, default=4096, help="maps' size in texels (4096)")
     ap.add_argument("--repeat", type=int, default=2, help="reads of each layout (2)")
+    ap.add_argument("--no-render", dest="render", action="store_false",
+                    help="reads only, no render worker (no Blender)")  # fmt: skip
     ap.add_argument("--read", type=Path, help=argparse.SUPPRESS)  # one read, as JSON
     ap.add_argument("--write", type=Path, help=argparse.SUPPRESS)  # materials, for write_apart
     ap.add_argument("--count", type=int, default=1, help=argparse.SUPPRESS)
     ap.add_argument("--layout", choices=LAYOUTS, default="panel", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.read is not None:
-        print(json.dumps(read_once(args.read)))
+        print(json.dumps(read_once(args.read, args.render)))
         return
     if args.write is not None:
         make = panel_png if args.layout == "panel" else metal_rough_folder
@@ -127,17 +151,26 @@ def main() -> None:
         return
     if args.texture < 8 or args.repeat < 1:
         ap.error("--texture must be at least 8 and --repeat at least 1")
-    print(f"{args.texture}² maps, best of {args.repeat} reads, each in a fresh process")
-    print("| layout | read s | resident MB before | peak MB | maps MB |")
-    print("|---|---|---|---|---|")
     names = {"panel": "5-panel PNG", "metal-rough": "metal-rough folder (4 PNGs)"}
     with tempfile.TemporaryDirectory() as tmp:
+        rows = {}
         for layout in LAYOUTS:
             (Path(tmp) / layout).mkdir()
             path = write_apart(Path(tmp) / layout, args.texture, 1, layout)[0]
-            r = measure(path, args.repeat)
-            print(f"| {names[layout]} | {r['seconds']:.2f} | {r['before_mb']:,.0f} | "
-                  f"{r['peak_mb']:,.0f} | {r['maps_mb']:,.0f} |", flush=True)  # fmt: skip
+            rows[names[layout]] = measure(path, args.repeat, args.render)
+    print(f"{args.texture}² maps, best of {args.repeat} reads, each in a fresh process")
+    print("| layout | read s | resident MB before | peak MB | maps MB |")
+    print("|---|---|---|---|---|")
+    for name, r in rows.items():
+        print(f"| {name} | {r['seconds']:.2f} | {r['before_mb']:,.0f} | "
+              f"{r['peak_mb']:,.0f} | {r['maps_mb']:,.0f} |")  # fmt: skip
+    if args.render:
+        print("\nthe same material into a fresh render worker, rendered once at 32², 1 sample")
+        print("| layout | texture swap s | worker peak MB | Blender process peak MB |")
+        print("|---|---|---|---|")
+        for name, r in rows.items():
+            print(f"| {name} | {r['swap_s']:.2f} | {r['worker_peak_mb']:,.0f} | "
+                  f"{r['blender_peak_mb']:,.0f} |")  # fmt: skip
 
 
 if __name__ == "__main__":

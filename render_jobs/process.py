@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from render_jobs.errors import MaterialError, RenderError, WorkerDied
-from render_jobs.materials.maps import MaterialMaps
+from render_jobs.materials.maps import MapBytes, MaterialMaps
 from render_jobs.results import MaterialRender
 from render_jobs.screen_uv import DEFAULT_SUPERSAMPLE, ScreenUV
 from render_jobs.specs import RenderSettings, Sun
@@ -215,7 +215,8 @@ class RenderProcess:
         if not self.alive:
             self.start()
         assert self._conn is not None
-        self._conn.send(("render", (maps, list(suns), list(seeds))))
+        # as bytes: what Blender's textures hold, a quarter of the floats through the pipe
+        self._conn.send(("render", (MapBytes.of(maps), list(suns), list(seeds))))
         kind, payload = self._receive(timeout)
         while kind == "progress":
             if on_progress is not None:

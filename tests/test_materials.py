@@ -6,6 +6,7 @@ from PIL import Image
 
 from render_jobs.errors import MaterialError
 from render_jobs.materials import load_maps, parse_source, specs_from_sources
+from render_jobs.materials.maps import MAP_CHANNELS, MapBytes
 from render_jobs.materials.procedural import PATTERNS, procedural_maps
 from render_jobs.materials.uniform import sample_uniform, uniform_maps
 
@@ -210,3 +211,19 @@ def test_bad_input_empty_or_missing_dir(tmp_path):
 def test_bad_source_strings(text, needle):
     with pytest.raises(MaterialError, match=needle):
         parse_source(text)
+
+
+def test_map_bytes_are_the_8_bit_values_blender_textures_hold():
+    """A render worker sends its Blender process the maps as bytes: each value rounded half up
+    to 8 bits in float32 arithmetic, as the textures' PNGs have always kept it."""
+    m = procedural_maps(3, 32)
+    edges = np.array([0.0, 0.5 / 255, 0.49 / 255, 0.5, 254.5 / 255, 1.0], np.float32)
+    m.roughness[0, : len(edges), 0] = edges
+    b = MapBytes.of(m)
+    assert b.source_id == m.source_id and set(b.arrays) == set(MAP_CHANNELS)
+    for name in MAP_CHANNELS:
+        got, x = b.arrays[name], getattr(m, name)
+        want = np.floor(x * np.float32(255) + np.float32(0.5)).astype(np.uint8)
+        assert got.dtype == np.uint8 and got.shape == x.shape
+        np.testing.assert_array_equal(got, want, err_msg=name)
+    assert b.arrays["roughness"][0, : len(edges), 0].tolist() == [0, 1, 0, 128, 255, 255]

@@ -30,7 +30,7 @@ from render_jobs.errors import RenderError
 from render_jobs.exr import read_layers
 from render_jobs.geometry import MATERIAL_OBJECTS, geometry_hash
 from render_jobs.geometry import shaderball as shaderball_meshes
-from render_jobs.materials.maps import MaterialMaps
+from render_jobs.materials.maps import MapBytes, MaterialMaps
 from render_jobs.results import MaterialRender, ScreenMaps, SunRender
 from render_jobs.screen_uv import FILTER_WIDTH, PIXEL_FILTER, ScreenUV
 from render_jobs.specs import RenderSettings, Sun
@@ -156,7 +156,7 @@ class ShaderballRenderer:
         image.exr_codec = "NONE"
         scene.view_settings.view_transform = "Standard"
 
-    def set_material(self, maps: MaterialMaps) -> float:
+    def set_material(self, maps: MaterialMaps | MapBytes) -> float:
         """Swap in ``maps``; returns the seconds it took."""
         t0 = time.perf_counter()
         self.material.set_maps(maps, self.scratch)
@@ -204,7 +204,7 @@ class ShaderballRenderer:
 
     def render_material(
         self,
-        maps: MaterialMaps,
+        maps: MaterialMaps | MapBytes,
         suns: list[Sun],
         seeds: list[int],
         progress: Callable[[int], None] | None = None,

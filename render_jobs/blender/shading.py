@@ -26,11 +26,10 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import numpy as np
 from PIL import Image
 
 from render_jobs.blender.bpy_guard import bpy
-from render_jobs.materials.maps import MaterialMaps
+from render_jobs.materials.maps import MapBytes, MaterialMaps
 
 AOVS = {
     "diffuse": "COLOR",
@@ -128,16 +127,17 @@ class SvbrdfMaterial:
         self.material.node_tree.nodes.remove(self._uv_output)
         view_layer.aovs.remove(aov)
 
-    def set_maps(self, maps: MaterialMaps, folder: Path) -> None:
+    def set_maps(self, maps: MaterialMaps | MapBytes, folder: Path) -> None:
         """Write ``maps`` as 8-bit PNGs under new names in ``folder`` and point the textures
         at them; the previous material's files are deleted (Cycles read them at its sync)."""
+        if isinstance(maps, MaterialMaps):
+            maps = MapBytes.of(maps)
         self._serial += 1
         stale, self._files = self._files, []
         for name, space in _COLOUR_SPACE.items():
-            arr = getattr(maps, name)
+            pixels = maps.arrays[name]
             path = folder / f"map-{os.getpid()}-{self._serial}-{name}.png"
-            pixels = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
-            Image.fromarray(pixels[..., 0] if arr.shape[2] == 1 else pixels).save(
+            Image.fromarray(pixels[..., 0] if pixels.shape[2] == 1 else pixels).save(
                 path, compress_level=1
             )
             self._files.append(path)
