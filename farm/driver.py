@@ -40,8 +40,8 @@ from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.pool import WorkerPool, connect, ray_environment
 from farm.scheduler import Scheduler
 from farm.state import JobState, now
+from farm.validate import pending, read_all
 from render_jobs.errors import MaterialError
-from render_jobs.materials import load_maps
 from render_jobs.screen_uv import FILE as SCREEN_UV_FILE
 from render_jobs.screen_uv import default_supersample
 from storage.backend import Backend
@@ -104,18 +104,11 @@ class Summary:
 
 
 def validate(cfg: JobConfig, progress: bool = True):
-    """Specs of every material, with every file-based one loaded and checked (nothing starts
-    on bad input)."""
+    """Specs of every material, with every file-based one still to render loaded and checked
+    (nothing starts on bad input), in parallel (:mod:`farm.validate`)."""
     specs = material_specs(cfg)
-    files = [s for s in specs if s.kind == "svbrdf"]
-    for spec in tqdm(
-        files,
-        desc="validating",
-        unit="material",
-        disable=not progress or not files,
-        file=sys.stderr,
-    ):
-        load_maps(spec)
+    todo = pending(cfg, layout_for(cfg, len(specs)))
+    read_all([specs[i] for i in todo if specs[i].kind == "svbrdf"], progress)
     return specs
 
 

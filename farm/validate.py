@@ -1,0 +1,90 @@
+"""Reading a job's material files before anything renders: in parallel, and on resume only
+those still to render.
+
+``farm submit`` loads every file-based material it will render, with the loading code a
+render worker uses, before it writes anything, so that a bad file stops the job with one line
+naming it. A library material takes about a second to read at 2K and three at 4K
+(docs/benchmarks.md), so a library of thousands would hold a job back for most of an hour:
+
+- the reads go to a pool of processes, :func:`processes` of them: at most
+  :data:`MAX_PROCESSES`, no more than the CPUs this process may use (its affinity and, in a
+  container, its cgroup's CPU quota), since each holds up to one material's maps (1 GB at 4K);
+- a resumed job reads only the materials of shards not yet committed (:func:`pending`);
+- the error raised is the first bad material's in job order, whatever order the reads end in.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from tqdm import tqdm
+
+from render_jobs.materials import load_maps
+
+#: reading processes at most: each may hold a 4K material's maps, about 1 GB
+MAX_PROCESSES = 4
+CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
+
+
+def usable_cpus(cpu_max: Path = CGROUP_CPU_MAX) -> int:
+    """CPUs this process may use: its affinity, bounded by a cgroup v2 CPU quota if any."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    try:
+        quota, period = cpu_max.read_text().split()[:2]
+        if quota != "max":
+            cpus = min(cpus or 1, max(1, int(quota) // int(period)))
+    except (OSError, ValueError):
+        pass
+    return max(1, cpus or 1)
+
+
+def processes(count: int) -> int:
+    """Reading processes for ``count`` materials (1: read here, no pool)."""
+    return max(1, min(count, MAX_PROCESSES, usable_cpus()))
+
+
+def pending(cfg, layout) -> range | list[int]:
+    """Indices of the materials a submit of ``cfg`` will render: those of shards not committed
+    in its store, or all of them when there is no store yet or it is another job's (which the
+    submit then refuses)."""
+    from storage.errors import StoreError
+    from storage.reader import Store
+
+    every = range(layout.num_materials)
+    try:
+        store = Store(cfg.out)
+        store.check_compatible(layout, cfg.dataset_settings())
+        committed = set(store.committed_shards())
+    except (StoreError, OSError):
+        return every
+    return [m for s in range(layout.num_shards) if s not in committed
+            for m in layout.shard_materials(s)]  # fmt: skip
+
+
+def read_all(specs: list, progress: bool = True) -> None:
+    """Load every spec of ``specs`` (file-based ones) and drop the maps; raises the first bad
+    one's :class:`~render_jobs.errors.MaterialError` in the order given."""
+    bar = tqdm(total=len(specs), desc="validating", unit="material", file=sys.stderr,
+               disable=not progress or not specs)  # fmt: skip
+    with bar:
+        n = processes(len(specs))
+        if n == 1:
+            for spec in specs:
+                _read(spec)
+                bar.update()
+            return
+        # spawn: the driver may hold threads (Ray's, tqdm's) that a fork would copy mid-step
+        pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
+        try:
+            for _ in pool.map(_read, specs):
+                bar.update()
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _read(spec) -> None:
+    load_maps(spec)
