@@ -1,14 +1,16 @@
 """``farm materials``: the dry run of ``--materials``, with how every map of every file
 material was read, and the error of every material that cannot be used. No Ray, no Blender:
 the same loading code ``farm submit`` validates with (:func:`render_jobs.materials.sources.
-read_material`)."""
+read_material`), by the same pool of processes."""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from farm.validate import InOrder
 from render_jobs.errors import MaterialError
 from render_jobs.materials.sources import read_material, specs_from_sources
+from render_jobs.specs import MaterialSpec
 
 
 @dataclass
@@ -46,24 +48,28 @@ class DryRun:
 
 
 def dry_run(sources: list[str], seed: int = 0, progress=None) -> DryRun:
-    """Every material of ``sources`` read and checked; ``progress`` wraps the iteration."""
+    """Every material of ``sources`` read and checked, by a pool of processes as ``farm
+    submit`` validates (:class:`farm.validate.InOrder`); ``progress`` wraps the iteration."""
     try:
         specs = specs_from_sources(sources, seed)
     except MaterialError as exc:
         return DryRun(sources, [], str(exc))
-    entries = []
-    for i, spec in enumerate(progress(specs) if progress else specs):
-        entry = Entry(i, spec.kind, spec.source_id)
-        try:
-            _, reading = read_material(spec)
-        except MaterialError as exc:
-            entry.error = str(exc)
-        else:
-            entry.workflow, entry.files = reading.workflow, dict(reading.files)
-            entry.conversions = list(reading.conversions)
-            entry.ignored = [{"file": f, "why": why} for f, why in reading.ignored]
-        entries.append(entry)
-    return DryRun(sources, entries)
+    entries = InOrder(_entry, list(enumerate(specs)))
+    return DryRun(sources, list(progress(entries) if progress else entries))
+
+
+def _entry(item: tuple[int, MaterialSpec]) -> Entry:
+    i, spec = item
+    entry = Entry(i, spec.kind, spec.source_id)
+    try:
+        _, reading = read_material(spec)
+    except MaterialError as exc:
+        entry.error = str(exc)
+    else:
+        entry.workflow, entry.files = reading.workflow, dict(reading.files)
+        entry.conversions = list(reading.conversions)
+        entry.ignored = [{"file": f, "why": why} for f, why in reading.ignored]
+    return entry
 
 
 def format_dry_run(run: DryRun) -> str:

@@ -65,25 +65,37 @@ def pending(cfg, layout) -> range | list[int]:
             for m in layout.shard_materials(s)]  # fmt: skip
 
 
-def read_all(specs: list, progress: bool = True) -> None:
-    """Load every spec of ``specs`` (file-based ones) and drop the maps; raises the first bad
-    one's :class:`~render_jobs.errors.MaterialError` in the order given."""
-    bar = tqdm(total=len(specs), desc="validating", unit="material", file=sys.stderr,
-               disable=not progress or not specs)  # fmt: skip
-    with bar:
-        n = processes(len(specs))
+class InOrder:
+    """``fn`` over ``items`` by a pool of :func:`processes` processes (in this process when
+    that is 1), iterated in the items' order; sized, for progress bars. ``fn`` and the items
+    must pickle. An exception stops the iteration and the reads not yet started."""
+
+    def __init__(self, fn, items):
+        self.fn, self.items = fn, list(items)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __iter__(self):
+        n = processes(len(self.items))
         if n == 1:
-            for spec in specs:
-                _read(spec)
-                bar.update()
+            yield from map(self.fn, self.items)
             return
         # spawn: the driver may hold threads (Ray's, tqdm's) that a fork would copy mid-step
         pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
         try:
-            for _ in pool.map(_read, specs):
-                bar.update()
+            yield from pool.map(self.fn, self.items)
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
+
+
+def read_all(specs: list, progress: bool = True) -> None:
+    """Load every spec of ``specs`` (file-based ones) and drop the maps; raises the first bad
+    one's :class:`~render_jobs.errors.MaterialError` in the order given."""
+    reads = tqdm(InOrder(_read, specs), desc="validating", unit="material", file=sys.stderr,
+                 disable=not progress or not specs)  # fmt: skip
+    for _ in reads:
+        pass
 
 
 def _read(spec) -> None:
