@@ -1,6 +1,7 @@
 """Material reader benchmark: the time and peak memory of reading one large library material.
 
     .venv/bin/python -m benchmarks.materials [--texture 4096] [--repeat 2] [--no-render]
+    .venv/bin/python -m benchmarks.materials --write DIR --count 12 [--layout metal-rough]
 
 Writes one procedural material at ``--texture``² in two library layouts: a 5-panel PNG
 (photo | normal | diffuse | roughness | specular) and a metal-rough per-map folder of 8-bit
@@ -137,20 +138,33 @@ def main() -> None:
     ap.add_argument("--no-render", dest="render", action="store_false",
                     help="reads only, no render worker (no Blender)")  # fmt: skip
     ap.add_argument("--read", type=Path, help=argparse.SUPPRESS)  # one read, as JSON
-    ap.add_argument("--write", type=Path, help=argparse.SUPPRESS)  # materials, for write_apart
-    ap.add_argument("--count", type=int, default=1, help=argparse.SUPPRESS)
-    ap.add_argument("--layout", choices=LAYOUTS, default="panel", help=argparse.SUPPRESS)
+    ap.add_argument(
+        "--write",
+        type=Path,
+        metavar="DIR",
+        help="only write --count materials in --layout into DIR (a library to try)",
+    )
+    ap.add_argument("--count", type=int, default=1, help="materials --write makes (1)")
+    ap.add_argument(
+        "--layout",
+        choices=LAYOUTS,
+        default="panel",
+        help="what --write makes: 5-panel PNGs or metal-rough folders (panel)",
+    )
     args = ap.parse_args()
     if args.read is not None:
         print(json.dumps(read_once(args.read, args.render)))
         return
+    if args.texture < 8 or args.repeat < 1 or args.count < 1:
+        ap.error("--texture must be at least 8, --repeat and --count at least 1")
     if args.write is not None:
+        if args.write.exists() and any(args.write.glob("bench-*")):
+            ap.error(f"{args.write} already holds bench-* materials")
+        args.write.mkdir(parents=True, exist_ok=True)
         make = panel_png if args.layout == "panel" else metal_rough_folder
         for seed in range(args.count):
             make(args.write, args.texture, seed)
         return
-    if args.texture < 8 or args.repeat < 1:
-        ap.error("--texture must be at least 8 and --repeat at least 1")
     names = {"panel": "5-panel PNG", "metal-rough": "metal-rough folder (4 PNGs)"}
     with tempfile.TemporaryDirectory() as tmp:
         rows = {}
