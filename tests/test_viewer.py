@@ -249,6 +249,20 @@ def test_bad_uploads_get_one_line_naming_the_file_and_leave_nothing(tmp_path, fi
     assert good.id in lib.entries and lib.textures(good.id).shape == (10, 16, 16)
 
 
+def test_an_upload_the_server_received_into_a_file_is_moved_in_and_the_limit_holds(tmp_path):
+    lib = Library([], [], tmp_path / "uploads", max_upload_bytes=1 << 20)
+    incoming = tmp_path / "incoming"
+    incoming.mkdir()
+    (incoming / "0").write_bytes(panel())
+    e = lib.add_upload([("mat.png", incoming / "0")])
+    assert e.path.name == "mat.png" and e.path.read_bytes() == panel()
+    assert not (incoming / "0").exists() and lib.textures(e.id).shape == (10, 16, 16)
+    (incoming / "1").write_bytes(b"\0" * ((1 << 20) + 1))
+    with pytest.raises(MaterialError, match="upload of 1 MB is over the viewer's 1 MB limit"):
+        lib.add_upload([("big.png", incoming / "1")])
+    assert sorted(p.name for p in (tmp_path / "uploads").rglob("*.png")) == ["mat.png"]
+
+
 def solid(rgb: tuple[int, int, int], size: int = 16) -> np.ndarray:
     return np.full((size, size, 3), np.array(rgb, np.float32) / 255.0, np.float32)
 
@@ -387,7 +401,8 @@ def snapshot(*folders: Path) -> dict[str, str]:
 @pytest.mark.slow
 def test_the_server_answers_bad_requests_in_one_line_and_goes_on(run, tiny_store, tmp_path):
     before = snapshot(run, Path(tiny_store.url))
-    with Viewer("--checkpoint", run, "--store", tiny_store.url, tmp=tmp_path) as v:
+    with Viewer("--checkpoint", run, "--store", tiny_store.url, "--max-upload-mb", "64",
+                tmp=tmp_path) as v:  # fmt: skip
         secret = v.secret()
         status, body, _ = v.upload([("panel.png", panel())], secret=None)
         assert status == 403  # a POST without the page's secret

@@ -341,9 +341,11 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
               help="a store whose materials fill the gallery (repeatable)")  # fmt: skip
 @click.option("--materials", "folders", multiple=True, metavar="DIR",
               help="a folder of materials (5-panel PNGs, per-map folders)")  # fmt: skip
+@click.option("--max-upload-mb", type=click.IntRange(min=1), default=1024, show_default=True,
+              help="an upload's files together, at most (the page's upload box)")  # fmt: skip
 @server_options(port=8267)
 @device_option
-def viewer(ckpt, stores, folders, host, port, token, device):
+def viewer(ckpt, stores, folders, max_upload_mb, host, port, token, device):
     """Serve the material viewer: any material on the ball through the network, live.
 
     Pick a material from the gallery (a store's materials, a folder's), upload a 5-panel PNG
@@ -372,7 +374,7 @@ def viewer(ckpt, stores, folders, host, port, token, device):
     from trainer.viewer.app import build, make_app
 
     try:
-        view, notes = build(ckpt, list(stores), list(folders), device)
+        view, notes = build(ckpt, list(stores), list(folders), device, max_upload_mb << 20)
     except (CheckpointError, StoreError, MaterialError, ValueError) as exc:
         _fail(exc)
     for line in notes:

@@ -137,13 +137,16 @@ def make_app(viewer: Viewer, token: str | None) -> web.Application:
         return web.json_response(out)
 
     async def upload(request):
+        incoming = Path(tempfile.mkdtemp(prefix="incoming-", dir=viewer.upload_dir))
         try:
-            files = await _read_files(request, MAX_UPLOAD_BYTES)
+            files = await _receive_files(request, engine.library.max_upload_bytes, incoming)
             entry = await viewer.run(engine.library.add_upload, files)
         except _TooLarge as exc:
             return _error(413, str(exc))
         except (MaterialError, ValueError) as exc:
             return _error(400, str(exc))
+        finally:
+            shutil.rmtree(incoming, ignore_errors=True)
         return web.json_response(entry.to_dict())
 
     async def cleanup(app):
@@ -167,9 +170,10 @@ class _TooLarge(ValueError):
     pass
 
 
-async def _read_files(request: web.Request, limit: int) -> list[tuple[str, bytes]]:
-    """The uploaded files of a multipart request, read part by part; stops (and raises) as
-    soon as they pass ``limit`` bytes together, so a huge upload is never held whole."""
+async def _receive_files(request: web.Request, limit: int, folder: Path) -> list[tuple[str, Path]]:
+    """The uploaded files of a multipart request, each written into ``folder`` as it comes
+    (never held whole in memory), with their names; raises as soon as they pass ``limit``
+    bytes together."""
     if not request.content_type.startswith("multipart/"):
         raise ValueError("expected a multipart/form-data upload of image files")
     reader = await request.multipart()
@@ -177,20 +181,25 @@ async def _read_files(request: web.Request, limit: int) -> list[tuple[str, bytes
     while (part := await reader.next()) is not None:
         if not part.filename:
             continue
-        chunks = []
-        while chunk := await part.read_chunk(1 << 16):
-            total += len(chunk)
-            if total > limit:
-                raise _TooLarge(f"upload is over the viewer's {limit >> 20} MB limit")
-            chunks.append(chunk)
-        files.append((part.filename, b"".join(chunks)))
+        path = folder / str(len(files))
+        with path.open("wb") as out:
+            while chunk := await part.read_chunk(1 << 20):
+                total += len(chunk)
+                if total > limit:
+                    raise _TooLarge(f"upload is over the viewer's {limit >> 20} MB limit")
+                out.write(chunk)
+        files.append((part.filename, path))
     if not files:
         raise ValueError("no file uploaded")
     return files
 
 
 def build(
-    checkpoint: str, stores: list[str], folders: list[str], device: str
+    checkpoint: str,
+    stores: list[str],
+    folders: list[str],
+    device: str,
+    max_upload_bytes: int = MAX_UPLOAD_BYTES,
 ) -> tuple[Viewer, list[str]]:
     """The viewer of ``checkpoint`` with its gallery; returns it and notes for the console."""
     from trainer.infer import NoScreenUV, Renderer, material_mapper
@@ -204,7 +213,7 @@ def build(
         notes.append(f"only stored materials can be shown: {exc}")
     upload_dir = Path(tempfile.mkdtemp(prefix="shaderball-viewer-"))
     try:
-        library = Library(stores, folders, upload_dir)
+        library = Library(stores, folders, upload_dir, max_upload_bytes)
         for i, store in enumerate(library.stores):
             if store.layout.resolution != renderer.config.resolution:
                 raise ValueError(

@@ -33,7 +33,8 @@ from trainer.targets import srgb_decode
 from trainer.viewer.recent import Recent
 
 #: the largest upload, all files together (bytes), and the largest image (pixels)
-MAX_UPLOAD_BYTES = 64 << 20
+#: an upload's files together, by default (``trainer viewer --max-upload-mb``): an 8K PNG set
+MAX_UPLOAD_BYTES = 1 << 30
 MAX_PIXELS = 8192 * 8192
 #: the most bytes of texture maps kept (uint8: 10 MB a 1K material, 168 MB a 4K one)
 TEXTURE_BYTES = 1 << 30
@@ -79,9 +80,16 @@ def direction(azimuth_deg: float, elevation_deg: float) -> tuple[float, float, f
 class Library:
     """The gallery and the uploads of one viewer; ``upload_dir`` is its temporary folder."""
 
-    def __init__(self, stores: list[str], folders: list[str], upload_dir: Path):
+    def __init__(
+        self,
+        stores: list[str],
+        folders: list[str],
+        upload_dir: Path,
+        max_upload_bytes: int = MAX_UPLOAD_BYTES,
+    ):
         self.stores = [Store(u) for u in stores]
         self.upload_dir = upload_dir
+        self.max_upload_bytes = max_upload_bytes
         self.entries: OrderedDict[str, Entry] = OrderedDict()
         self._textures = Recent(16, TEXTURE_BYTES)  # material → (10, H, W) uint8 maps
         self.uploads = 0
@@ -162,17 +170,18 @@ class Library:
 
     # ---- uploads ------------------------------------------------------------------------------
 
-    def add_upload(self, files: list[tuple[str, bytes]]) -> Entry:
-        """A material from uploaded files: one 5-panel PNG, or a material's per-map images
-        (their names say which map each is, as in material libraries). Raises
+    def add_upload(self, files: list[tuple[str, bytes | Path]]) -> Entry:
+        """A material from uploaded files, each given as its name and its bytes or a file
+        the server received it into (moved here): one 5-panel PNG, or a material's per-map
+        images (their names say which map each is, as in material libraries). Raises
         :class:`MaterialError` with one line naming the file; nothing is kept on failure."""
         if not files:
             raise MaterialError("no file uploaded")
-        total = sum(len(data) for _, data in files)
-        if total > MAX_UPLOAD_BYTES:
+        total = sum(d.stat().st_size if isinstance(d, Path) else len(d) for _, d in files)
+        if total > self.max_upload_bytes:
             raise MaterialError(
                 f"upload of {total / 2**20:.0f} MB is over the viewer's "
-                f"{MAX_UPLOAD_BYTES >> 20} MB limit"
+                f"{self.max_upload_bytes >> 20} MB limit"
             )
         self.uploads += 1
         folder = self.upload_dir / f"up{self.uploads}"
@@ -182,7 +191,10 @@ class Library:
             for name, data in files:
                 base = _SAFE_NAME.sub("_", Path(name.replace("\\", "/")).name).strip() or "map"
                 path = folder / base
-                path.write_bytes(data)
+                if isinstance(data, Path):
+                    shutil.move(data, path)
+                else:
+                    path.write_bytes(data)
                 _check_pixels(path)
                 paths.append(path)
             target = paths[0] if len(paths) == 1 else folder
