@@ -201,7 +201,7 @@ class RenderProcess:
 
     def render_material(
         self,
-        maps: MaterialMaps,
+        maps: MaterialMaps | MapBytes,
         suns: list[Sun],
         seeds: list[int],
         timeout: float | None = None,
@@ -215,8 +215,9 @@ class RenderProcess:
         if not self.alive:
             self.start()
         assert self._conn is not None
-        # as bytes: what Blender's textures hold, a quarter of the floats through the pipe
-        self._conn.send(("render", (MapBytes.of(maps), list(suns), list(seeds))))
+        if isinstance(maps, MaterialMaps):  # as bytes: what Blender's textures hold
+            maps = MapBytes.of(maps)
+        self._conn.send(("render", (maps, list(suns), list(seeds))))
         kind, payload = self._receive(timeout)
         while kind == "progress":
             if on_progress is not None:
