@@ -10,8 +10,9 @@ Rules:
 
 * **Pipelining.** A worker holds up to ``pipeline`` tasks: the first runs, the others wait in
   its actor's queue, so it never idles while the driver handles a result. Extra tasks are only
-  given while the queue outnumbers the usable workers (at a job's end: one each), and every
-  worker gets its first task before any gets a second.
+  given while the queue outnumbers the workers, starting ones included (at a job's end, and in
+  a job of few materials while some workers are still starting: one each), and every worker
+  gets its first task before any gets a second.
 * **Retry.** A failed task goes back to the queue's end after a backoff of
   ``backoff_s * 2**(attempt - 1)``, and is given to a worker that has not failed it, unless
   every known worker has. After ``max_attempts`` failures it is final.
@@ -84,7 +85,9 @@ class Scheduler:
         alive), in order. ``known``: every worker that exists, starting ones too (a retry may
         wait for one that has not failed it)."""
         known = set(known)
-        depth = self.pipeline if len(self.queue) > len(usable) else 1
+        # a second task only while the queue outnumbers every worker, starting ones too: a
+        # worker still starting takes its own share when it comes up
+        depth = self.pipeline if len(self.queue) > len(known | set(usable)) else 1
         out = []
         for k in range(depth):
             for worker in usable:

@@ -29,6 +29,14 @@ def test_no_second_task_when_the_queue_is_not_longer_than_the_workers():
     assert s.dispatch(["a", "b"], ["a", "b"], 0.0) == [("a", 0), ("b", 1), ("a", 2)]
 
 
+def test_no_second_task_while_a_starting_worker_could_take_it():
+    s = sched(2)
+    assert s.dispatch(["a"], ["a", "b"], 0.0) == [("a", 0)]  # b is starting: 1 waits for it
+    assert s.dispatch(["a", "b"], ["a", "b"], 1.0) == [("b", 1)]
+    s = sched(6)  # a long queue: the ready worker takes two while b starts
+    assert s.dispatch(["a"], ["a", "b"], 0.0) == [("a", 0), ("a", 1)]
+
+
 def test_a_failed_task_waits_its_backoff_then_goes_to_another_worker():
     s = sched(1)
     assert s.dispatch(["a", "b"], ["a", "b"], 0.0) == [("a", 0)]
