@@ -107,8 +107,9 @@ def validate(cfg: JobConfig, progress: bool = True):
     """Specs of every material, with every file-based one still to render loaded and checked
     (nothing starts on bad input), in parallel (:mod:`farm.validate`)."""
     specs = material_specs(cfg)
-    todo = pending(cfg, layout_for(cfg, len(specs)))
-    read_all([specs[i] for i in todo if specs[i].kind == "svbrdf"], progress)
+    if any(spec.kind == "svbrdf" for spec in specs):  # else the store need not be opened
+        todo = pending(cfg, layout_for(cfg, len(specs)))
+        read_all([specs[i] for i in todo if specs[i].kind == "svbrdf"], progress)
     return specs
 
 

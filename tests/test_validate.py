@@ -69,3 +69,15 @@ def test_the_error_is_the_first_bad_material_in_job_order(tmp_path, monkeypatch)
     with pytest.raises(MaterialError, match="d.png: roughness panel map is not greyscale"):
         validate.read_all([specs[0], specs[2], specs[3]], progress=False)
     validate.read_all([specs[0], specs[2]], progress=False)
+
+
+def test_a_job_of_generated_materials_opens_no_store(tmp_path, monkeypatch):
+    """Only file materials are read before a job starts; without any, the driver does not
+    look at the store (an object store that is down fails once, at the lease)."""
+    from farm import driver
+
+    monkeypatch.setattr(driver, "pending", lambda *a: pytest.fail("the store was opened"))
+    cfg = JobConfig(sources=("uniform:2", "procedural:1"), out=str(tmp_path / "set.zarr"))
+    assert [s.kind for s in driver.validate(cfg, progress=False)] == ["uniform"] * 2 + [
+        "procedural"
+    ]
