@@ -107,9 +107,10 @@ def validate(cfg: JobConfig, progress: bool = True):
     """Specs of every material, with every file-based one still to render loaded and checked
     (nothing starts on bad input), in parallel (:mod:`farm.validate`)."""
     specs = material_specs(cfg)
-    if any(spec.kind == "svbrdf" for spec in specs):  # else the store need not be opened
-        todo = pending(cfg, layout_for(cfg, len(specs)))
-        read_all([specs[i] for i in todo if specs[i].kind == "svbrdf"], progress)
+    files = [i for i, spec in enumerate(specs) if spec.kind == "svbrdf"]
+    if files:  # else the store need not be opened
+        todo = set(pending(cfg, layout_for(cfg, len(specs))))
+        read_all([specs[i] for i in files if i in todo], progress)
     return specs
 
 

@@ -215,16 +215,16 @@ def _notes(plan: FolderPlan, imgs: dict) -> list[str]:
 
 def _convert(plan: FolderPlan, imgs: dict, size: tuple[int, int]) -> dict:
     """The plan's images (or the same rows of each) as this renderer's four maps."""
+    packed = imgs["packed"].pixels if "packed" in imgs else None  # once, for both its maps
     if plan.roughness_from == "packed":
-        rough = np.clip(imgs["packed"].pixels[..., 1:2], 0.0, 1.0)
+        rough = np.clip(packed[..., 1:2], 0.0, 1.0)
     elif plan.roughness_from == "glossiness":
         rough = 1.0 - _grey(imgs["glossiness"], "glossiness")
     else:
         rough = _grey(imgs["roughness"], "roughness")
     if "normal" in imgs:
         normal = _normal(imgs["normal"])
-        if plan.normal_from == "normal_dx":
-            normal = normal.copy()
+        if plan.normal_from == "normal_dx":  # _normal's array is its own
             normal[..., 1] = 1.0 - normal[..., 1]
     else:
         normal = np.broadcast_to(np.array([0.5, 0.5, 1.0], np.float32), (*size, 3))
@@ -232,14 +232,14 @@ def _convert(plan: FolderPlan, imgs: dict, size: tuple[int, int]) -> dict:
         diffuse = _colour(imgs["diffuse"], "diffuse")
         specular = _colour(imgs["specular"], "specular")
     else:
-        diffuse, specular = _metal_rough(plan, imgs, size)
+        diffuse, specular = _metal_rough(plan, imgs, size, packed)
     return {"diffuse": diffuse, "specular": specular, "roughness": rough, "normal": normal}
 
 
-def _metal_rough(plan: FolderPlan, imgs: dict, size: tuple[int, int]):
+def _metal_rough(plan: FolderPlan, imgs: dict, size: tuple[int, int], packed: np.ndarray | None):
     base = srgb_to_linear(_colour(imgs["basecolor"], "base colour"))
     if plan.metallic_from == "packed":
-        metal = np.clip(imgs["packed"].pixels[..., 2:3], 0.0, 1.0)
+        metal = np.clip(packed[..., 2:3], 0.0, 1.0)
     elif plan.metallic_from == "metallic":
         metal = _grey(imgs["metallic"], "metallic")
     else:

@@ -32,9 +32,10 @@ from trainer.mapping import textures_from_maps
 from trainer.targets import srgb_decode
 from trainer.viewer.recent import Recent
 
-#: the largest upload, all files together (bytes), and the largest image (pixels)
-#: an upload's files together, by default (``trainer viewer --max-upload-mb``): an 8K PNG set
+#: the largest upload, all files together, by default (``trainer viewer --max-upload-mb``,
+#: whose default is this in MB): an 8K PNG set
 MAX_UPLOAD_BYTES = 1 << 30
+#: the largest image (pixels)
 MAX_PIXELS = 8192 * 8192
 #: the most bytes of texture maps kept (uint8: 10 MB a 1K material, 168 MB a 4K one)
 TEXTURE_BYTES = 1 << 30
