@@ -85,6 +85,39 @@ def test_mapper_matches_the_numpy_reference_on_a_made_up_layout():
     assert roundtrip.meta() == layout.meta()
 
 
+def _ties() -> np.ndarray:
+    """float32 values in [0, 1] around every 8-bit rounding tie, with the ties themselves
+    (values whose float32 ``v · 255`` ends in exactly .5), and a fine ramp."""
+    k = np.arange(256, dtype=np.float64)
+    centre = ((k + 0.5) / 255.0).astype(np.float32)
+    near = [np.nextafter(centre, np.float32(s * np.inf)) for s in (-1, 1)]
+    ramp = np.linspace(0.0, 1.0, 1 << 16, dtype=np.float32)
+    return np.clip(np.concatenate([centre, *near, ramp]), 0.0, 1.0)
+
+
+def test_mapper_rounds_textures_and_maps_as_blender_and_the_store_do_ties_up():
+    from render_jobs.materials.maps import MapBytes, MaterialMaps
+    from storage.schema import encode_maps
+    from trainer.mapping import _levels
+
+    v = _ties()
+    ties = np.float32(v[:256] * np.float32(255.0)) % 1 == 0.5
+    assert (ties & (np.arange(256) % 2 == 0)).any(), "no even tie: half-to-even would pass too"
+    n = len(v)
+    col = v.reshape(n, 1, 1)
+    maps = MaterialMaps(np.repeat(col, 3, 2), np.repeat(col, 3, 2), col, np.repeat(col, 3, 2))
+    want = MapBytes.of(maps).arrays
+    got = textures_from_maps(maps).numpy()  # (10, n, 1): diffuse, specular, roughness, normal
+    np.testing.assert_array_equal(got[6, :, 0], want["roughness"][:, 0, 0])
+    np.testing.assert_array_equal(got[:3, :, 0].T, want["diffuse"][:, 0])
+    plain = np.repeat(v[None, None], 3, 0)  # roughness, normal, mask as stored: no sRGB
+    stored = encode_maps({"diffuse": np.zeros((3, 1, n)), "specular": np.zeros((3, 1, n)),
+                          "roughness": plain[:1], "normal": plain, "mask": plain[:1]})
+    levels = _levels(torch.from_numpy(v.copy())).to(torch.uint8).numpy()
+    for channel in range(6, 11):
+        np.testing.assert_array_equal(stored[channel, 0], levels)
+
+
 def test_the_table_decode_is_the_srgb_curve_from_0_to_1_into_a_strided_output():
     from trainer.targets import srgb_decode
 

@@ -53,8 +53,15 @@ def textures_from_maps(maps: MaterialMaps) -> torch.Tensor:
 
 
 def _bytes(x: torch.Tensor) -> torch.Tensor:
-    """Values in [0, 1] → the nearest of the 256 8-bit levels, as float32 (0 to 255)."""
-    return x.to(torch.float32).clamp(0.0, 1.0).mul_(255.0).round_()  # clamp's copy, in place
+    """Values → 8-bit levels as float32 (0 to 255): :func:`_levels` of a float32 copy."""
+    return _levels(x.to(torch.float32, copy=True))
+
+
+def _levels(x: torch.Tensor) -> torch.Tensor:
+    """``floor(clamp(x, 0, 1) · 255 + 0.5)`` in float32, in place: the rounding of
+    :class:`render_jobs.materials.maps.MapBytes` (the textures Blender loads) and of
+    ``storage.schema.encode_maps`` (the stored maps), ties up, bit for bit."""
+    return x.clamp_(0.0, 1.0).mul_(255.0).add_(0.5).floor_()
 
 
 class ScreenMapper:
@@ -82,7 +89,7 @@ class ScreenMapper:
         self.filter = _filter_matrix(screen_uv, index).to(self.device)
         ones = torch.ones(self.hits, 1, dtype=torch.float32, device=self.device)
         coverage = (self.filter @ ones).view(self.r, self.r)
-        self.coverage = (coverage.clamp(0.0, 1.0) * 255.0).round_().to(torch.uint8)
+        self.coverage = _levels(coverage).to(torch.uint8)
         self._grids: dict[tuple[int, int, float], torch.Tensor] = {}
         self._lut_words = _decode_table().to(self.device).view(torch.int64).view(-1)
 
@@ -164,7 +171,7 @@ class ScreenMapper:
             adjust(looked)
         maps = (self.filter @ looked.view(hits, b * c)).view(self.r * self.r, b, c)
         maps[..., COLOUR] = srgb_encode(maps[..., COLOUR])
-        maps = maps.clamp_(0.0, 1.0).mul_(255.0).round_()
+        maps = _levels(maps)
         out = torch.empty(b, c + 1, self.r, self.r, dtype=torch.uint8, device=self.device)
         out[:, :c] = maps.permute(1, 2, 0).view(b, c, self.r, self.r)  # one transposing cast
         out[:, c] = self.coverage
