@@ -12,6 +12,7 @@ from tabulate import tabulate
 
 from farm.web import server_options
 from trainer import config as train_config
+from trainer.viewer import MAX_UPLOAD_MB
 
 
 def _fail(exc: Exception):
@@ -341,7 +342,8 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
               help="a store whose materials fill the gallery (repeatable)")  # fmt: skip
 @click.option("--materials", "folders", multiple=True, metavar="DIR",
               help="a folder of materials (5-panel PNGs, per-map folders)")  # fmt: skip
-@click.option("--max-upload-mb", type=click.IntRange(min=1), default=1024, show_default=True,
+@click.option("--max-upload-mb", type=click.IntRange(min=1), default=MAX_UPLOAD_MB,
+              show_default=True,
               help="an upload's files together, at most (the page's upload box)")  # fmt: skip
 @server_options(port=8267)
 @device_option

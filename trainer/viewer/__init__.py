@@ -6,3 +6,7 @@ where the material is picked, uploaded, built or edited and the sun is dragged.
 - ``app``: the aiohttp server on :mod:`farm.web` (loopback by default, token otherwise);
 - ``page``: the page's HTML, CSS and JavaScript, all written here.
 """
+
+#: the largest upload, all files together, by default (an 8K PNG set): here, apart from
+#: :mod:`trainer.viewer.materials`, so that ``trainer viewer --help`` imports no torch
+MAX_UPLOAD_MB = 1024

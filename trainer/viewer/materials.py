@@ -30,11 +30,11 @@ from render_jobs.specs import MaterialSpec, Sun
 from storage.reader import Store
 from trainer.mapping import textures_from_maps
 from trainer.targets import srgb_decode
+from trainer.viewer import MAX_UPLOAD_MB
 from trainer.viewer.recent import Recent
 
-#: the largest upload, all files together, by default (``trainer viewer --max-upload-mb``,
-#: whose default is this in MB): an 8K PNG set
-MAX_UPLOAD_BYTES = 1 << 30
+#: the largest upload by default (``trainer viewer --max-upload-mb``)
+MAX_UPLOAD_BYTES = MAX_UPLOAD_MB << 20
 #: the largest image (pixels)
 MAX_PIXELS = 8192 * 8192
 #: the most bytes of texture maps kept (uint8: 10 MB a 1K material, 168 MB a 4K one)
