@@ -111,8 +111,11 @@ def test_mapper_rounds_textures_and_maps_as_blender_and_the_store_do_ties_up():
     np.testing.assert_array_equal(got[6, :, 0], want["roughness"][:, 0, 0])
     np.testing.assert_array_equal(got[:3, :, 0].T, want["diffuse"][:, 0])
     plain = np.repeat(v[None, None], 3, 0)  # roughness, normal, mask as stored: no sRGB
-    stored = encode_maps({"diffuse": np.zeros((3, 1, n)), "specular": np.zeros((3, 1, n)),
-                          "roughness": plain[:1], "normal": plain, "mask": plain[:1]})
+    black = np.zeros((3, 1, n))
+    stored = encode_maps(
+        {"diffuse": black, "specular": black, "roughness": plain[:1], "normal": plain,
+         "mask": plain[:1]}
+    )  # fmt: skip
     levels = _levels(torch.from_numpy(v.copy())).to(torch.uint8).numpy()
     for channel in range(6, 11):
         np.testing.assert_array_equal(stored[channel, 0], levels)
