@@ -13,6 +13,7 @@ from tqdm import tqdm
 from farm.web import server_options
 from render_jobs.errors import MaterialError, RenderError
 from render_jobs.specs import DEVICES, RenderSettings
+from storage.cli_group import Commands
 
 
 def _require(what: str, *modules: str) -> None:
@@ -80,7 +81,7 @@ def render_options(command):
     return command
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=Commands, context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
     """shaderball render farm: ground-truth shaderball renders with Blender Cycles."""
 

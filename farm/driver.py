@@ -163,13 +163,10 @@ def submit(
     ray_environment(cfg.address)
     try:
         specs = validate(cfg, progress)  # nothing is written on bad input
-    except MaterialError as exc:
+        lease = acquire(cfg.out, Backend(cfg.out))  # before the store is opened for writing
+    except (MaterialError, LeaseHeld) as exc:
         raise FarmError(str(exc)) from None
-    try:  # before the store is created or opened for writing
-        lease = acquire(cfg.out, Backend(cfg.out))
-    except LeaseHeld as exc:
-        raise FarmError(str(exc)) from None
-    except OSError as exc:  # no such bucket, access denied, ... (transient ones were retried)
+    except OSError as exc:  # no such bucket, access denied, out of reach after the retries
         raise FarmError(f"{cfg.out}: {type(exc).__name__}: {exc}") from None
     try:
         clear_cancel(lease.backend)  # a new submit supersedes an old cancel request

@@ -50,16 +50,20 @@ def processes(count: int) -> int:
 def pending(cfg, layout) -> range | list[int]:
     """Indices of the materials a submit of ``cfg`` will render: those of shards not committed
     in its store, or all of them when there is no store yet or it is another job's (which the
-    submit then refuses)."""
+    submit then refuses). A store out of reach (:class:`StoreUnreachable`, after its tries)
+    is raised: the submit would only try it again."""
     from storage.errors import StoreError
     from storage.reader import Store
+    from storage.retry import StoreUnreachable
 
     every = range(layout.num_materials)
     try:
         store = Store(cfg.out)
         store.check_compatible(layout, cfg.dataset_settings())
         committed = set(store.committed_shards())
-    except (StoreError, OSError):
+    except StoreUnreachable:
+        raise
+    except (StoreError, OSError):  # no store there yet (no bucket: the lease says so)
         return every
     return [m for s in range(layout.num_shards) if s not in committed
             for m in layout.shard_materials(s)]  # fmt: skip

@@ -13,6 +13,7 @@ from PIL import Image
 from tabulate import tabulate
 from tqdm import tqdm
 
+from storage.cli_group import Commands
 from storage.errors import StoreError
 
 
@@ -44,7 +45,7 @@ def _human(n: float) -> str:
     return str(n)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=Commands, context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
     """Inspect shaderball shard stores (local folders or s3:// URLs)."""
 

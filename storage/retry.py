@@ -4,9 +4,13 @@ botocore and s3fs retry a failed request a few times within a second or two. A t
 bucket (503 ``SlowDown``), a flapping connection or a stalled server can outlast that, and
 then the error reaches the farm driver (a month-long job) or a DataLoader worker (which ends a
 training run). :func:`retrying` wraps an operation so that such errors are retried with
-exponential backoff and jitter (tenacity), up to ``ATTEMPTS`` tries and ``MAX_S`` seconds in
-all, each retry logged once; anything else (403, 404, no such bucket, bad credentials, a
-corrupt chunk) is raised at once.
+exponential backoff and jitter (tenacity), each retry logged once, for ``MAX_S`` seconds at
+most (``SHADERBALL_STORE_RETRY_S``, 120 by default) and ``ATTEMPTS`` tries, or one try per
+``MAX_WAIT_S`` (the longest wait) where ``MAX_S`` allows more; anything else (403, 404, no
+such bucket, bad credentials, a corrupt chunk) is raised at once. A transient error that
+outlasts the tries is raised as :class:`StoreUnreachable`, an ``OSError`` with a one-line
+message (what failed, how, how long it was tried), from the last error; it is not transient
+itself, so an operation that calls another gives up when the inner one does.
 
 Every wrapped operation is idempotent: reads, whole-object puts, and a shard's array writes,
 which only ever rewrite the same bytes of a shard that is not yet committed.
@@ -16,6 +20,8 @@ from __future__ import annotations
 
 import errno
 import logging
+import math
+import os
 import socket
 
 from tenacity import (
@@ -23,14 +29,32 @@ from tenacity import (
     retry,
     retry_if_exception,
     stop_after_attempt,
-    stop_after_delay,
+    stop_before_delay,
     wait_random_exponential,
 )
 
 log = logging.getLogger("shaderball.storage")
 
 ATTEMPTS = 8
-MAX_S = 120.0
+MAX_WAIT_S = 20.0
+#: the environment variable that sets :data:`MAX_S` (read when this module is imported)
+MAX_S_ENV = "SHADERBALL_STORE_RETRY_S"
+
+
+def _max_s(value: str | None) -> float:
+    """Seconds an operation is tried at most: ``value`` (from :data:`MAX_S_ENV`), or 120."""
+    if value is None or value == "":
+        return 120.0
+    try:
+        seconds = float(value)
+    except ValueError:
+        seconds = -1.0
+    if not seconds > 0:
+        raise ValueError(f"{MAX_S_ENV}={value!r}: expected a number of seconds above 0")
+    return seconds
+
+
+MAX_S = _max_s(os.environ.get(MAX_S_ENV))
 #: HTTP statuses worth another try: throttling, timeouts, server-side failures
 TRANSIENT_STATUS = {408, 429, 500, 502, 503, 504}
 TRANSIENT_CODES = {
@@ -59,10 +83,16 @@ TRANSIENT_NAMES = {
 }
 
 
+class StoreUnreachable(OSError):
+    """A transient object-store error that lasted through every try."""
+
+
 def transient(exc: BaseException) -> bool:
     """Whether ``exc`` (or an error it was raised from) is worth retrying."""
     seen = 0
     while exc is not None and seen < 8:
+        if isinstance(exc, StoreUnreachable):
+            return False
         if isinstance(exc, FileNotFoundError | PermissionError | IsADirectoryError):
             return False
         if isinstance(exc, ConnectionError | TimeoutError | socket.timeout):
@@ -96,13 +126,25 @@ def _log_retry(state: RetryCallState) -> None:
     )
 
 
-def retrying(fn=None, *, attempts: int = ATTEMPTS, max_s: float = MAX_S, base_s: float = 0.5):
+def _give_up(state: RetryCallState):
+    exc = state.outcome.exception()
+    name = getattr(state.fn, "__qualname__", "object-store call")
+    first = str(exc).splitlines()[0] if str(exc) else ""
+    raise StoreUnreachable(
+        f"{name}: {type(exc).__name__}: {first} "
+        f"(tried {state.attempt_number} times in {state.seconds_since_start:.0f} s)"
+    ) from exc
+
+
+def retrying(fn=None, *, attempts: int | None = None, max_s: float = MAX_S, base_s: float = 0.5):
     """Decorate ``fn`` with the policy (see the module docstring)."""
+    if attempts is None:
+        attempts = max(ATTEMPTS, math.ceil(max_s / MAX_WAIT_S) + 1)
     policy = retry(
         retry=retry_if_exception(transient),
-        wait=wait_random_exponential(multiplier=base_s, max=20.0),
-        stop=stop_after_attempt(attempts) | stop_after_delay(max_s),
+        wait=wait_random_exponential(multiplier=base_s, max=MAX_WAIT_S),
+        stop=stop_after_attempt(attempts) | stop_before_delay(max_s),
         before_sleep=_log_retry,
-        reraise=True,
+        retry_error_callback=_give_up,
     )
     return policy if fn is None else policy(fn)

@@ -120,6 +120,34 @@ def test_bad_option_values_are_refused(tmp_path):
     assert r.returncode == 2 and "--resolution" in r.stderr
 
 
+@pytest.mark.parametrize(
+    "command",
+    [
+        "shards ls {url}",
+        "shards verify {url}",
+        "farm status {url}",
+        "farm cancel {url}",
+        "farm screen-uv {url}",
+        "trainer launch --store {url} --out {tmp}/run --max-steps 1",
+    ],
+)
+def test_a_store_out_of_reach_ends_every_command_in_one_line(tmp_path, command):
+    """An S3 endpoint nobody listens on: after the retries, the error and its endpoint in
+    one line (the click group's handler of ``OSError``), no traceback. ``trainer viewer``:
+    ``tests/test_viewer.py``."""
+    from tests.conftest import free_port, s3_env
+
+    env = {**os.environ, **s3_env(f"http://127.0.0.1:{free_port()}", AWS_MAX_ATTEMPTS="1",
+                                  SHADERBALL_STORE_RETRY_S="1")}  # fmt: skip
+    name, *args = command.format(url="s3://shaderball/gone.zarr", tmp=tmp_path).split()
+    r = subprocess.run([str(BIN / name), *args], env=env, capture_output=True, text=True,
+                       timeout=120)  # fmt: skip
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("Error: ") and "EndpointConnectionError" in last, last
+    assert "StoreUnreachable" in last and "127.0.0.1" in last
+
+
 def test_no_process_but_a_blender_worker_imports_bpy():
     code = (
         "import sys\n"

@@ -460,6 +460,24 @@ def test_a_farm_job_over_a_flaky_object_store_commits_every_sample_once(s3, tmp_
     assert verify(remote).ok
 
 
+def test_an_object_store_out_of_reach_fails_in_one_line_after_one_round_of_retries(tmp_path):
+    """An S3 endpoint nobody listens on: the submit ends, after the retries, with one line
+    that names the store, having retried one operation: the lease for a generated job, the
+    store's committed shards (read before its materials are validated) for a file one."""
+    from tests.conftest import free_port
+    from tests.test_material_libraries import ambientcg
+
+    env = s3_env(f"http://127.0.0.1:{free_port()}", AWS_MAX_ATTEMPTS="1",
+                 SHADERBALL_STORE_RETRY_S="2")  # fmt: skip
+    for material in ("uniform:2", f"svbrdf:{ambientcg(tmp_path)}"):
+        r = farm("submit", "-m", material, *TINY, "-o", "s3://shaderball/gone.zarr", env=env)
+        assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-3000:]
+        last = r.stderr.strip().splitlines()[-1]
+        assert last.startswith("Error: s3://shaderball/gone.zarr: StoreUnreachable: "), last
+        assert "EndpointConnectionError" in last and "validating" not in r.stderr
+        assert r.stderr.count("retry 1 in") == 1, r.stderr
+
+
 def test_the_embedded_farm_starts_its_own_ray_beside_a_running_cluster(tmp_path):
     """Without --address or RAY_ADDRESS the farm starts its own local Ray, even while a
     cluster started on the same machine runs (with no address Ray would join that one)."""

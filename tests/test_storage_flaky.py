@@ -12,7 +12,7 @@ import pytest
 from botocore.exceptions import ClientError
 
 from storage.reader import Store
-from storage.retry import retrying, transient
+from storage.retry import StoreUnreachable, _max_s, retrying, transient
 from storage.verify import verify
 from storage.writer import create_store, write_shard
 from tests.flaky_proxy import FlakyProxy
@@ -79,10 +79,35 @@ def test_transient_errors_are_retried_and_logged_permanent_ones_raised_at_once(c
         calls.append(1)
         raise client_error("SlowDown", 503)
 
+    @retrying(base_s=0.01)
+    def calls_down():
+        return down()
+
     calls.clear()
-    with pytest.raises(ClientError):
-        down()
-    assert len(calls) == 4  # bounded
+    with pytest.raises(StoreUnreachable) as err:
+        calls_down()
+    assert len(calls) == 4  # bounded, and the outer operation gives up with the inner one
+    assert isinstance(err.value, OSError) and isinstance(err.value.__cause__, ClientError)
+    assert str(err.value).startswith("test_transient_errors_are_retried_and_logged_perma")
+    assert "down: ClientError: An error occurred (SlowDown)" in str(err.value)
+    assert "(tried 4 times in 0 s)" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_the_retry_time_comes_from_the_environment_and_sets_the_tries():
+    assert _max_s(None) == _max_s("") == 120.0 and _max_s("2.5") == 2.5
+    for bad in ("0", "-1", "soon", "nan"):
+        with pytest.raises(ValueError, match=f"SHADERBALL_STORE_RETRY_S={bad!r}: expected"):
+            _max_s(bad)
+    calls = []
+
+    @retrying(base_s=0.0, max_s=600.0)
+    def down():
+        calls.append(1)
+        raise ConnectionResetError(104, "reset")
+
+    with pytest.raises(StoreUnreachable, match="tried 31 times"):
+        down()  # 600 s allow 31 tries of at most 20 s apart (8 for the default 120 s)
+    assert len(calls) == 31
 
 
 def flaky_options(opts: dict, endpoint: str) -> dict:

@@ -398,6 +398,19 @@ def snapshot(*folders: Path) -> dict[str, str]:
     }
 
 
+def test_a_gallery_store_out_of_reach_stops_the_viewer_in_one_line(run):
+    from tests.conftest import free_port, s3_env
+
+    env = {**os.environ, **s3_env(f"http://127.0.0.1:{free_port()}", AWS_MAX_ATTEMPTS="1",
+                                  SHADERBALL_STORE_RETRY_S="1")}  # fmt: skip
+    r = subprocess.run([str(BIN / "trainer"), "viewer", "--checkpoint", str(run), "--store",
+                        "s3://shaderball/gone.zarr"], env=env, capture_output=True, text=True,
+                       timeout=120)  # fmt: skip
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("Error: StoreUnreachable: ") and "127.0.0.1" in last, last
+
+
 @pytest.mark.slow
 def test_the_server_answers_bad_requests_in_one_line_and_goes_on(run, tiny_store, tmp_path):
     before = snapshot(run, Path(tiny_store.url))

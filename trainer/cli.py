@@ -11,6 +11,7 @@ import click
 from tabulate import tabulate
 
 from farm.web import server_options
+from storage.cli_group import Commands
 from trainer import config as train_config
 from trainer.viewer import MAX_UPLOAD_MB
 
@@ -37,8 +38,6 @@ def _train_errors(fn, cfg):
         return fn(cfg)
     except (StoreError, CheckpointError, MissingWeightsError, RunError, TrainingDiverged) as exc:
         _fail(exc)
-    except OSError as exc:  # a store or run folder out of reach (transient errors were retried)
-        _fail(f"{type(exc).__name__}: {exc}")
 
 
 device_option = click.option(
@@ -50,7 +49,7 @@ device_option = click.option(
 )
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=Commands, context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
     """Train and run the neural material renderer on shard stores made by `farm submit`.
 

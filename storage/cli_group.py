@@ -1,0 +1,22 @@
+"""The click group of every shaderball CLI (``farm``, ``shards``, ``trainer``).
+
+An ``OSError`` that reaches it (a store out of reach after its retries, no such bucket,
+access denied, a full disk) ends the command in one line naming the error, as the errors a
+command expects do; a closed pipe (``| head``) is left to click, which exits quietly.
+"""
+
+from __future__ import annotations
+
+import errno
+
+import click
+
+
+class Commands(click.Group):
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except OSError as exc:
+            if exc.errno == errno.EPIPE:
+                raise
+            raise click.ClickException(f"{type(exc).__name__}: {exc}") from None
