@@ -1,8 +1,9 @@
 """The click group of every shaderball CLI (``farm``, ``shards``, ``trainer``).
 
 An ``OSError`` that reaches it (a store out of reach after its retries, no such bucket,
-access denied, a full disk) ends the command in one line naming the error, as the errors a
-command expects do; a closed pipe (``| head``) is left to click, which exits quietly.
+access denied, a full disk) or a bad environment setting (:class:`SettingError`) ends the
+command in one line naming the error, as the errors a command expects do; a closed pipe
+(``| head``) is left to click, which exits quietly.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ from __future__ import annotations
 import errno
 
 import click
+
+from storage.errors import SettingError
 
 
 class Commands(click.Group):
@@ -20,3 +23,5 @@ class Commands(click.Group):
             if exc.errno == errno.EPIPE:
                 raise
             raise click.ClickException(f"{type(exc).__name__}: {exc}") from None
+        except SettingError as exc:
+            raise click.ClickException(str(exc)) from None

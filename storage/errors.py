@@ -7,3 +7,7 @@ class StoreError(ValueError):
 
 class ShardCommittedError(StoreError):
     """A write to a shard that is already committed (pass ``overwrite=True`` to replace it)."""
+
+
+class SettingError(ValueError):
+    """An environment variable holds a value this package cannot use."""

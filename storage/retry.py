@@ -33,6 +33,8 @@ from tenacity import (
     wait_random_exponential,
 )
 
+from storage.errors import SettingError
+
 log = logging.getLogger("shaderball.storage")
 
 ATTEMPTS = 8
@@ -50,7 +52,7 @@ def _max_s(value: str | None) -> float:
     except ValueError:
         seconds = -1.0
     if not seconds > 0:
-        raise ValueError(f"{MAX_S_ENV}={value!r}: expected a number of seconds above 0")
+        raise SettingError(f"{MAX_S_ENV}={value!r}: expected a number of seconds above 0")
     return seconds
 
 
@@ -113,27 +115,24 @@ def transient(exc: BaseException) -> bool:
     return False
 
 
-def _log_retry(state: RetryCallState) -> None:
+def _failure(state: RetryCallState) -> str:
+    """``operation: ErrorType: the error's first line`` of the try that just failed."""
     exc = state.outcome.exception() if state.outcome else None
     name = getattr(state.fn, "__qualname__", "object-store call")
-    log.warning(
-        "%s: %s: %s; retry %d in %.1f s",
-        name,
-        type(exc).__name__,
-        str(exc).splitlines()[0] if str(exc) else "",
-        state.attempt_number,
-        state.next_action.sleep if state.next_action else 0.0,
-    )
+    first = str(exc).splitlines()[0] if str(exc) else ""
+    return f"{name}: {type(exc).__name__}: {first}"
+
+
+def _log_retry(state: RetryCallState) -> None:
+    sleep = state.next_action.sleep if state.next_action else 0.0
+    log.warning("%s; retry %d in %.1f s", _failure(state), state.attempt_number, sleep)
 
 
 def _give_up(state: RetryCallState):
-    exc = state.outcome.exception()
-    name = getattr(state.fn, "__qualname__", "object-store call")
-    first = str(exc).splitlines()[0] if str(exc) else ""
     raise StoreUnreachable(
-        f"{name}: {type(exc).__name__}: {first} "
-        f"(tried {state.attempt_number} times in {state.seconds_since_start:.0f} s)"
-    ) from exc
+        f"{_failure(state)} (tried {state.attempt_number} times in "
+        f"{state.seconds_since_start:.0f} s)"
+    ) from state.outcome.exception()
 
 
 def retrying(fn=None, *, attempts: int | None = None, max_s: float = MAX_S, base_s: float = 0.5):

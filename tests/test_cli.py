@@ -148,6 +148,15 @@ def test_a_store_out_of_reach_ends_every_command_in_one_line(tmp_path, command):
     assert "StoreUnreachable" in last and "127.0.0.1" in last
 
 
+def test_a_bad_retry_setting_is_one_line(tmp_path):
+    env = {**os.environ, "SHADERBALL_STORE_RETRY_S": "soon"}
+    r = subprocess.run([str(BIN / "shards"), "ls", str(tmp_path)], env=env,
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    want = "Error: SHADERBALL_STORE_RETRY_S='soon': expected a number of seconds above 0"
+    assert r.stderr.strip() == want
+
+
 def test_no_process_but_a_blender_worker_imports_bpy():
     code = (
         "import sys\n"

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from botocore.exceptions import ClientError
 
+from storage.errors import SettingError
 from storage.reader import Store
 from storage.retry import StoreUnreachable, _max_s, retrying, transient
 from storage.verify import verify
@@ -96,7 +97,7 @@ def test_transient_errors_are_retried_and_logged_permanent_ones_raised_at_once(c
 def test_the_retry_time_comes_from_the_environment_and_sets_the_tries():
     assert _max_s(None) == _max_s("") == 120.0 and _max_s("2.5") == 2.5
     for bad in ("0", "-1", "soon", "nan"):
-        with pytest.raises(ValueError, match=f"SHADERBALL_STORE_RETRY_S={bad!r}: expected"):
+        with pytest.raises(SettingError, match=f"SHADERBALL_STORE_RETRY_S={bad!r}: expected"):
             _max_s(bad)
     calls = []
 
