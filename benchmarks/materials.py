@@ -3,9 +3,10 @@
     .venv/bin/python -m benchmarks.materials [--texture 4096] [--repeat 2] [--no-render]
     .venv/bin/python -m benchmarks.materials --write DIR --count 12 [--layout metal-rough]
 
-Writes one procedural material at ``--texture``² in two library layouts: a 5-panel PNG
-(photo | normal | diffuse | roughness | specular) and a metal-rough per-map folder of 8-bit
-PNGs (base colour, OpenGL normal, roughness, metalness). Each is read by
+Writes one procedural material at ``--texture``² in three library layouts: a 5-panel PNG
+(photo | normal | diffuse | roughness | specular), a metal-rough per-map folder of 8-bit
+PNGs (base colour, OpenGL normal, roughness, metalness), and that folder with every map but
+the normal at half the size (resampled by the reader). Each is read by
 ``render_jobs.materials.files.read_svbrdf``, as a farm worker and the viewer read them, in a
 fresh process per read so that its peak resident memory (``ru_maxrss``) is that read's.
 Reported: seconds (best of ``--repeat``), the process's resident memory before the read, its
@@ -36,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-LAYOUTS = ("panel", "metal-rough")
+LAYOUTS = ("panel", "metal-rough", "mixed")
 
 
 def panel_png(folder: Path, texture: int, seed: int = 7) -> Path:
@@ -52,19 +53,28 @@ def panel_png(folder: Path, texture: int, seed: int = 7) -> Path:
     return path
 
 
-def metal_rough_folder(folder: Path, texture: int, seed: int = 7) -> Path:
+def metal_rough_folder(folder: Path, texture: int, seed: int = 7, mixed: bool = False) -> Path:
     """A metal-rough per-map folder of 8-bit PNGs named as ambientCG names them,
-    ``folder/bench-<seed>/``."""
+    ``folder/bench-<seed>/``; ``mixed``: all but the normal map at half the size (a set the
+    reader resamples to its largest map)."""
     from render_jobs.materials.procedural import procedural_maps
 
     m = procedural_maps(seed, texture)
     out = folder / f"bench-{seed}"
     out.mkdir()
-    maps = {"Color": m.diffuse, "NormalGL": m.normal, "Roughness": m.roughness[..., 0],
-            "Metalness": m.roughness[..., 0] * 0.5}  # fmt: skip
+    step = 2 if mixed else 1
+    maps = {"Color": m.diffuse[::step, ::step], "NormalGL": m.normal,
+            "Roughness": m.roughness[::step, ::step, 0],
+            "Metalness": m.roughness[::step, ::step, 0] * 0.5}  # fmt: skip
     for name, arr in maps.items():
         Image.fromarray((arr * 255 + 0.5).astype(np.uint8)).save(out / f"bench_{name}.png")
     return out
+
+
+def write_one(layout: str, folder: Path, texture: int, seed: int) -> Path:
+    if layout == "panel":
+        return panel_png(folder, texture, seed)
+    return metal_rough_folder(folder, texture, seed, mixed=layout == "mixed")
 
 
 def write_apart(folder: Path, texture: int, count: int = 1, layout: str = "panel") -> list[Path]:
@@ -149,7 +159,8 @@ def main() -> None:
         "--layout",
         choices=LAYOUTS,
         default="panel",
-        help="what --write makes: 5-panel PNGs or metal-rough folders (panel)",
+        help="what --write makes: 5-panel PNGs, metal-rough folders, or those with three "
+        "maps at half size (panel)",
     )
     args = ap.parse_args()
     if args.read is not None:
@@ -161,11 +172,11 @@ def main() -> None:
         if args.write.exists() and any(args.write.glob("bench-*")):
             ap.error(f"{args.write} already holds bench-* materials")
         args.write.mkdir(parents=True, exist_ok=True)
-        make = panel_png if args.layout == "panel" else metal_rough_folder
         for seed in range(args.count):
-            make(args.write, args.texture, seed)
+            write_one(args.layout, args.write, args.texture, seed)
         return
-    names = {"panel": "5-panel PNG", "metal-rough": "metal-rough folder (4 PNGs)"}
+    names = {"panel": "5-panel PNG", "metal-rough": "metal-rough folder (4 PNGs)",
+             "mixed": "the folder, all but the normal at half size"}  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         rows = {}
         for layout in LAYOUTS:

@@ -179,6 +179,22 @@ def test_substance_16_bit_set_of_mixed_sizes(library):
                                            "Rusty_Emissive.png"}  # fmt: skip
 
 
+def test_a_smaller_8_bit_map_is_resampled_in_8_bits(tmp_path):
+    """A map smaller than the set's largest is resampled as it is stored (no float copy):
+    the roughness is OpenCV's bilinear 8-bit resize of the file, exactly."""
+    d = tmp_path / "mixed"
+    write(d / "mixed_Color.png", rand(2 * S, 2 * S, 3))
+    rough = write(d / "mixed_Roughness.png", rand(S, S))
+    write(d / "mixed_NormalGL.png", normal_map(2 * S))
+    maps, how = read_svbrdf(d)
+    assert maps.size == (2 * S, 2 * S)
+    assert "mixed_Roughness.png resampled from 16x16 to 32x32" in how.conversions
+    want = cv2.resize(cv2.imread(str(rough), cv2.IMREAD_UNCHANGED), (2 * S, 2 * S),
+                      interpolation=cv2.INTER_LINEAR)  # fmt: skip
+    assert want.dtype == np.uint8
+    np.testing.assert_array_equal(maps.roughness[..., 0], want / np.float32(255.0))
+
+
 def test_glossiness_is_inverted(library):
     d = library / "leather"
     maps, how = read_svbrdf(d)

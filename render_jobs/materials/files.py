@@ -108,11 +108,15 @@ def _normal(img: images.Image) -> np.ndarray:
     return np.ascontiguousarray(np.clip(px, 0.0, 1.0), dtype=np.float32)
 
 
-def _resize(px: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+def _resize(img: images.Image, size: tuple[int, int]) -> images.Image:
+    """``img`` resampled to ``size`` (bilinear, OpenCV) in its stored sample type: an 8-bit
+    map stays 8-bit, rounded as the same map stored at that size would be, and no float copy
+    of it is made (an 8K set: 201 MB an RGB map, not 805)."""
     import cv2
 
-    out = cv2.resize(px, (size[1], size[0]), interpolation=cv2.INTER_LINEAR)
-    return out.reshape(size[0], size[1], px.shape[2]).astype(np.float32)
+    out = cv2.resize(np.ascontiguousarray(img.data), (size[1], size[0]),
+                     interpolation=cv2.INTER_LINEAR)  # fmt: skip
+    return images.Image(img.path, out.reshape(size[0], size[1], img.channels), img.bits)
 
 
 def load_panel_png(path: Path) -> MaterialMaps:
@@ -178,7 +182,7 @@ def read_map_folder(folder: Path) -> tuple[MaterialMaps, Reading]:
             reading.conversions.append(
                 f"{img.path.name} resampled from {img.size[1]}x{img.size[0]} to {size[1]}x{size[0]}"
             )
-            imgs[role] = images.Image(img.path, _resize(img.pixels, size), img.bits)
+            imgs[role] = _resize(img, size)
     packed = imgs.get("packed")
     if packed is not None and packed.channels < 3:
         raise MaterialError(f"{packed.path}: a packed ARM/ORM map needs 3 channels")
