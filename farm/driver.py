@@ -248,6 +248,7 @@ class Loop:
         )
         self.shards = ShardAssembly(layout)
         self.refs: dict[object, tuple[str, int, object]] = {}
+        self.recalled: set = set()  # refs of recalled tasks' runs, cancelled: their end is dropped
         self.whole: collections.deque = collections.deque()  # (shard, arrays refs)
         self.commits: dict[object, int] = {}
         self.max_commits = max_commits
@@ -284,7 +285,14 @@ class Loop:
         if self.cancelled:
             return
         self.ask_screen_uv()  # first in its worker's queue
-        for wid, m in self.sched.dispatch(self.pool.usable(), self.pool.actors, now()):
+        usable = self.pool.usable()
+        for wid, m in self.sched.recall(usable, self.pool.actors, now()):
+            ref = next(r for r, (q, t, _) in self.refs.items()
+                       if (q, t) == (wid, m) and r not in self.recalled)  # fmt: skip
+            self.recalled.add(ref)
+            self.pool.cancel(ref)
+            self.state.workers[wid].recalled += 1
+        for wid, m in self.sched.dispatch(usable, self.pool.actors, now()):
             task = task_for(self.cfg, m, self.job.specs[m]).to_dict()
             report, arrays = self.pool.submit(wid, task, self.cfg.task_timeout_s)
             self.refs[report] = (wid, m, arrays)
@@ -329,6 +337,11 @@ class Loop:
         wid, m, arrays = self.refs.pop(ref)
         w = self.state.workers[wid]
         w.last_seen, w.current = now(), None
+        if ref in self.recalled:  # cancelled, or run all the same: dropped either way
+            self.recalled.discard(ref)
+            self.sched.dropped(wid, m, now())
+            self.settle(wid)
+            return
         try:
             res = ray.get(ref)
         except RayActorError as exc:
@@ -485,7 +498,8 @@ class Loop:
             raise FarmError(f"no live worker for {cfg.placement_timeout_s:.0f} s: {why}")
 
     def expire(self) -> None:
-        """Kill the workers whose running task is past the guard; the task then fails."""
+        """Kill the workers whose running task is past the guard; the task then fails (a
+        recalled task's run fails nothing)."""
         for wid, m in self.sched.expired(now()):
             if wid in self.pool.actors:
                 self.remove(wid, "dead", keep=m)  # its ref now fails with RayActorError

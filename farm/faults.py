@@ -8,6 +8,7 @@ and the actor never calls in here. Keys:
 - ``hang_materials``: material indices that sleep past any timeout;
 - ``bad_workers``: worker ids whose every task raises;
 - ``slow_s``: seconds to sleep before each task;
+- ``slow_materials``: material index (a JSON key: a string) to seconds to sleep before it;
 - ``hold_while``: a path; each task waits while that file exists, after creating the file
   ``<path>.held`` to say so. Set in one Ray node's environment only, it keeps that node's
   worker busy for as long as a test needs, and tells the test when it is;
@@ -34,7 +35,9 @@ class Faults:
     def before_render(self, worker: str, material: int) -> None:
         """Raise, sleep or hang as the plan says for ``material`` on ``worker``."""
         f = self.plan
-        time.sleep(float(f.get("slow_s", 0)))
+        time.sleep(
+            float(f.get("slow_s", 0)) + float(f.get("slow_materials", {}).get(str(material), 0))
+        )
         while f.get("wait_for") and not os.path.exists(f["wait_for"]):
             time.sleep(0.1)
         hold = f.get("hold_while")

@@ -162,6 +162,13 @@ class WorkerPool:
         """Queue ``task`` at worker ``wid``; returns the refs of its report and its arrays."""
         return tuple(self.actors[wid].render.options(num_returns=2).remote(task, timeout_s))
 
+    def cancel(self, report) -> None:
+        """Cancel the task of ``report`` if it has not started (one that runs goes on); its
+        ``ray.get`` then raises ``TaskCancelledError``."""
+        import ray
+
+        ray.cancel(report)
+
     def screen_uv(self, wid: str, supersample: int):
         """Ask worker ``wid`` for the scene's screen UV layout; returns the result's ref."""
         return self.actors[wid].screen_uv.remote(supersample)

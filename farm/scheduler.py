@@ -13,6 +13,13 @@ Rules:
   given while the queue outnumbers the workers, starting ones included (at a job's end, and in
   a job of few materials while some workers are still starting: one each), and every worker
   gets its first task before any gets a second.
+* **Recall.** A usable worker that holds nothing, with nothing in the queue it may take now,
+  gets a task waiting behind another at a busy worker: :meth:`Scheduler.recall` puts that
+  task at the queue's front, uncounted, and keeps a *recalled* mark of it at the busy worker
+  until the driver's cancel of it there ends (:meth:`Scheduler.dropped`). A cancel lands when
+  that worker comes to the task, so it mostly never runs there; if it does (its worker came
+  to it first), that run's outcome is dropped. A job's last tasks and a worker that starts
+  late thus never wait behind another worker's task.
 * **Retry.** A failed task goes back to the queue's end after a backoff of
   ``backoff_s * 2**(attempt - 1)``, and is given to a worker that has not failed it, unless
   every known worker has. After ``max_attempts`` failures it is final.
@@ -39,6 +46,7 @@ class Assigned:
 
     task: int
     started: float
+    recalled: bool = False  # given to another worker: its run here, if any, is dropped
 
 
 @dataclass
@@ -77,8 +85,12 @@ class Scheduler:
         return not self.queue and not any(self.assigned.values())
 
     def running(self, worker: str) -> int | None:
-        held = self.assigned.get(worker)
+        held = self._live(worker)
         return held[0].task if held else None
+
+    def _live(self, worker: str) -> list[Assigned]:
+        """What ``worker`` holds, less the recalled marks."""
+        return [a for a in self.assigned.get(worker, ()) if not a.recalled]
 
     def dispatch(self, usable: list[str], known: Iterable[str], now: float) -> list[tuple]:
         """``(worker, task)`` pairs to hand out now to the ``usable`` workers (placed and
@@ -91,7 +103,7 @@ class Scheduler:
         out = []
         for k in range(depth):
             for worker in usable:
-                if len(self.assigned.get(worker, ())) > k:
+                if len(self._live(worker)) > k:
                     continue
                 task = self._pick(worker, known, now)
                 if task is not None:
@@ -102,18 +114,42 @@ class Scheduler:
 
     def _pick(self, worker: str, known: set[str], now: float) -> int | None:
         for task in self.queue:
-            if self.not_before.get(task, 0.0) > now:
-                continue
-            tried = self.failed_on.get(task, set())
-            if worker not in tried or known <= tried:
+            if self.not_before.get(task, 0.0) <= now and self._may_run(worker, task, known):
                 return task
         return None
 
-    def _release(self, worker: str, task: int, now: float) -> None:
+    def _may_run(self, worker: str, task: int, known: set[str]) -> bool:
+        tried = self.failed_on.get(task, set())
+        return worker not in tried or known <= tried
+
+    def recall(self, usable: list[str], known: Iterable[str], now: float) -> list[tuple]:
+        """``(worker, task)`` pairs, one for each usable worker that holds nothing and has
+        nothing in the queue to take now: a task waiting at ``worker`` that it may run,
+        now at the queue's front and marked recalled at ``worker`` (the driver cancels it
+        there, then calls :meth:`dropped`)."""
+        known = set(known) | set(usable)
+        out = []
+        for taker in usable:
+            if self._live(taker) or self._pick(taker, known, now) is not None:
+                continue
+            waiting = [(w, a) for w in self.assigned if w != taker for a in self._live(w)[1:]]
+            for worker, a in waiting:
+                if self._may_run(taker, a.task, known):
+                    a.recalled = True
+                    self.queue.appendleft(a.task)
+                    out.append((worker, a.task))
+                    break
+        return out
+
+    def dropped(self, worker: str, task: int, now: float) -> None:
+        """The recalled ``task``'s run at ``worker`` ended (cancelled, or run and dropped)."""
+        self._release(worker, task, now, recalled=True)
+
+    def _release(self, worker: str, task: int, now: float, recalled: bool = False) -> None:
         """``task`` has left ``worker``; the next task waiting there starts running now."""
         held = self.assigned.get(worker, [])
         for i, a in enumerate(held):
-            if a.task == task:
+            if a.task == task and a.recalled == recalled:
                 del held[i]
                 if i == 0 and held:
                     held[0].started = now
@@ -142,8 +178,8 @@ class Scheduler:
     def remove_worker(self, worker: str, keep: int | None = None) -> list[int]:
         """``worker`` is being removed: every task it holds but ``keep`` (one that is to fail
         on its own) goes back to the queue's front, uncounted, since it never ran there; those
-        tasks are returned."""
-        held = self.assigned.get(worker, [])
+        tasks are returned. Its recalled marks go (those tasks are in the queue already)."""
+        held = self._live(worker)
         back = [a.task for a in held if a.task != keep]
         self.assigned[worker] = [a for a in held if a.task == keep]
         self.queue.extendleft(reversed(back))
@@ -160,14 +196,18 @@ class Scheduler:
                 return a.started
         return None
 
-    def expired(self, now: float) -> list[tuple[str, int]]:
+    def expired(self, now: float) -> list[tuple[str, int | None]]:
         """``(worker, task)`` for each running task past ``timeout_s``, newly marked as timed
-        out; the caller kills the worker (and removes it)."""
+        out; the caller kills the worker (and removes it). ``task`` is ``None`` for the run of
+        a recalled task, which fails nothing."""
         out = []
         for worker, held in self.assigned.items():
             if not held or held[0].task in self.timed_out:
                 continue
             if now - held[0].started > self.timeout_s:
+                if held[0].recalled:
+                    out.append((worker, None))
+                    continue
                 self.timed_out.add(held[0].task)
                 out.append((worker, held[0].task))
         return out

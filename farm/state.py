@@ -39,6 +39,7 @@ class WorkerStats:
     frame_seconds: float = 0.0  # sum, for the mean
     failures: int = 0
     recycled: int = 0
+    recalled: int = 0  # tasks taken back from its queue for an idle worker
     last_seen: float = 0.0
     current: int | None = None  # material being rendered
 

@@ -296,6 +296,19 @@ def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
     assert job(out)["status"] == "failed"
 
 
+def test_an_idle_worker_takes_back_a_task_waiting_behind_a_slow_one(tmp_path):
+    """Three materials on two workers: one worker runs the slow material 0 with another task
+    queued behind it; the other, done and with nothing queued, takes that task back (a Ray
+    cancel of the waiting actor task) and renders it. Every sample once."""
+    out = tmp_path / "set.zarr"
+    faults = {"slow_materials": {"0": 15}}
+    r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2", "-o", out, faults=faults)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert_exactly_once(out, 3)
+    workers = sorted((w["materials"], w["recalled"]) for w in job(out)["workers"].values())
+    assert workers == [(1, 1), (2, 0)]  # the slow one gave its waiting task to the other
+
+
 def test_bad_worker_is_blocklisted_and_replaced(tmp_path):
     out = tmp_path / "set.zarr"
     faults = {"bad_workers": ["w0"], "slow_s": 0.5}  # work enough for the replacement

@@ -104,6 +104,61 @@ def test_timeouts_count_from_when_a_task_starts_running():
     assert 1 not in s.timed_out and s.attempts[1] == 1
 
 
+def test_an_idle_worker_recalls_a_task_waiting_at_a_busy_one():
+    s = sched(3)
+    assert s.dispatch(["a"], ["a", "b"], 0.0) == [("a", 0), ("a", 1)]  # b starts late
+    assert s.dispatch(["a", "b"], ["a", "b"], 1.0) == [("b", 2)]
+    assert s.recall(["a", "b"], ["a", "b"], 1.0) == []  # b is busy, a holds a running task
+    s.completed("b", 2, 2.0)
+    assert s.recall(["a", "b"], ["a", "b"], 2.0) == [("a", 1)]  # b idle, nothing queued
+    assert list(s.queue) == [1] and s.running("a") == 0
+    assert s.dispatch(["a", "b"], ["a", "b"], 2.0) == [("b", 1)]  # a is full: its mark counts
+    assert s.recall(["a", "b"], ["a", "b"], 2.5) == []  # nothing waits anywhere now
+    s.completed("b", 1, 3.0)
+    s.completed("a", 0, 4.0)
+    assert not s.finished  # until the cancel at a ends
+    s.dropped("a", 1, 4.1)
+    assert s.finished and s.attempts[1] == 0
+
+
+def test_a_recalled_task_run_all_the_same_is_dropped_and_its_hang_fails_nothing():
+    s = sched(3, timeout_s=10.0)
+    s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0, 2; b: 1
+    s.completed("b", 1, 1.0)
+    assert s.recall(["a", "b"], ["a", "b"], 1.0) == [("a", 2)]
+    assert s.dispatch(["a", "b"], ["a", "b"], 1.0) == [("b", 2)]
+    s.completed("a", 0, 2.0)  # a comes to 2 before the cancel: it runs there too
+    assert s.running("a") is None and s.dispatch(["a"], ["a", "b"], 2.0) == []
+    s.completed("b", 2, 5.0)
+    assert s.expired(13.0) == [("a", None)] and not s.timed_out  # a's run fails nothing
+    s.dropped("a", 2, 13.5)
+    assert s.finished and s.attempts[2] == 0
+
+
+def test_no_recall_while_the_queue_has_work_or_for_a_worker_that_failed_the_task():
+    s = sched(4)
+    s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0, 2; b: 1, 3
+    s.failed("b", 1, "boom", 1.0)  # 1 waits its backoff in the queue; b still holds 3
+    s.completed("b", 3, 1.0)
+    assert s.recall(["a", "b"], ["a", "b"], 1.0) == [("a", 2)]  # 1 cannot go before 11 s
+    assert s.recall(["a", "b"], ["a", "b"], 1.5) == []  # the queue has 2 for b now
+    s = sched(3)
+    s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0, 2; b: 1
+    s.completed("b", 1, 1.0)
+    s.failed_on[2] = {"b"}  # as if b had failed 2 before
+    assert s.recall(["a", "b"], ["a", "b"], 1.0) == []  # a has not failed it: it waits for a
+
+
+def test_a_removed_worker_gives_back_its_tasks_but_not_the_recalled_ones():
+    s = sched(4)
+    s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0, 2; b: 1, 3
+    s.completed("b", 1, 1.0)
+    s.completed("b", 3, 1.0)
+    assert s.recall(["a", "b"], ["a", "b"], 1.0) == [("a", 2)]
+    assert s.remove_worker("a") == [0] and list(s.queue) == [0, 2]
+    assert s.assigned["a"] == []
+
+
 def test_finished_only_when_nothing_is_queued_or_held():
     s = sched(1)
     assert not s.finished
