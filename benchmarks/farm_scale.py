@@ -7,8 +7,9 @@ and the real driver over Ray with simulated workers.
 Three measurements of the driver process, each alone on this machine:
 
 * **scheduling**: :class:`farm.scheduler.Scheduler` with ``--workers`` made-up workers, every
-  one holding two tasks; each event is one result (``completed``) and the ``dispatch`` that
-  follows, as the driver loop does it. Events/s is the result rate the policy keeps up with.
+  one holding two tasks; each event is one result (``completed``) and the ``recall`` and
+  ``dispatch`` that follow, as the driver loop does them. Events/s is the result rate the
+  policy keeps up with.
 * **commits**: real 400² results (the benchmark store's materials, ``benchmarks.trainstore``)
   through the driver's commit path: :class:`farm.assembly.ShardAssembly`, then
   ``payload_from_packed`` and ``write_shard`` into a local store (zstd + crc32c, fsync,
@@ -53,6 +54,7 @@ def scheduling(workers: int, events: int) -> float:
     for k in range(events):
         w = ids[k % workers]
         s.completed(w, s.running(w), float(k))
+        s.recall(ids, ids, float(k))
         s.dispatch(ids, ids, float(k))
     return events / (time.perf_counter() - t0)
 

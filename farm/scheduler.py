@@ -75,6 +75,7 @@ class Scheduler:
     worker_failures: collections.Counter = field(default_factory=collections.Counter, init=False)
     final: dict[int, str] = field(default_factory=dict, init=False)  # task -> last error
     timed_out: set[int] = field(default_factory=set, init=False)
+    marks: dict[str, int] = field(default_factory=dict, init=False)  # recalled marks a worker
 
     def __post_init__(self) -> None:
         self.queue = collections.deque(self.tasks)
@@ -90,7 +91,8 @@ class Scheduler:
 
     def _live(self, worker: str) -> list[Assigned]:
         """What ``worker`` holds, less the recalled marks."""
-        return [a for a in self.assigned.get(worker, ()) if not a.recalled]
+        held = self.assigned.get(worker, [])
+        return [a for a in held if not a.recalled] if self.marks.get(worker) else held
 
     def dispatch(self, usable: list[str], known: Iterable[str], now: float) -> list[tuple]:
         """``(worker, task)`` pairs to hand out now to the ``usable`` workers (placed and
@@ -100,10 +102,11 @@ class Scheduler:
         # a second task only while the queue outnumbers every worker, starting ones too: a
         # worker still starting takes its own share when it comes up
         depth = self.pipeline if len(self.queue) > len(known | set(usable)) else 1
-        out = []
+        out, assigned, marks = [], self.assigned, self.marks
         for k in range(depth):
-            for worker in usable:
-                if len(self._live(worker)) > k:
+            for worker in usable:  # inline: every worker, every event
+                held = len(assigned.get(worker, ()))
+                if (held - marks.get(worker, 0) if marks else held) > k:
                     continue
                 task = self._pick(worker, known, now)
                 if task is not None:
@@ -127,19 +130,32 @@ class Scheduler:
         nothing in the queue to take now: a task waiting at ``worker`` that it may run,
         now at the queue's front and marked recalled at ``worker`` (the driver cancels it
         there, then calls :meth:`dropped`)."""
+        if len(self.queue) >= len(usable):
+            return []  # each worker has a task to take (but where retries wait: rare, and then
+            # the queue runs short)
+        assigned, marks = self.assigned, self.marks
+        free = [w for w in usable if len(assigned.get(w, ())) <= marks.get(w, 0)]  # no live task
+        if not free:  # the common case, checked first
+            return []
         known = set(known) | set(usable)
+        idle = [w for w in free if self._pick(w, known, now) is None]
+        waiting = [(w, a) for w in self.assigned for a in self._live(w)[1:]]  # once: O(workers)
         out = []
-        for taker in usable:
-            if self._live(taker) or self._pick(taker, known, now) is not None:
-                continue
-            waiting = [(w, a) for w in self.assigned if w != taker for a in self._live(w)[1:]]
-            for worker, a in waiting:
+        for taker in idle:
+            for i, (worker, a) in enumerate(waiting):
                 if self._may_run(taker, a.task, known):
                     a.recalled = True
+                    self.marks[worker] = self.marks.get(worker, 0) + 1
                     self.queue.appendleft(a.task)
                     out.append((worker, a.task))
+                    del waiting[i]
                     break
         return out
+
+    def _unmark(self, worker: str) -> None:
+        self.marks[worker] -= 1
+        if not self.marks[worker]:
+            del self.marks[worker]  # only workers with marks: an empty dict skips the count
 
     def dropped(self, worker: str, task: int, now: float) -> None:
         """The recalled ``task``'s run at ``worker`` ended (cancelled, or run and dropped)."""
@@ -151,6 +167,8 @@ class Scheduler:
         for i, a in enumerate(held):
             if a.task == task and a.recalled == recalled:
                 del held[i]
+                if recalled:
+                    self._unmark(worker)
                 if i == 0 and held:
                     held[0].started = now
                 return
@@ -182,6 +200,7 @@ class Scheduler:
         held = self._live(worker)
         back = [a.task for a in held if a.task != keep]
         self.assigned[worker] = [a for a in held if a.task == keep]
+        self.marks.pop(worker, None)
         self.queue.extendleft(reversed(back))
         return back
 
