@@ -30,7 +30,8 @@ Rules:
 * **Removal.** A removed worker gives the tasks it holds back to the queue's front, uncounted
   (they never ran there), but for the one whose failure removed it, which fails on its own.
 * **Timeout.** A running task past ``timeout_s`` is reported by :meth:`Scheduler.expired`; the
-  driver kills its worker, and the failure that follows is reported as a timeout.
+  driver kills its worker, and the failure that follows is reported as a timeout (a recalled
+  task's run fails nothing: its worker's other tasks go back uncounted).
 """
 
 from __future__ import annotations
@@ -130,12 +131,14 @@ class Scheduler:
         nothing in the queue to take now: a task waiting at ``worker`` that it may run,
         now at the queue's front and marked recalled at ``worker`` (the driver cancels it
         there, then calls :meth:`dropped`)."""
+        # the common cases first, cheaply: a queued task for every worker (unless queued
+        # retries wait their backoff: rare, and recalled once the queue runs short), or none
+        # free
         if len(self.queue) >= len(usable):
-            return []  # each worker has a task to take (but where retries wait: rare, and then
-            # the queue runs short)
+            return []
         assigned, marks = self.assigned, self.marks
         free = [w for w in usable if len(assigned.get(w, ())) <= marks.get(w, 0)]  # no live task
-        if not free:  # the common case, checked first
+        if not free:
             return []
         known = set(known) | set(usable)
         idle = [w for w in free if self._pick(w, known, now) is None]
