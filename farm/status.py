@@ -46,9 +46,10 @@ def format_status(st: dict) -> str:
         lines.append(f"  shard {shard:>9}  FAILED   commit: {error}")
     workers = [
         (w["worker"], w["status"], w["frames"], w["mean_frame_s"], w["failures"], w["recycled"])
-        + (_ago(w["last_seen"]),)
+        + (w.get("recalled", 0), _ago(w["last_seen"]))  # recalled: absent from older states
         for w in st["workers"].values()
     ]
-    header = ["worker", "status", "frames", "s/frame", "fails", "recycled", "last seen"]
+    header = ["worker", "status", "frames", "s/frame", "fails", "recycled", "recalled",
+              "last seen"]  # fmt: skip
     lines.append(tabulate(workers, header, floatfmt=".2f"))
     return "\n".join(lines)

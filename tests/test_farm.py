@@ -167,6 +167,13 @@ def test_status_names_the_ray_dashboard_only_while_the_job_runs():
     assert "ray       http://127.0.0.1:8265" in format_status(st)
     for status in ("done", "lost"):
         assert "8265" not in format_status({**st, "effective_status": status})
+    w = {"worker": "w0", "status": "busy", "frames": 4, "mean_frame_s": 0.5, "failures": 0,
+         "recycled": 1, "recalled": 2, "last_seen": time.time()}  # fmt: skip
+    table = format_status({**st, "workers": {"w0": w}}).splitlines()[-3:]
+    assert table[0].split()[5:7] == ["recycled", "recalled"]
+    assert table[2].split()[:7] == ["w0", "busy", "4", "0.50", "0", "1", "2"]
+    old = {k: v for k, v in w.items() if k != "recalled"}  # a state written before the column
+    assert format_status({**st, "workers": {"w0": old}}).splitlines()[-1].split()[6] == "0"
 
 
 def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):

@@ -102,11 +102,13 @@ JOB_LIVE = """<div id="live" data-live="{{ 1 if row.status == 'running' else 0 }
 {% endfor %}</table>{% else %}<p>none</p>{% endif %}
 <h2>Workers</h2>{% if workers %}<table><tr><th>worker</th><th>host</th><th>pid</th><th>status
 </th><th class="num">frames</th><th class="num">s/frame</th><th class="num">failures</th><th
-class="num">recycles</th><th>last seen</th></tr>{% for w in workers %}<tr><td>{{ w.worker }}</td>
+class="num">recycles</th><th class="num">recalled</th><th>last seen</th></tr>
+{% for w in workers %}<tr><td>{{ w.worker }}</td>
 <td>{{ w.host }}</td><td>{{ w.pid }}</td><td>{{ w.status }}{% if w.stale %} <span class="stale">
 (stale)</span>{% endif %}</td><td class="num">{{ w.frames }}</td><td class="num">
 {{ "%.2f"|format(w.mean_frame_s) }}</td><td class="num">{{ w.failures }}</td><td class="num">
-{{ w.recycled }}</td><td>{{ w.last_seen|when }}</td></tr>{% endfor %}</table>
+{{ w.recycled }}</td><td class="num">{{ w.recalled|default(0) }}</td><td>{{ w.last_seen|when
+}}</td></tr>{% endfor %}</table>
 {% else %}<p>none</p>{% endif %}
 <h2>Store</h2><div class="grid"><table>{% for k, v in settings %}<tr><th>{{ k }}</th><td>
 {{ v|setting }}</td></tr>{% endfor %}</table><div>{% for name, svg in hists %}<div><b>{{ name }}
