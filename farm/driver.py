@@ -248,7 +248,7 @@ class Loop:
         )
         self.shards = ShardAssembly(layout)
         self.refs: dict[object, tuple[str, int, object]] = {}
-        self.recalled: set = set()  # refs of recalled tasks' runs, cancelled: their end is dropped
+        self.recalled: set = set()  # refs of recalled tasks' runs: their outcome is dropped
         self.whole: collections.deque = collections.deque()  # (shard, arrays refs)
         self.commits: dict[object, int] = {}
         self.max_commits = max_commits
@@ -337,7 +337,7 @@ class Loop:
         wid, m, arrays = self.refs.pop(ref)
         w = self.state.workers[wid]
         w.last_seen, w.current = now(), None
-        if ref in self.recalled:  # cancelled, or run all the same: dropped either way
+        if ref in self.recalled:  # skipped (cancelled) or run all the same: dropped
             self.recalled.discard(ref)
             self.sched.dropped(wid, m, now())
             self.settle(wid)
@@ -520,5 +520,8 @@ class Loop:
         interrupted = self.state.status == "interrupted"
         if interrupted:
             self.state.save(self.job.store.backend)
+        for wid in self.sched.only_marks():  # busy with runs that are dropped: not waited for
+            if wid in self.pool.actors:
+                self.pool.remove(wid, "stopped")
         self.pool.stop_all(wait_s=2 if interrupted else 15)
         self.state.save(self.job.store.backend)

@@ -163,8 +163,9 @@ class WorkerPool:
         return tuple(self.actors[wid].render.options(num_returns=2).remote(task, timeout_s))
 
     def cancel(self, report) -> None:
-        """Cancel the task of ``report`` if it has not started (one that runs goes on); its
-        ``ray.get`` then raises ``TaskCancelledError``."""
+        """Cancel the task of ``report``: Ray skips it if it has not reached its actor yet;
+        one that has is run all the same (a sync actor's queue), and ``ray.get`` of either
+        raises ``TaskCancelledError``."""
         import ray
 
         ray.cancel(report)

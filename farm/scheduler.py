@@ -16,10 +16,12 @@ Rules:
 * **Recall.** A usable worker that holds nothing, with nothing in the queue it may take now,
   gets a task waiting behind another at a busy worker: :meth:`Scheduler.recall` puts that
   task at the queue's front, uncounted, and keeps a *recalled* mark of it at the busy worker
-  until the driver's cancel of it there ends (:meth:`Scheduler.dropped`). A cancel lands when
-  that worker comes to the task, so it mostly never runs there; if it does (its worker came
-  to it first), that run's outcome is dropped. A job's last tasks and a worker that starts
-  late thus never wait behind another worker's task.
+  until that run ends (:meth:`Scheduler.dropped`). The driver cancels it there, but Ray
+  skips a cancelled actor task only if it has not reached the actor yet, so it mostly runs
+  there all the same: its outcome is dropped, and the job does not wait for it (marks do not
+  count in :attr:`Scheduler.finished`; the driver stops such a worker at the end at once). A
+  job's last tasks and a worker that starts late thus never wait behind another worker's
+  task; the price is that run, on a worker that would otherwise be idle at a job's end.
 * **Retry.** A failed task goes back to the queue's end after a backoff of
   ``backoff_s * 2**(attempt - 1)``, and is given to a worker that has not failed it, unless
   every known worker has. After ``max_attempts`` failures it is final.
@@ -83,8 +85,13 @@ class Scheduler:
 
     @property
     def finished(self) -> bool:
-        """Nothing queued and nothing assigned: every task is done or final."""
-        return not self.queue and not any(self.assigned.values())
+        """Nothing queued and nothing assigned but recalled marks: every task is done or
+        final."""
+        return not self.queue and not any(self._live(w) for w in self.assigned)
+
+    def only_marks(self) -> list[str]:
+        """Workers that hold recalled marks and nothing else (their runs are dropped)."""
+        return [w for w in self.marks if not self._live(w)]
 
     def running(self, worker: str) -> int | None:
         held = self._live(worker)

@@ -116,9 +116,9 @@ def test_an_idle_worker_recalls_a_task_waiting_at_a_busy_one():
     assert s.recall(["a", "b"], ["a", "b"], 2.5) == []  # nothing waits anywhere now
     s.completed("b", 1, 3.0)
     s.completed("a", 0, 4.0)
-    assert not s.finished  # until the cancel at a ends
+    assert s.finished and s.only_marks() == ["a"]  # a's run of 1 is not waited for
     s.dropped("a", 1, 4.1)
-    assert s.finished and s.attempts[1] == 0
+    assert s.finished and s.attempts[1] == 0 and s.only_marks() == []
 
 
 def test_a_recalled_task_run_all_the_same_is_dropped_and_its_hang_fails_nothing():
