@@ -19,7 +19,9 @@ Rules:
   until that run ends (:meth:`Scheduler.dropped`). The driver cancels it there, but Ray
   skips a cancelled actor task only if it has not reached the actor yet, so it mostly runs
   there all the same: its outcome is dropped, and the job does not wait for it (marks do not
-  count in :attr:`Scheduler.finished`; the driver stops such a worker at the end at once). A
+  count in :attr:`Scheduler.finished`; the driver stops such a worker at the end at once),
+  but a mark holds its place in its worker's queue (it counts against the pipeline, and its
+  worker takes no recall: the run may be going). A
   job's last tasks and a worker that starts late thus never wait behind another worker's
   task; the price is that run, on a worker that would otherwise be idle at a job's end.
 * **Retry.** A failed task goes back to the queue's end after a backoff of
@@ -110,11 +112,10 @@ class Scheduler:
         # a second task only while the queue outnumbers every worker, starting ones too: a
         # worker still starting takes its own share when it comes up
         depth = self.pipeline if len(self.queue) > len(known | set(usable)) else 1
-        out, assigned, marks = [], self.assigned, self.marks
+        out = []
         for k in range(depth):
-            for worker in usable:  # inline: every worker, every event
-                held = len(assigned.get(worker, ()))
-                if (held - marks.get(worker, 0) if marks else held) > k:
+            for worker in usable:  # a recalled mark holds its place: Ray runs it there first
+                if len(self.assigned.get(worker, ())) > k:
                     continue
                 task = self._pick(worker, known, now)
                 if task is not None:
@@ -134,17 +135,16 @@ class Scheduler:
         return worker not in tried or known <= tried
 
     def recall(self, usable: list[str], known: Iterable[str], now: float) -> list[tuple]:
-        """``(worker, task)`` pairs, one for each usable worker that holds nothing and has
-        nothing in the queue to take now: a task waiting at ``worker`` that it may run,
-        now at the queue's front and marked recalled at ``worker`` (the driver cancels it
-        there, then calls :meth:`dropped`)."""
+        """``(worker, task)`` pairs, one for each usable worker that holds nothing (not even a
+        recalled mark, whose run may be going) and has nothing in the queue to take now: a
+        task waiting at ``worker`` that it may run, now at the queue's front and marked
+        recalled at ``worker`` (the driver cancels it there, then calls :meth:`dropped`)."""
         # the common cases first, cheaply: a queued task for every worker (unless queued
         # retries wait their backoff: rare, and recalled once the queue runs short), or none
         # free
         if len(self.queue) >= len(usable):
             return []
-        assigned, marks = self.assigned, self.marks
-        free = [w for w in usable if len(assigned.get(w, ())) <= marks.get(w, 0)]  # no live task
+        free = [w for w in usable if not self.assigned.get(w)]  # marks too: they may be running
         if not free:
             return []
         known = set(known) | set(usable)

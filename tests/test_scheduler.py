@@ -128,8 +128,13 @@ def test_a_recalled_task_run_all_the_same_is_dropped_and_its_hang_fails_nothing(
     assert s.recall(["a", "b"], ["a", "b"], 1.0) == [("a", 2)]
     assert s.dispatch(["a", "b"], ["a", "b"], 1.0) == [("b", 2)]
     s.completed("a", 0, 2.0)  # a comes to 2 before the cancel: it runs there too
-    assert s.running("a") is None and s.dispatch(["a"], ["a", "b"], 2.0) == []
+    assert s.running("a") is None and s.only_marks() == ["a"]
+    s.requeue([0])  # a task to hand out (a lost result): not behind a's run of 2
+    assert s.dispatch(["a", "b"], ["a", "b"], 2.0) == []  # b is busy with 2
+    assert s.recall(["a", "b"], ["a", "b"], 2.0) == []  # and a is no taker either
     s.completed("b", 2, 5.0)
+    assert s.dispatch(["a", "b"], ["a", "b"], 5.0) == [("b", 0)]
+    s.completed("b", 0, 6.0)
     assert s.expired(13.0) == [("a", None)] and not s.timed_out  # a's run fails nothing
     s.dropped("a", 2, 13.5)
     assert s.finished and s.attempts[2] == 0
