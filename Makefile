@@ -76,7 +76,7 @@ bench-infer: $(BIN)/.installed
 bench-viewer: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.viewer
 
-# The material reader: time and peak memory of reading one 4K library material, two layouts.
+# The material reader: time and peak memory of reading one 4K library material, three layouts.
 bench-materials: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.materials
 

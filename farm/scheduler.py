@@ -80,7 +80,6 @@ class Scheduler:
     worker_failures: collections.Counter = field(default_factory=collections.Counter, init=False)
     final: dict[int, str] = field(default_factory=dict, init=False)  # task -> last error
     timed_out: set[int] = field(default_factory=set, init=False)
-    marks: dict[str, int] = field(default_factory=dict, init=False)  # recalled marks a worker
 
     def __post_init__(self) -> None:
         self.queue = collections.deque(self.tasks)
@@ -89,11 +88,12 @@ class Scheduler:
     def finished(self) -> bool:
         """Nothing queued and nothing assigned but recalled marks: every task is done or
         final."""
-        return not self.queue and not any(self._live(w) for w in self.assigned)
+        held = (a for tasks in self.assigned.values() for a in tasks)
+        return not self.queue and all(a.recalled for a in held)
 
     def only_marks(self) -> list[str]:
         """Workers that hold recalled marks and nothing else (their runs are dropped)."""
-        return [w for w in self.marks if not self._live(w)]
+        return [w for w, held in self.assigned.items() if held and not self._live(w)]
 
     def running(self, worker: str) -> int | None:
         held = self._live(worker)
@@ -101,8 +101,7 @@ class Scheduler:
 
     def _live(self, worker: str) -> list[Assigned]:
         """What ``worker`` holds, less the recalled marks."""
-        held = self.assigned.get(worker, [])
-        return [a for a in held if not a.recalled] if self.marks.get(worker) else held
+        return [a for a in self.assigned.get(worker, ()) if not a.recalled]
 
     def dispatch(self, usable: list[str], known: Iterable[str], now: float) -> list[tuple]:
         """``(worker, task)`` pairs to hand out now to the ``usable`` workers (placed and
@@ -155,17 +154,11 @@ class Scheduler:
             for i, (worker, a) in enumerate(waiting):
                 if self._may_run(taker, a.task, known):
                     a.recalled = True
-                    self.marks[worker] = self.marks.get(worker, 0) + 1
                     self.queue.appendleft(a.task)
                     out.append((worker, a.task))
                     del waiting[i]
                     break
         return out
-
-    def _unmark(self, worker: str) -> None:
-        self.marks[worker] -= 1
-        if not self.marks[worker]:
-            del self.marks[worker]  # only workers with marks: an empty dict skips the count
 
     def dropped(self, worker: str, task: int, now: float) -> None:
         """The recalled ``task``'s run at ``worker`` ended (cancelled, or run and dropped)."""
@@ -177,8 +170,6 @@ class Scheduler:
         for i, a in enumerate(held):
             if a.task == task and a.recalled == recalled:
                 del held[i]
-                if recalled:
-                    self._unmark(worker)
                 if i == 0 and held:
                     held[0].started = now
                 return
@@ -210,7 +201,6 @@ class Scheduler:
         held = self._live(worker)
         back = [a.task for a in held if a.task != keep]
         self.assigned[worker] = [a for a in held if a.task == keep]
-        self.marks.pop(worker, None)
         self.queue.extendleft(reversed(back))
         return back
 

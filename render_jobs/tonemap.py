@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from render_jobs.materials.maps import linear_to_srgb
+from render_jobs.materials.maps import linear_to_srgb, quantize_u8
 
 DEFAULT_EXPOSURE = 1.0
 
@@ -25,4 +25,4 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     x = np.asarray(image, dtype=np.float32)
     if x.shape[0] == 1:
         x = np.repeat(x, 3, axis=0)
-    return (np.clip(x, 0.0, 1.0).transpose(1, 2, 0) * 255.0 + 0.5).astype(np.uint8)
+    return quantize_u8(x.transpose(1, 2, 0))

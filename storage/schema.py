@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from render_jobs.materials.maps import linear_to_srgb, srgb_to_linear
+from render_jobs.materials.maps import linear_to_srgb, quantize_u8, srgb_to_linear
 from render_jobs.specs import MATERIAL_KINDS
 
 SCHEMA_VERSION = 1
@@ -149,7 +149,7 @@ def encode_maps(maps: dict[str, np.ndarray]) -> np.ndarray:
         if name in ("diffuse", "specular"):
             arr = linear_to_srgb(arr)
         parts.append(arr)
-    return (np.clip(np.concatenate(parts), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return quantize_u8(np.concatenate(parts))
 
 
 def decode_maps(packed: np.ndarray) -> dict[str, np.ndarray]:

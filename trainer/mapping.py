@@ -58,9 +58,9 @@ def _bytes(x: torch.Tensor) -> torch.Tensor:
 
 
 def _levels(x: torch.Tensor) -> torch.Tensor:
-    """``floor(clamp(x, 0, 1) · 255 + 0.5)`` in float32, in place: the rounding of
-    :class:`render_jobs.materials.maps.MapBytes` (the textures Blender loads) and of
-    ``storage.schema.encode_maps`` (the stored maps), ties up, bit for bit."""
+    """``floor(clamp(x, 0, 1) · 255 + 0.5)`` in float32, in place: the torch twin of
+    :func:`render_jobs.materials.maps.quantize_u8` (the textures Blender loads, the stored
+    maps), ties up, bit for bit."""
     return x.clamp_(0.0, 1.0).mul_(255.0).add_(0.5).floor_()
 
 

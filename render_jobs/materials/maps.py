@@ -72,10 +72,14 @@ class MapBytes:
 
     @classmethod
     def of(cls, maps: MaterialMaps) -> MapBytes:
-        return cls({name: _bytes(getattr(maps, name)) for name in MAP_CHANNELS}, maps.source_id)
+        arrays = {name: quantize_u8(getattr(maps, name)) for name in MAP_CHANNELS}
+        return cls(arrays, maps.source_id)
 
 
-def _bytes(x: np.ndarray) -> np.ndarray:
+def quantize_u8(x: np.ndarray) -> np.ndarray:
+    """Values in [0, 1] (float32) → ``uint8``, ``floor(clamp(x, 0, 1) · 255 + 0.5)`` in
+    float32: the one 8-bit rounding of textures (:class:`MapBytes`), stored maps
+    (``storage.schema.encode_maps``) and pictures (``render_jobs.tonemap.to_uint8``)."""
     out = np.clip(x, 0.0, 1.0)  # a copy, then scaled in place: one float temporary
     out *= 255.0
     out += 0.5
