@@ -332,3 +332,25 @@ def test_every_library_layout_renders_in_a_farm_job(library, tmp_path):
     assert sorted(ids) == ["Bricks059_2K-JPG", "both", "leather", "metal_plate", "rusty"]
     renders = store.group["renders"][:].astype(np.float32)
     assert np.isfinite(renders).all() and renders.max() > 0
+
+
+def test_a_float_base_colour_is_taken_as_linear_and_8_bit_levels_decode_by_table(tmp_path):
+    """An EXR base colour is linear: with no metal, the diffuse map is its sRGB encoding,
+    exactly; an 8-bit base colour's decode is the curve of its levels."""
+    base = rand(S, S, 3)
+    d = tmp_path / "exr"
+    write(d / "m_BaseColor.exr", base)
+    write(d / "m_Roughness.png", rand(S, S))
+    maps, how = read_svbrdf(d)
+    assert how.workflow == "metal-rough"
+    np.testing.assert_array_equal(maps.diffuse, linear_to_srgb(base))
+    np.testing.assert_array_equal(maps.specular, linear_to_srgb(np.full_like(base, 0.04)))
+    d = tmp_path / "png"
+    write(d / "m_BaseColor.png", rand(S, S, 3))
+    write(d / "m_Roughness.png", rand(S, S))
+    metal = write(d / "m_Metallic.png", rand(S, S))
+    maps, _ = read_svbrdf(d)
+    levels = cv2.imread(str(d / "m_BaseColor.png"))[..., ::-1].astype(np.float32) / np.float32(255)
+    m = cv2.imread(str(metal), cv2.IMREAD_UNCHANGED)[..., None].astype(np.float32) / np.float32(255)
+    want, _ = metal_rough_to_spec_gloss(srgb_to_linear(levels), m)
+    np.testing.assert_array_equal(maps.diffuse, linear_to_srgb(want))

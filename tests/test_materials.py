@@ -227,3 +227,70 @@ def test_map_bytes_are_the_8_bit_values_blender_textures_hold():
         assert got.dtype == np.uint8 and got.shape == x.shape
         np.testing.assert_array_equal(got, want, err_msg=name)
     assert b.arrays["roughness"][0, : len(edges), 0].tolist() == [0, 1, 0, 128, 255, 255]
+
+
+# ---- colour curves and threads ---------------------------------------------------------------
+
+
+def test_srgb_curves_are_the_where_form_bit_for_bit_and_the_tables_their_levels():
+    """The in-place curves give the values of the plain ``np.where`` form of IEC 61966-2-1 in
+    float32 (every 16-bit level, random values, both thresholds' neighbours; negatives for the
+    encode, which clamps them), and
+    a table indexed by integer samples gives the curve of their floats."""
+    from render_jobs.materials.maps import linear_to_srgb, srgb_table, srgb_to_linear
+
+    def decode(x):
+        return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+    def encode(x):
+        x = np.clip(x, 0.0, None)
+        return np.where(x <= 0.0031308, x * 12.92, 1.055 * x ** (1 / 2.4) - 0.055).astype(
+            np.float32
+        )
+
+    levels = np.arange(65536, dtype=np.float32) / np.float32(65535)
+    near = [np.nextafter(np.float32(t), np.float32(d)) for t in (0.04045, 0.0031308)
+            for d in (0, 1)]  # fmt: skip
+    rng = np.random.default_rng(3)
+    x = np.concatenate([levels, rng.random(100_000, dtype=np.float32) * 1.2, near,
+                        np.float32([0.04045, 0.0031308, -0.5, 0.0, 1.0])])  # fmt: skip
+    pos = x[x >= 0]  # a decode's input is a stored colour, never negative
+    assert srgb_to_linear(pos).view(np.uint32).tolist() == decode(pos).view(np.uint32).tolist()
+    assert linear_to_srgb(x).view(np.uint32).tolist() == encode(x).view(np.uint32).tolist()
+    assert float(srgb_to_linear(np.float32(0.5))) == float(decode(np.float32(0.5)))
+    samples = rng.integers(0, 256, (7, 5, 3), dtype=np.uint8)
+    scaled = samples.astype(np.float32)
+    scaled /= 255.0  # as images.Image.rows scales them
+    np.testing.assert_array_equal(srgb_table(8)[samples], srgb_to_linear(scaled))
+    np.testing.assert_array_equal(srgb_table(16), srgb_to_linear(levels))
+
+
+def test_in_threads_keeps_order_and_raises_the_first_failing_items_error():
+    import threading
+    import time
+
+    from render_jobs.materials.files import in_threads
+
+    seen = set()
+
+    def square(x):
+        seen.add(threading.get_ident())
+        time.sleep(0.01 * (x % 3))  # finish out of order
+        return x * x
+
+    assert in_threads(square, list(range(12)), threads=4) == [x * x for x in range(12)]
+    assert len(seen) > 1  # it did run on several threads
+    started = []
+
+    def fail(x):
+        started.append(x)
+        if x in (1, 2):
+            time.sleep(0.05 if x == 1 else 0)  # item 2 fails first, item 1 is first in order
+            raise MaterialError(f"item {x}")
+        time.sleep(0.05)
+        return x
+
+    with pytest.raises(MaterialError, match="item 1"):
+        in_threads(fail, list(range(40)), threads=4)
+    assert len(started) < 40  # what had not started when it failed is dropped
+    assert in_threads(square, [3], threads=4) == [9] and in_threads(square, []) == []

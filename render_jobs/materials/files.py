@@ -20,12 +20,17 @@ Files are converted a band of rows at a time (:func:`by_bands`): every step abov
 texel, so the maps come out the same, and a 4K material costs its files' bytes and its maps,
 not float copies of every file and every step. A material with a float file (EXR) is converted
 whole, because its range checks and a normal map's encoding are decided over the whole image.
+A folder's files are decoded, and the bands converted, on a few threads (:func:`in_threads`):
+the maps are the same whatever the threads, and an error is the one the first culprit in
+order gives.
 
 Every problem raises :class:`MaterialError` as ``"<file or folder>: <problem>"``.
 """
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,7 +43,7 @@ from render_jobs.materials.maps import (
     MAP_CHANNELS,
     MaterialMaps,
     linear_to_srgb,
-    srgb_to_linear,
+    srgb_table,
 )
 
 PANELS = ("photo", "normal", "diffuse", "roughness", "specular")
@@ -47,8 +52,12 @@ GREY_TOLERANCE = 6.0 / 255.0
 #: float data maps may overshoot [0, 1] by this much (rounding) and are clipped
 FLOAT_SLACK = 1e-3
 DIELECTRIC_F0 = 0.04
-#: texels converted at a time: a band's float temporaries stay small (12 MB for RGB)
-BAND_PIXELS = 1 << 20
+#: texels converted at a time: a band's float temporaries stay small (3 MB for RGB, within
+#: a shared cache with a few threads at work)
+BAND_PIXELS = 1 << 18
+#: threads that decode a folder's files and convert bands side by side (at most), each
+#: holding one band's temporaries
+MAX_THREADS = 4
 
 
 @dataclass
@@ -71,6 +80,19 @@ def _colour(img: images.Image, name: str) -> np.ndarray:
     if img.is_float:
         _check_range(img, px, name)
         px = linear_to_srgb(np.clip(px, 0.0, 1.0))
+    return np.ascontiguousarray(px, dtype=np.float32)
+
+
+def _linear_colour(img: images.Image, name: str) -> np.ndarray:
+    """A colour map as linear ``(H, W, 3)``: a float file's values (linear by convention),
+    integer samples decoded from sRGB by ``srgb_table`` (the curve's values, by one gather)."""
+    if img.is_float:
+        px = img.pixels
+        _check_range(img, px, name)
+        px = np.clip(px, 0.0, 1.0)
+    else:
+        px = srgb_table(img.bits)[img.data]
+    px = np.repeat(px, 3, axis=2) if px.shape[2] == 1 else px[..., :3]
     return np.ascontiguousarray(px, dtype=np.float32)
 
 
@@ -156,17 +178,35 @@ def band_rows(size: tuple[int, int], imgs) -> int:
 
 def by_bands(size: tuple[int, int], rows: int, convert) -> dict[str, np.ndarray]:
     """Maps of ``size`` (height, width), made ``rows`` rows at a time by ``convert(start, stop)``
-    (name to ``(stop - start, width, C)`` floats); contiguous ``float32``."""
+    (name to ``(stop - start, width, C)`` floats); contiguous ``float32``. The first band
+    sizes the maps; the others are converted by :func:`in_threads` (``convert`` reads its
+    inputs only; each band writes its own rows)."""
     if rows >= size[0]:
         return {k: np.ascontiguousarray(v, np.float32) for k, v in convert(0, size[0]).items()}
     out: dict[str, np.ndarray] = {}
-    for start in range(0, size[0], rows):
+    for name, band in convert(0, rows).items():
+        out[name] = np.empty((*size, band.shape[2]), np.float32)
+        out[name][:rows] = band
+
+    def put(start: int) -> None:
         stop = min(start + rows, size[0])
         for name, band in convert(start, stop).items():
-            if name not in out:
-                out[name] = np.empty((*size, band.shape[2]), np.float32)
             out[name][start:stop] = band
+
+    in_threads(put, list(range(rows, size[0], rows)))
     return out
+
+
+def in_threads(fn, items: list, threads: int | None = None) -> list:
+    """``[fn(x) for x in items]`` on ``threads`` threads (by default :data:`MAX_THREADS` or the
+    process's CPUs, fewer): OpenCV's decoders and numpy's array loops release the GIL. Results
+    in order; an error raises as the first failing item's, in order, and the items not
+    started then are dropped."""
+    threads = min(threads or min(MAX_THREADS, len(os.sched_getaffinity(0))), len(items))
+    if threads <= 1:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(threads, thread_name_prefix="material-read") as pool:
+        return list(pool.map(fn, items))
 
 
 def read_map_folder(folder: Path) -> tuple[MaterialMaps, Reading]:
@@ -174,7 +214,8 @@ def read_map_folder(folder: Path) -> tuple[MaterialMaps, Reading]:
     plan = plan_folder(folder)
     reading = Reading(str(folder), plan.workflow, ignored=list(plan.ignored))
     reading.conversions.extend(plan.notes)
-    imgs = {role: images.read(path) for role, path in plan.files.items()}
+    roles, paths = list(plan.files), list(plan.files.values())
+    imgs = dict(zip(roles, in_threads(images.read, paths), strict=True))
     size = max((img.size for img in imgs.values()), key=lambda s: s[0] * s[1])
     for role, img in imgs.items():
         reading.files[role] = f"{img.path.name} ({img.describe()})"
@@ -241,7 +282,7 @@ def _convert(plan: FolderPlan, imgs: dict, size: tuple[int, int]) -> dict:
 
 
 def _metal_rough(plan: FolderPlan, imgs: dict, size: tuple[int, int], packed: np.ndarray | None):
-    base = srgb_to_linear(_colour(imgs["basecolor"], "base colour"))
+    base = _linear_colour(imgs["basecolor"], "base colour")
     if plan.metallic_from == "packed":
         metal = np.clip(packed[..., 2:3], 0.0, 1.0)
     elif plan.metallic_from == "metallic":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -87,12 +88,37 @@ def quantize_u8(x: np.ndarray) -> np.ndarray:
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB decode, elementwise, float32."""
+    """IEC 61966-2-1 sRGB decode, elementwise, float32.
+
+    Written as in-place ufuncs (one output array, the low segment written over the curve where
+    it applies): the values of ``np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) **
+    2.4)`` in float32, bit for bit, at about half its time and memory."""
     x = np.asarray(x, dtype=np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    out = np.add(x, np.float32(0.055), out=np.empty_like(x))
+    out /= np.float32(1.055)
+    np.power(out, np.float32(2.4), out=out)
+    np.divide(x, np.float32(12.92), out=out, where=x <= np.float32(0.04045))
+    return out
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB encode, elementwise, float32 (negatives clamp to 0)."""
-    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, None)
-    return np.where(x <= 0.0031308, x * 12.92, 1.055 * x ** (1 / 2.4) - 0.055).astype(np.float32)
+    """IEC 61966-2-1 sRGB encode, elementwise, float32 (negatives clamp to 0); in-place ufuncs,
+    the values of the ``np.where`` form bit for bit (:func:`srgb_to_linear`)."""
+    x = np.clip(np.asarray(x, dtype=np.float32), np.float32(0.0), None)
+    out = np.power(x, np.float32(1 / 2.4), out=np.empty_like(x))
+    out *= np.float32(1.055)
+    out -= np.float32(0.055)
+    np.multiply(x, np.float32(12.92), out=out, where=x <= np.float32(0.0031308))
+    return out
+
+
+@functools.cache
+def srgb_table(bits: int) -> np.ndarray:
+    """:func:`srgb_to_linear` of every level of ``bits``-bit (8 or 16) integer samples, as
+    ``images.Image.rows`` scales them (``v / (2**bits - 1)`` in float32): indexed by the
+    samples, it gives the decode of their floats exactly, at the cost of one gather."""
+    levels = np.arange(1 << bits, dtype=np.float32)
+    levels /= np.float32((1 << bits) - 1)
+    table = srgb_to_linear(levels)
+    table.flags.writeable = False
+    return table
