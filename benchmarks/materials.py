@@ -6,17 +6,19 @@
 Writes one procedural material at ``--texture``² in three library layouts: a 5-panel PNG
 (photo | normal | diffuse | roughness | specular), a metal-rough per-map folder of 8-bit
 PNGs (base colour, OpenGL normal, roughness, metalness), and that folder with every map but
-the normal at half the size (resampled by the reader). Each is read by
-``render_jobs.materials.files.read_svbrdf``, as a farm worker and the viewer read them, in a
-fresh process per read so that its peak resident memory (``ru_maxrss``) is that read's.
-Reported: seconds (best of ``--repeat``), the process's resident memory before the read, its
-peak, and the maps' own size (four ``float32`` maps, 40 bytes a texel). The peak over the
+the normal at half the size (resampled by the reader). Each is read by both readers of
+``render_jobs.materials.files``: ``read_svbrdf`` (float maps, 40 bytes a texel) and
+``read_svbrdf_bytes`` (the 8-bit maps Blender loads, 10 bytes a texel, as a farm worker and
+the viewer read them), in a fresh process per read so that its peak resident memory
+(``ru_maxrss``) is that read's. Reported: seconds (best of ``--repeat``), the process's
+resident memory before the read, its peak, and the maps' own size. The peak over the
 resident memory before and the maps is what the reader holds for a moment.
 
-The second table follows each read into a render worker (``render_jobs.process.RenderProcess``,
-as a farm worker holds one): the material is sent to its Blender process and rendered once at
-32² and 1 sample, so the time is the textures' swap (``material_seconds``: PNGs written and
-loaded) and the peaks are the worker's (``ru_maxrss``) and its Blender process's (``VmHWM``).
+The second table follows each bytes read into a render worker
+(``render_jobs.process.RenderProcess``, as a farm worker holds one): the material is sent to
+its Blender process and rendered once at 32² and 1 sample, so the time is the textures' swap
+(``material_seconds``: PNGs written and loaded) and the peaks are the worker's (``ru_maxrss``)
+and its Blender process's (``VmHWM``).
 
 The materials are written by a child process too (:func:`write_apart`): on Linux a child
 starts with its parent's peak, so a parent that made 4K maps would lend its children its own.
@@ -38,6 +40,7 @@ import numpy as np
 from PIL import Image
 
 LAYOUTS = ("panel", "metal-rough", "mixed")
+READERS = ("floats", "bytes")
 
 
 def panel_png(folder: Path, texture: int, seed: int = 7) -> Path:
@@ -99,18 +102,20 @@ def peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def read_once(path: Path, render: bool) -> dict:
-    """Read ``path`` in this process (seconds, MB resident before, peak MB, maps MB) and, with
-    ``render``, render it once in a fresh render worker (texture swap seconds, peaks after)."""
-    from render_jobs.materials.files import read_svbrdf
+def read_once(path: Path, reader: str, render: bool) -> dict:
+    """Read ``path`` in this process with ``reader`` (seconds, MB resident before, peak MB,
+    maps MB) and, with ``render``, render it once in a fresh render worker (texture swap
+    seconds, peaks after)."""
+    from render_jobs.materials.files import read_svbrdf, read_svbrdf_bytes
 
     before = resident_mb()
     t0 = time.perf_counter()
-    maps, _ = read_svbrdf(path)
+    maps, _ = (read_svbrdf_bytes if reader == "bytes" else read_svbrdf)(path)
     seconds = time.perf_counter() - t0
-    nbytes = sum(getattr(maps, k).nbytes for k in ("diffuse", "specular", "roughness", "normal"))
+    arrays = maps.arrays.values() if reader == "bytes" else (
+        getattr(maps, k) for k in ("diffuse", "specular", "roughness", "normal"))  # fmt: skip
     out = {"seconds": seconds, "before_mb": before, "peak_mb": peak_mb(),
-           "maps_mb": nbytes / 2**20}  # fmt: skip
+           "maps_mb": sum(a.nbytes for a in arrays) / 2**20}  # fmt: skip
     if render:
         out.update(render_once(maps))
     return out
@@ -130,11 +135,12 @@ def render_once(maps) -> dict:
             "blender_peak_mb": hwm / 1024}  # fmt: skip
 
 
-def measure(path: Path, repeat: int, render: bool) -> dict:
-    """The best of ``repeat`` reads of ``path``, each in a fresh process."""
+def measure(path: Path, reader: str, repeat: int, render: bool) -> dict:
+    """The best of ``repeat`` reads of ``path`` by ``reader``, each in a fresh process."""
     runs = []
     for _ in range(repeat):
-        cmd = [sys.executable, "-m", "benchmarks.materials", "--read", str(path)]
+        cmd = [sys.executable, "-m", "benchmarks.materials", "--read", str(path),
+               "--reader", reader]  # fmt: skip
         out = subprocess.run(cmd + ([] if render else ["--no-render"]),
                              capture_output=True, text=True, check=True)  # fmt: skip
         runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
@@ -148,6 +154,7 @@ def main() -> None:
     ap.add_argument("--no-render", dest="render", action="store_false",
                     help="reads only, no render worker (no Blender)")  # fmt: skip
     ap.add_argument("--read", type=Path, help=argparse.SUPPRESS)  # one read, as JSON
+    ap.add_argument("--reader", choices=READERS, default="bytes", help=argparse.SUPPRESS)
     ap.add_argument(
         "--write",
         type=Path,
@@ -164,7 +171,7 @@ def main() -> None:
     )
     args = ap.parse_args()
     if args.read is not None:
-        print(json.dumps(read_once(args.read, args.render)))
+        print(json.dumps(read_once(args.read, args.reader, args.render)))
         return
     if args.texture < 8 or args.repeat < 1 or args.count < 1:
         ap.error("--texture must be at least 8, --repeat and --count at least 1")
@@ -182,20 +189,32 @@ def main() -> None:
         for layout in LAYOUTS:
             (Path(tmp) / layout).mkdir()
             path = write_apart(Path(tmp) / layout, args.texture, 1, layout)[0]
-            rows[names[layout]] = measure(path, args.repeat, args.render)
-    print(f"{args.texture}² maps, best of {args.repeat} reads, each in a fresh process")
-    print("| layout | read s | resident MB before | peak MB | maps MB |")
+            rows[names[layout]] = {
+                "floats": measure(path, "floats", args.repeat, False),
+                "bytes": measure(path, "bytes", args.repeat, args.render),
+            }
+    print(
+        f"{args.texture}² maps, best of {args.repeat} reads, each in a fresh process; "
+        "floats: read_svbrdf, bytes: read_svbrdf_bytes (farm workers, the viewer)"
+    )
+    print(
+        "| layout | read s, floats / bytes | resident MB before | peak MB, floats / bytes "
+        "| maps MB, floats / bytes |"
+    )
     print("|---|---|---|---|---|")
     for name, r in rows.items():
-        print(f"| {name} | {r['seconds']:.2f} | {r['before_mb']:,.0f} | "
-              f"{r['peak_mb']:,.0f} | {r['maps_mb']:,.0f} |")  # fmt: skip
+        f, b = r["floats"], r["bytes"]
+        print(f"| {name} | {f['seconds']:.2f} / {b['seconds']:.2f} | {b['before_mb']:,.0f} | "
+              f"{f['peak_mb']:,.0f} / {b['peak_mb']:,.0f} | "
+              f"{f['maps_mb']:,.0f} / {b['maps_mb']:,.0f} |")  # fmt: skip
     if args.render:
-        print("\nthe same material into a fresh render worker, rendered once at 32², 1 sample")
+        print("\nthe bytes read into a fresh render worker, rendered once at 32², 1 sample")
         print("| layout | texture swap s | worker peak MB | Blender process peak MB |")
         print("|---|---|---|---|")
         for name, r in rows.items():
-            print(f"| {name} | {r['swap_s']:.2f} | {r['worker_peak_mb']:,.0f} | "
-                  f"{r['blender_peak_mb']:,.0f} |")  # fmt: skip
+            b = r["bytes"]
+            print(f"| {name} | {b['swap_s']:.2f} | {b['worker_peak_mb']:,.0f} | "
+                  f"{b['blender_peak_mb']:,.0f} |")  # fmt: skip
 
 
 if __name__ == "__main__":

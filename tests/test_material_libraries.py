@@ -15,9 +15,13 @@ from farm.materials import dry_run
 from render_jobs.errors import MaterialError
 from render_jobs.exr import write_image_exr
 from render_jobs.materials import files
-from render_jobs.materials.files import metal_rough_to_spec_gloss, read_svbrdf
+from render_jobs.materials.files import (
+    metal_rough_to_spec_gloss,
+    read_svbrdf,
+    read_svbrdf_bytes,
+)
 from render_jobs.materials.library import role_of
-from render_jobs.materials.maps import linear_to_srgb, srgb_to_linear
+from render_jobs.materials.maps import MapBytes, linear_to_srgb, srgb_to_linear
 from storage.reader import Store
 from tests.test_farm import BIN, TINY, assert_exactly_once, farm
 
@@ -248,16 +252,23 @@ def test_reading_in_bands_of_rows_gives_the_same_maps(library, tmp_path, monkeyp
     exr = files.images.read(library / "metal_plate" / "metal_plate_nor_gl_1k.exr")
     assert files.band_rows((S, S), [*ints, exr]) == S  # a float file: one pass
     for name, (maps, how) in whole.items():
-        banded, how_banded = read_svbrdf(library / name if name != "five.png" else five)
+        path = library / name if name != "five.png" else five
+        banded, how_banded = read_svbrdf(path)
         assert how_banded == how, name
         for m in ("diffuse", "specular", "roughness", "normal"):
             np.testing.assert_array_equal(getattr(banded, m), getattr(maps, m), err_msg=name)
+        levels, how_levels = read_svbrdf_bytes(path)  # 8 bits a band at a time: the same
+        assert how_levels == how and levels.source_id == maps.source_id, name
+        for m, want in MapBytes.of(maps).arrays.items():
+            assert levels.arrays[m].flags.c_contiguous, name
+            np.testing.assert_array_equal(levels.arrays[m], want, err_msg=f"{name} {m}")
     d = spec_gloss(tmp_path / "late")
     gloss = np.repeat(rand(S, S)[..., None], 3, 2)
     gloss[-1, -1] = [0.1, 0.9, 0.5]
     write(d / "leather_glossiness.tif", gloss, bits=16)
-    with pytest.raises(MaterialError, match="leather_glossiness.tif: glossiness map is not grey"):
-        read_svbrdf(d)
+    for read in (read_svbrdf, read_svbrdf_bytes):
+        with pytest.raises(MaterialError, match="leather_glossiness.tif: glossiness map is not g"):
+            read(d)
 
 
 def broken(root: Path) -> dict[str, tuple[Path, str]]:
@@ -285,10 +296,11 @@ def test_broken_materials_give_one_line_errors_and_the_farm_writes_nothing(tmp_p
     cases = broken(tmp_path / "broken")
     for folder, (culprit, phrase) in cases.items():
         root = next(p for p in (tmp_path / "broken" / folder).iterdir() if p.is_dir())
-        with pytest.raises(MaterialError) as info:
-            read_svbrdf(root)
-        msg = str(info.value)
-        assert "\n" not in msg and str(culprit) in msg and phrase in msg, msg
+        for read in (read_svbrdf, read_svbrdf_bytes):
+            with pytest.raises(MaterialError) as info:
+                read(root)
+            msg = str(info.value)
+            assert "\n" not in msg and str(culprit) in msg and phrase in msg, msg
     run = dry_run([f"svbrdf:{tmp_path / 'broken' / name}" for name in cases])
     assert run.failed == len(cases) and all(e.error for e in run.entries)
     out = tmp_path / "never.zarr"

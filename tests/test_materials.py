@@ -294,3 +294,33 @@ def test_in_threads_keeps_order_and_raises_the_first_failing_items_error():
         in_threads(fail, list(range(40)), threads=4)
     assert len(started) < 40  # what had not started when it failed is dropped
     assert in_threads(square, [3], threads=4) == [9] and in_threads(square, []) == []
+
+
+@pytest.mark.parametrize(
+    "value,phrase",
+    [(np.nan, "holds NaN or Inf"), (np.inf, "holds NaN or Inf"), (-np.inf, "holds NaN or Inf"),
+     (1.5, "must lie in [0, 1], got [0.5, 1.5]"), (-0.25, "must lie in [0, 1], got [-0.25, 0.5]")],
+)  # fmt: skip
+def test_maps_with_a_bad_texel_are_refused_naming_the_map(value, phrase):
+    from render_jobs.materials.maps import MaterialMaps
+
+    maps = {name: np.full((8, 8, c), 0.5, np.float32) for name, c in MAP_CHANNELS.items()}
+    maps["roughness"][5, 6] = value
+    with pytest.raises(MaterialError) as info:
+        MaterialMaps(**maps, source_id="m")
+    assert str(info.value).startswith("m: roughness map") and phrase in str(info.value)
+
+
+def test_map_bytes_of_any_source_are_its_maps_rounded(tmp_path):
+    """``load_map_bytes`` (render workers, the viewer) gives ``MapBytes.of(load_maps)`` for
+    every source kind; a file's are read straight to 8 bits."""
+    from render_jobs.materials import load_map_bytes
+
+    panel = panel_png(tmp_path / "p.png")
+    folder = map_folder(tmp_path / "wood")
+    sources = ["uniform:2", "procedural:2", f"svbrdf:{panel}", f"svbrdf:{folder}"]
+    for spec in specs_from_sources(sources, 5, map_resolution=32):
+        got, want = load_map_bytes(spec), MapBytes.of(load_maps(spec))
+        assert got.source_id == want.source_id and list(got.arrays) == list(MAP_CHANNELS)
+        for name, arr in want.arrays.items():
+            np.testing.assert_array_equal(got.arrays[name], arr, err_msg=f"{spec} {name}")

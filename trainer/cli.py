@@ -301,14 +301,14 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
     from PIL import Image
 
     from render_jobs.errors import MaterialError
-    from render_jobs.materials.sources import load_maps, one_material
+    from render_jobs.materials.sources import load_map_bytes, one_material
     from render_jobs.screen_uv import ScreenUVError
     from render_jobs.tonemap import to_uint8
     from storage.errors import StoreError
     from storage.reader import Store
     from trainer.checkpoint import CheckpointError
     from trainer.infer import NoScreenUV, Renderer, material_mapper
-    from trainer.mapping import textures_from_maps
+    from trainer.mapping import textures_from_bytes
 
     if (material is None) == (sample is None):
         raise click.UsageError("give --material, or --store with --sample")
@@ -316,10 +316,10 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
         raise click.UsageError("--sample needs --store")
     try:
         if material is not None:
-            maps = load_maps(one_material(material))  # the material first: its errors are cheap
+            maps = load_map_bytes(one_material(material))  # the material first: cheap errors
             direction, t = _light(sun, turbidity, DEFAULT_LIGHT)
             r = Renderer.from_checkpoint(ckpt, device)
-            packed = material_mapper(r, store)(textures_from_maps(maps)).cpu().numpy()
+            packed = material_mapper(r, store)(textures_from_bytes(maps)).cpu().numpy()
         else:
             s = Store(store)
             packed = s.packed_maps(s.layout.material_of_sample(sample))

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from render_jobs.materials.maps import MaterialMaps
+from render_jobs.materials.maps import MAP_CHANNELS, MapBytes, MaterialMaps
 from render_jobs.screen_uv import ScreenUV
 from trainer.targets import srgb_decode, srgb_encode
 
@@ -40,15 +40,20 @@ def textures_from_maps(maps: MaterialMaps) -> torch.Tensor:
     """A material's maps ``(H, W, C)`` float32 in [0, 1] → ``(10, H, W) uint8``: diffuse,
     specular (sRGB-encoded), roughness, normal, file row 0 first, as the 8-bit values
     Blender loads (what :meth:`ScreenMapper.prepare` would round them to; a quarter of the
-    memory of floats). Converted a map at a time, so no float copy of all ten is made."""
-    parts = (maps.diffuse, maps.specular, maps.roughness, maps.normal)
-    h, w = maps.diffuse.shape[:2]
+    memory of floats): :func:`textures_from_bytes` of ``MapBytes.of(maps)``."""
+    return textures_from_bytes(MapBytes.of(maps))
+
+
+def textures_from_bytes(maps: MapBytes) -> torch.Tensor:
+    """A material's 8-bit maps (``MapBytes``, as Blender loads them) → ``(10, H, W) uint8``
+    in the order of :func:`textures_from_maps`."""
+    h, w = maps.size
     out = torch.empty(TEXTURE_CHANNELS, h, w, dtype=torch.uint8)
     start = 0
-    for part in parts:
-        c = part.shape[2]
-        out[start : start + c] = _bytes(torch.from_numpy(part)).permute(2, 0, 1)
-        start += c
+    for name in MAP_CHANNELS:
+        part = torch.from_numpy(maps.arrays[name])
+        out[start : start + part.shape[2]] = part.permute(2, 0, 1)
+        start += part.shape[2]
     return out
 
 

@@ -10,10 +10,24 @@ Source strings (the farm's ``--materials``, the preview's ``--material``):
   (``library``: which file is which map; ``files``: reading and converting them).
 
 ``load_maps(spec)`` validates as it loads and raises :class:`MaterialError` with one line that
-names the file and the problem; nothing is rendered from a bad material.
+names the file and the problem; nothing is rendered from a bad material. ``load_map_bytes(spec)``
+gives the same maps as the 8-bit textures Blender holds, a file material read without float
+maps (what a render worker and the viewer take).
 """
 
-from render_jobs.materials.maps import MaterialMaps
-from render_jobs.materials.sources import load_maps, parse_source, specs_from_sources
+from render_jobs.materials.maps import MapBytes, MaterialMaps
+from render_jobs.materials.sources import (
+    load_map_bytes,
+    load_maps,
+    parse_source,
+    specs_from_sources,
+)
 
-__all__ = ["MaterialMaps", "load_maps", "parse_source", "specs_from_sources"]
+__all__ = [
+    "MapBytes",
+    "MaterialMaps",
+    "load_map_bytes",
+    "load_maps",
+    "parse_source",
+    "specs_from_sources",
+]

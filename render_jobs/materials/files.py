@@ -24,11 +24,17 @@ A folder's files are decoded, and the bands converted, on a few threads (:func:`
 the maps are the same whatever the threads, and an error is the one the first culprit in
 order gives.
 
+Two readers share this: :func:`read_svbrdf` keeps each band as floats (``MaterialMaps``);
+:func:`read_svbrdf_bytes` rounds each band to the 8-bit levels Blender's textures hold
+(``MapBytes``) as soon as it is converted, which is what a render worker and the viewer take,
+so they never hold a material's float maps.
+
 Every problem raises :class:`MaterialError` as ``"<file or folder>: <problem>"``.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -41,8 +47,11 @@ from render_jobs.materials import images
 from render_jobs.materials.library import FolderPlan, looks_like_material, plan_folder
 from render_jobs.materials.maps import (
     MAP_CHANNELS,
+    MapBytes,
     MaterialMaps,
+    check_values,
     linear_to_srgb,
+    quantize_u8,
     srgb_table,
 )
 
@@ -141,8 +150,8 @@ def _resize(img: images.Image, size: tuple[int, int]) -> images.Image:
     return images.Image(img.path, out.reshape(size[0], size[1], img.channels), img.bits)
 
 
-def load_panel_png(path: Path) -> MaterialMaps:
-    """A Deschaintre-style 5-panel PNG as maps."""
+def load_panel_png(path: Path, finish) -> dict[str, np.ndarray]:
+    """A Deschaintre-style 5-panel PNG as maps (:func:`by_bands` with ``finish``)."""
     img = images.read(path)
     h, w = img.size
     if w != 5 * h:
@@ -164,8 +173,7 @@ def load_panel_png(path: Path) -> MaterialMaps:
             "normal": panel["normal"],
         }
 
-    maps = by_bands((h, h), band_rows(img.size, [img]), convert)
-    return MaterialMaps(**{k: maps[k] for k in MAP_CHANNELS}, source_id=path.name)
+    return by_bands((h, h), band_rows(img.size, [img]), convert, finish)
 
 
 def band_rows(size: tuple[int, int], imgs) -> int:
@@ -176,25 +184,40 @@ def band_rows(size: tuple[int, int], imgs) -> int:
     return max(1, BAND_PIXELS // size[1])
 
 
-def by_bands(size: tuple[int, int], rows: int, convert) -> dict[str, np.ndarray]:
+def by_bands(size: tuple[int, int], rows: int, convert, finish) -> dict[str, np.ndarray]:
     """Maps of ``size`` (height, width), made ``rows`` rows at a time by ``convert(start, stop)``
-    (name to ``(stop - start, width, C)`` floats); contiguous ``float32``. The first band
-    sizes the maps; the others are converted by :func:`in_threads` (``convert`` reads its
-    inputs only; each band writes its own rows)."""
+    (name to ``(stop - start, width, C)`` floats), each band kept as ``finish(name, band)``
+    gives it (:func:`floats` or :func:`levels`). The first band sizes the maps; the others
+    are converted by :func:`in_threads` (``convert`` reads its inputs only; each band writes
+    its own rows)."""
+    first = {k: finish(k, v) for k, v in convert(0, min(rows, size[0])).items()}
     if rows >= size[0]:
-        return {k: np.ascontiguousarray(v, np.float32) for k, v in convert(0, size[0]).items()}
+        return first
     out: dict[str, np.ndarray] = {}
-    for name, band in convert(0, rows).items():
-        out[name] = np.empty((*size, band.shape[2]), np.float32)
+    for name, band in first.items():
+        out[name] = np.empty((*size, band.shape[2]), band.dtype)
         out[name][:rows] = band
+    del first
 
     def put(start: int) -> None:
         stop = min(start + rows, size[0])
         for name, band in convert(start, stop).items():
-            out[name][start:stop] = band
+            out[name][start:stop] = finish(name, band)
 
     in_threads(put, list(range(rows, size[0], rows)))
     return out
+
+
+def floats(name: str, band: np.ndarray) -> np.ndarray:
+    """A converted band kept as ``float32`` (:class:`MaterialMaps` checks the whole maps)."""
+    return np.ascontiguousarray(band, np.float32)
+
+
+def levels(where: str, name: str, band: np.ndarray) -> np.ndarray:
+    """A converted band kept as :class:`MapBytes` keeps it: checked as :class:`MaterialMaps`
+    checks a map (an error names ``where``), then rounded to 8 bits (``quantize_u8``)."""
+    check_values(where, name, band)
+    return quantize_u8(band)
 
 
 def in_threads(fn, items: list, threads: int | None = None) -> list:
@@ -209,8 +232,8 @@ def in_threads(fn, items: list, threads: int | None = None) -> list:
         return list(pool.map(fn, items))
 
 
-def read_map_folder(folder: Path) -> tuple[MaterialMaps, Reading]:
-    """A per-map folder as maps, and how it was read."""
+def read_map_folder(folder: Path, finish) -> tuple[dict[str, np.ndarray], Reading]:
+    """A per-map folder as maps (:func:`by_bands` with ``finish``), and how it was read."""
     plan = plan_folder(folder)
     reading = Reading(str(folder), plan.workflow, ignored=list(plan.ignored))
     reading.conversions.extend(plan.notes)
@@ -232,9 +255,9 @@ def read_map_folder(folder: Path) -> tuple[MaterialMaps, Reading]:
         band = {role: img.band(start, stop) for role, img in imgs.items()}
         return _convert(plan, band, (stop - start, size[1]))
 
-    maps = by_bands(size, band_rows(size, imgs.values()), convert)
+    maps = by_bands(size, band_rows(size, imgs.values()), convert, finish)
     reading.conversions.extend(_notes(plan, imgs))
-    return MaterialMaps(**maps, source_id=folder.name), reading
+    return maps, reading
 
 
 def _notes(plan: FolderPlan, imgs: dict) -> list[str]:
@@ -308,6 +331,20 @@ def metal_rough_to_spec_gloss(base: np.ndarray, metallic: np.ndarray):
 
 def read_svbrdf(path: Path) -> tuple[MaterialMaps, Reading]:
     """A 5-panel image file or a per-map folder, and how it was read."""
+    maps, reading = _read(Path(path), floats)
+    return MaterialMaps(**maps, source_id=Path(path).name), reading
+
+
+def read_svbrdf_bytes(path: Path) -> tuple[MapBytes, Reading]:
+    """:func:`read_svbrdf` as the 8-bit textures Blender and the viewer's mapper take:
+    ``MapBytes.of(read_svbrdf(path)[0])`` bit for bit, read without the float maps (a 4K
+    material holds 160 MB of maps, not 640), refused as :class:`MaterialMaps` refuses."""
+    name = Path(path).name
+    maps, reading = _read(Path(path), functools.partial(levels, name))
+    return MapBytes({k: maps[k] for k in MAP_CHANNELS}, name), reading
+
+
+def _read(path: Path, finish) -> tuple[dict[str, np.ndarray], Reading]:
     if path.is_dir():
         if not looks_like_material(path) and any(
             p.suffix.lower() == ".png" for p in path.iterdir()
@@ -316,10 +353,10 @@ def read_svbrdf(path: Path) -> tuple[MaterialMaps, Reading]:
                 f"{path}: a folder of materials (5-panel PNGs), not one material; "
                 "name one file, or give the folder to farm submit / farm materials"
             )
-        return read_map_folder(path)
+        return read_map_folder(path, finish)
     if not path.exists():
         raise MaterialError(f"{path}: file not found")
-    maps = load_panel_png(path)
+    maps = load_panel_png(path, finish)
     return maps, Reading(str(path), "5-panel", files={"panels": path.name})
 
 

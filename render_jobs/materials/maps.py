@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,13 +48,7 @@ class MaterialMaps:
                     f"{where}: {name} map is {arr.shape[1]}x{arr.shape[0]}, "
                     f"others are {shape[1]}x{shape[0]}"
                 )
-            if not np.all(np.isfinite(arr)):
-                raise MaterialError(f"{where}: {name} map holds NaN or Inf values")
-            if arr.min() < 0.0 or arr.max() > 1.0:
-                raise MaterialError(
-                    f"{where}: {name} map values must lie in [0, 1], "
-                    f"got [{arr.min():.3g}, {arr.max():.3g}]"
-                )
+            check_values(where, name, arr)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -75,6 +70,24 @@ class MapBytes:
     def of(cls, maps: MaterialMaps) -> MapBytes:
         arrays = {name: quantize_u8(getattr(maps, name)) for name in MAP_CHANNELS}
         return cls(arrays, maps.source_id)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(height, width) in texels."""
+        return self.arrays["diffuse"].shape[:2]
+
+
+def check_values(where: str, name: str, arr: np.ndarray) -> None:
+    """Raise :class:`MaterialError` unless every value of ``name`` map (or a band of its rows)
+    is finite and in [0, 1]."""
+    # min and max carry a NaN or an infinity through: two passes, no temporaries
+    lo, hi = float(arr.min()), float(arr.max())
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise MaterialError(f"{where}: {name} map holds NaN or Inf values")
+    if lo < 0.0 or hi > 1.0:
+        raise MaterialError(
+            f"{where}: {name} map values must lie in [0, 1], got [{lo:.3g}, {hi:.3g}]"
+        )
 
 
 def quantize_u8(x: np.ndarray) -> np.ndarray:

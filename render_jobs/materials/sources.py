@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from render_jobs.errors import MaterialError
-from render_jobs.materials.files import Reading, read_svbrdf, scan_svbrdf_dir
-from render_jobs.materials.maps import MaterialMaps
+from render_jobs.materials.files import Reading, read_svbrdf, read_svbrdf_bytes, scan_svbrdf_dir
+from render_jobs.materials.maps import MapBytes, MaterialMaps
 from render_jobs.materials.procedural import DEFAULT_MAP_RESOLUTION, procedural_maps
 from render_jobs.materials.uniform import sample_uniform, uniform_maps
 from render_jobs.specs import MaterialSpec, UniformValues, derive_seed
@@ -189,3 +189,12 @@ def read_material(spec: MaterialSpec) -> tuple[MaterialMaps, Reading]:
     if spec.path is None:
         raise MaterialError(f"{spec.source_id}: svbrdf material has no path")
     return read_svbrdf(Path(spec.path))
+
+
+def load_map_bytes(spec: MaterialSpec) -> MapBytes:
+    """``MapBytes.of(load_maps(spec))``, bit for bit: what a render worker sends Blender and the
+    viewer maps. A file material is read straight to 8 bits (no float maps), so a render
+    worker or the viewer holds a quarter of the bytes while it reads."""
+    if spec.kind == "svbrdf" and spec.path is not None:
+        return read_svbrdf_bytes(Path(spec.path))[0]
+    return MapBytes.of(load_maps(spec))

@@ -24,11 +24,11 @@ import numpy as np
 import torch
 
 from render_jobs.errors import MaterialError
-from render_jobs.materials.files import read_svbrdf, scan_svbrdf_dir
-from render_jobs.materials.sources import load_maps, one_material
+from render_jobs.materials.files import read_svbrdf_bytes, scan_svbrdf_dir
+from render_jobs.materials.sources import load_map_bytes, one_material
 from render_jobs.specs import MaterialSpec, Sun
 from storage.reader import Store
-from trainer.mapping import textures_from_maps
+from trainer.mapping import textures_from_bytes
 from trainer.targets import srgb_decode
 from trainer.viewer import MAX_UPLOAD_MB
 from trainer.viewer.recent import Recent
@@ -139,17 +139,17 @@ class Library:
             return cached
         e = self.entry(material_id)
         if e.path is not None:
-            maps = read_svbrdf(e.path)[0]
+            maps = read_svbrdf_bytes(e.path)[0]
         elif e.spec is not None:
             try:
-                maps = load_maps(e.spec)
+                maps = load_map_bytes(e.spec)
             except MaterialError:
                 if e.store is None:
                     raise
                 return None
         else:
             return None
-        tex = textures_from_maps(maps)
+        tex = textures_from_bytes(maps)
         self._textures.put(material_id, tex)
         return tex
 
@@ -199,14 +199,14 @@ class Library:
                 _check_pixels(path)
                 paths.append(path)
             target = paths[0] if len(paths) == 1 else folder
-            maps = read_svbrdf(target)[0]
+            maps = read_svbrdf_bytes(target)[0]
         except MaterialError as exc:
             shutil.rmtree(folder, ignore_errors=True)
             raise MaterialError(str(exc).replace(str(folder) + "/", "")) from None
         e = Entry(f"up{self.uploads}", Path(files[0][0]).name if len(files) == 1 else
                   f"upload {self.uploads}", "svbrdf", "upload", path=target)  # fmt: skip
         self.entries[e.id] = e
-        self._textures.put(e.id, textures_from_maps(maps))
+        self._textures.put(e.id, textures_from_bytes(maps))
         return e
 
 
