@@ -80,16 +80,23 @@ class Reading:
     ignored: list[tuple[str, str]] = field(default_factory=list)
 
 
+def _stored(img: images.Image) -> np.ndarray:
+    """The samples of an image taken as they are: 8-bit ones as stored, which the band's
+    ``finish`` turns into what ``Image.rows`` gives (:func:`floats`) or keeps as the 8-bit
+    levels they are (:func:`levels`); others as ``Image.rows`` floats."""
+    return img.data if img.bits == 8 else img.rows()
+
+
 def _colour(img: images.Image, name: str) -> np.ndarray:
-    """A colour map as sRGB-encoded ``(H, W, 3)``."""
-    px = img.pixels
+    """A colour map as sRGB-encoded ``(H, W, 3)`` (:func:`_stored` samples, or floats)."""
+    px = img.pixels if img.is_float else _stored(img)
     if px.shape[2] == 1:
         px = np.repeat(px, 3, axis=2)
     px = px[..., :3]
     if img.is_float:
         _check_range(img, px, name)
         px = linear_to_srgb(np.clip(px, 0.0, 1.0))
-    return np.ascontiguousarray(px, dtype=np.float32)
+    return px
 
 
 def _linear_colour(img: images.Image, name: str) -> np.ndarray:
@@ -113,8 +120,11 @@ def _check_range(img: images.Image, px: np.ndarray, name: str) -> None:
         )
 
 
-def _grey(img: images.Image, name: str) -> np.ndarray:
-    """A grey map as ``(H, W, 1)`` in [0, 1]."""
+def _grey(img: images.Image, name: str, stored: bool = False) -> np.ndarray:
+    """A grey map as ``(H, W, 1)`` in [0, 1]; with ``stored``, a one-channel 8-bit file's
+    :func:`_stored` samples."""
+    if stored and img.channels == 1 and img.bits == 8:
+        return _stored(img)
     px = img.pixels
     if px.shape[2] >= 3:
         rgb = px[..., :3]
@@ -127,10 +137,14 @@ def _grey(img: images.Image, name: str) -> np.ndarray:
     return np.ascontiguousarray(np.clip(px, 0.0, 1.0), dtype=np.float32)
 
 
-def _normal(img: images.Image) -> np.ndarray:
-    px = img.pixels
-    if px.shape[2] < 3:
+def _normal(img: images.Image, stored: bool = False) -> np.ndarray:
+    """A normal map as ``(H, W, 3)`` encoded (n + 1) / 2; with ``stored``, an 8-bit file's
+    :func:`_stored` samples (else floats of its own, which the caller may change)."""
+    if img.channels < 3:
         raise MaterialError(f"{img.path}: normal map must have 3 channels (RGB), got 1")
+    if stored and img.bits == 8:
+        return _stored(img)[..., :3]
+    px = img.pixels
     px = px[..., :3]
     if img.is_float and px.min() < -FLOAT_SLACK:  # stored as vectors in [-1, 1]
         px = (px + 1.0) * 0.5
@@ -163,14 +177,14 @@ def load_panel_png(path: Path, finish) -> dict[str, np.ndarray]:
         raise MaterialError(f"{path}: expected an RGB image, got {img.channels} channel(s)")
 
     def convert(start: int, stop: int) -> dict[str, np.ndarray]:
-        px = img.rows(start, stop)
-        panel = {name: px[:, i * h : (i + 1) * h, :3] for i, name in enumerate(PANELS)}
-        rough = images.Image(path, np.ascontiguousarray(panel["roughness"]), img.bits)
+        band = img.band(start, stop)  # the photo panel is never converted
+        panel = {name: images.Image(path, band.data[:, i * h : (i + 1) * h, :3], img.bits)
+                 for i, name in enumerate(PANELS)}  # fmt: skip
         return {
-            "diffuse": panel["diffuse"],
-            "specular": panel["specular"],
-            "roughness": _grey(rough, "roughness panel"),
-            "normal": panel["normal"],
+            "diffuse": _stored(panel["diffuse"]),
+            "specular": _stored(panel["specular"]),
+            "roughness": _grey(panel["roughness"], "roughness panel"),
+            "normal": _stored(panel["normal"]),
         }
 
     return by_bands((h, h), band_rows(img.size, [img]), convert, finish)
@@ -209,13 +223,21 @@ def by_bands(size: tuple[int, int], rows: int, convert, finish) -> dict[str, np.
 
 
 def floats(name: str, band: np.ndarray) -> np.ndarray:
-    """A converted band kept as ``float32`` (:class:`MaterialMaps` checks the whole maps)."""
+    """A converted band kept as ``float32`` (:class:`MaterialMaps` checks the whole maps);
+    8-bit samples scaled to [0, 1] as ``Image.rows`` scales them."""
+    if band.dtype == np.uint8:
+        out = band.astype(np.float32)
+        out /= 255.0
+        return out
     return np.ascontiguousarray(band, np.float32)
 
 
 def levels(where: str, name: str, band: np.ndarray) -> np.ndarray:
-    """A converted band kept as :class:`MapBytes` keeps it: checked as :class:`MaterialMaps`
-    checks a map (an error names ``where``), then rounded to 8 bits (``quantize_u8``)."""
+    """A converted band kept as :class:`MapBytes` keeps it: 8-bit samples as they are (the
+    levels their floats round to), floats checked as :class:`MaterialMaps` checks a map (an
+    error names ``where``) and rounded to 8 bits (``quantize_u8``)."""
+    if band.dtype == np.uint8:
+        return np.ascontiguousarray(band)
     check_values(where, name, band)
     return quantize_u8(band)
 
@@ -289,10 +311,11 @@ def _convert(plan: FolderPlan, imgs: dict, size: tuple[int, int]) -> dict:
     elif plan.roughness_from == "glossiness":
         rough = 1.0 - _grey(imgs["glossiness"], "glossiness")
     else:
-        rough = _grey(imgs["roughness"], "roughness")
+        rough = _grey(imgs["roughness"], "roughness", stored=True)
     if "normal" in imgs:
-        normal = _normal(imgs["normal"])
-        if plan.normal_from == "normal_dx":  # _normal's array is its own
+        flip = plan.normal_from == "normal_dx"
+        normal = _normal(imgs["normal"], stored=not flip)
+        if flip:  # _normal's array is its own
             normal[..., 1] = 1.0 - normal[..., 1]
     else:
         normal = np.broadcast_to(np.array([0.5, 0.5, 1.0], np.float32), (*size, 3))
