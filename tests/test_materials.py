@@ -265,10 +265,12 @@ def test_srgb_curves_are_the_where_form_bit_for_bit_and_the_tables_their_levels(
     np.testing.assert_array_equal(srgb_table(16), srgb_to_linear(levels))
 
 
-def test_in_threads_keeps_order_and_raises_the_first_failing_items_error():
+def test_in_threads_keeps_order_and_raises_the_first_failing_items_error(monkeypatch):
+    import os
     import threading
     import time
 
+    from render_jobs.materials import files
     from render_jobs.materials.files import in_threads
 
     seen = set()
@@ -294,6 +296,8 @@ def test_in_threads_keeps_order_and_raises_the_first_failing_items_error():
         in_threads(fail, list(range(40)), threads=4)
     assert len(started) < 40  # what had not started when it failed is dropped
     assert in_threads(square, [3], threads=4) == [9] and in_threads(square, []) == []
+    monkeypatch.delattr(os, "sched_getaffinity")  # as on macOS: every CPU counts
+    assert files._cpus() == os.cpu_count() and in_threads(square, [1, 2]) == [1, 4]
 
 
 @pytest.mark.parametrize(

@@ -247,11 +247,18 @@ def in_threads(fn, items: list, threads: int | None = None) -> list:
     process's CPUs, fewer): OpenCV's decoders and numpy's array loops release the GIL. Results
     in order; an error raises as the first failing item's, in order, and the items not
     started then are dropped."""
-    threads = min(threads or min(MAX_THREADS, len(os.sched_getaffinity(0))), len(items))
+    threads = min(threads or min(MAX_THREADS, _cpus()), len(items))
     if threads <= 1:
         return [fn(x) for x in items]
     with ThreadPoolExecutor(threads, thread_name_prefix="material-read") as pool:
         return list(pool.map(fn, items))
+
+
+def _cpus() -> int:
+    """The CPUs this process may run on (all of them where the OS does not say: macOS)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
 
 
 def read_map_folder(folder: Path, finish) -> tuple[dict[str, np.ndarray], Reading]:
