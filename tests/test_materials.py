@@ -296,8 +296,17 @@ def test_in_threads_keeps_order_and_raises_the_first_failing_items_error(monkeyp
         in_threads(fail, list(range(40)), threads=4)
     assert len(started) < 40  # what had not started when it failed is dropped
     assert in_threads(square, [3], threads=4) == [9] and in_threads(square, []) == []
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.delattr(os, "sched_getaffinity")  # as on macOS: every CPU counts
     assert files._cpus() == os.cpu_count() and in_threads(square, [1, 2]) == [1, 4]
+    for value, cpus in (("1", 1), ("999", os.cpu_count()), ("0", os.cpu_count()),
+                        ("two", os.cpu_count())):  # fmt: skip
+        monkeypatch.setenv("OMP_NUM_THREADS", value)  # Ray sets it to an actor's CPUs
+        assert files._cpus() == cpus, value
+    seen.clear()
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert in_threads(square, list(range(6))) == [x * x for x in range(6)]
+    assert seen == {threading.get_ident()}  # one CPU: this thread alone
 
 
 @pytest.mark.parametrize(

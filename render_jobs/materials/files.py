@@ -64,8 +64,8 @@ DIELECTRIC_F0 = 0.04
 #: texels converted at a time: a band's float temporaries stay small (3 MB for RGB, within
 #: a shared cache with a few threads at work)
 BAND_PIXELS = 1 << 18
-#: threads that decode a folder's files and convert bands side by side (at most), each
-#: holding one band's temporaries
+#: threads that decode a folder's files and convert bands side by side (at most; fewer on
+#: fewer CPUs, :func:`_cpus`), each holding one band's temporaries
 MAX_THREADS = 4
 
 
@@ -255,10 +255,15 @@ def in_threads(fn, items: list, threads: int | None = None) -> list:
 
 
 def _cpus() -> int:
-    """The CPUs this process may run on (all of them where the OS does not say: macOS)."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
+    """The CPUs this process may use: those it may run on (all of them where the OS does not
+    say: macOS), at most ``OMP_NUM_THREADS`` when that is set (Ray sets it to a task's or an
+    actor's CPUs, so a farm worker reads on its own share; a value that is not a positive
+    integer is ignored, as OpenMP leaves it)."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    omp = os.environ.get("OMP_NUM_THREADS", "").strip()
+    if omp.isdigit() and int(omp) > 0:
+        return min(cpus or 1, int(omp))
+    return cpus or 1
 
 
 def read_map_folder(folder: Path, finish) -> tuple[dict[str, np.ndarray], Reading]:
