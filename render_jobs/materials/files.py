@@ -200,8 +200,9 @@ def band_rows(size: tuple[int, int], imgs) -> int:
 
 def by_bands(size: tuple[int, int], rows: int, convert, finish) -> dict[str, np.ndarray]:
     """Maps of ``size`` (height, width), made ``rows`` rows at a time by ``convert(start, stop)``
-    (name to ``(stop - start, width, C)`` floats), each band kept as ``finish(name, band)``
-    gives it (:func:`floats` or :func:`levels`). The first band sizes the maps; the others
+    (name to ``(stop - start, width, C)`` floats, or 8-bit samples taken as they are:
+    :func:`_stored`), each band kept as ``finish(name, band)`` gives it (:func:`floats` or
+    :func:`levels`). The first band sizes the maps; the others
     are converted by :func:`in_threads` (``convert`` reads its inputs only; each band writes
     its own rows)."""
     first = {k: finish(k, v) for k, v in convert(0, min(rows, size[0])).items()}
