@@ -8,7 +8,7 @@ naming it. A library material takes about a second to read at 2K and three at 4K
 
 - the reads go to a pool of processes, :func:`processes` of them: at most
   :data:`MAX_PROCESSES`, no more than the CPUs this process may use (its affinity and, in a
-  container, its cgroup's CPU quota), since each holds up to one material's maps (1 GB at 4K);
+  container, its cgroup's CPU quota), since each holds up to one material (0.5 GB at 4K);
 - a resumed job reads only the materials of shards not yet committed (:func:`pending`);
 - the error raised is the first bad material's in job order, whatever order the reads end in.
 """
@@ -16,30 +16,16 @@ naming it. A library material takes about a second to read at 2K and three at 4K
 from __future__ import annotations
 
 import multiprocessing
-import os
 import sys
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 
 from tqdm import tqdm
 
+from render_jobs.cpus import usable_cpus
 from render_jobs.materials import load_map_bytes
 
-#: reading processes at most: each may hold a 4K material's maps, about 1 GB
+#: reading processes at most: each may hold a 4K material's files and 8-bit maps, about 0.5 GB
 MAX_PROCESSES = 4
-CGROUP_CPU_MAX = Path("/sys/fs/cgroup/cpu.max")
-
-
-def usable_cpus(cpu_max: Path = CGROUP_CPU_MAX) -> int:
-    """CPUs this process may use: its affinity, bounded by a cgroup v2 CPU quota if any."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    try:
-        quota, period = cpu_max.read_text().split()[:2]
-        if quota != "max":
-            cpus = min(cpus or 1, max(1, int(quota) // int(period)))
-    except (OSError, ValueError):
-        pass
-    return max(1, cpus or 1)
 
 
 def processes(count: int) -> int:

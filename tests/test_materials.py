@@ -269,7 +269,9 @@ def test_in_threads_keeps_order_and_raises_the_first_failing_items_error(monkeyp
     import os
     import threading
     import time
+    from pathlib import Path
 
+    from render_jobs.cpus import usable_cpus
     from render_jobs.materials import files
     from render_jobs.materials.files import in_threads
 
@@ -298,9 +300,10 @@ def test_in_threads_keeps_order_and_raises_the_first_failing_items_error(monkeyp
     assert in_threads(square, [3], threads=4) == [9] and in_threads(square, []) == []
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.delattr(os, "sched_getaffinity")  # as on macOS: every CPU counts
-    assert files._cpus() == os.cpu_count() and in_threads(square, [1, 2]) == [1, 4]
-    for value, cpus in (("1", 1), ("999", os.cpu_count()), ("0", os.cpu_count()),
-                        ("two", os.cpu_count())):  # fmt: skip
+    assert usable_cpus(Path("/nonexistent/cpu.max")) == os.cpu_count()  # and no cgroup quota
+    every = usable_cpus()  # this machine's cgroup quota, if it has one, still bounds it
+    assert files._cpus() == every and in_threads(square, [1, 2]) == [1, 4]
+    for value, cpus in (("1", 1), ("999", every), ("0", every), ("two", every)):
         monkeypatch.setenv("OMP_NUM_THREADS", value)  # Ray sets it to an actor's CPUs
         assert files._cpus() == cpus, value
     seen.clear()

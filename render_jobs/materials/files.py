@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from render_jobs.cpus import usable_cpus
 from render_jobs.errors import MaterialError
 from render_jobs.materials import images
 from render_jobs.materials.library import FolderPlan, looks_like_material, plan_folder
@@ -89,10 +90,7 @@ def _stored(img: images.Image) -> np.ndarray:
 
 def _colour(img: images.Image, name: str) -> np.ndarray:
     """A colour map as sRGB-encoded ``(H, W, 3)`` (:func:`_stored` samples, or floats)."""
-    px = img.pixels if img.is_float else _stored(img)
-    if px.shape[2] == 1:
-        px = np.repeat(px, 3, axis=2)
-    px = px[..., :3]
+    px = _rgb(img.pixels if img.is_float else _stored(img))
     if img.is_float:
         _check_range(img, px, name)
         px = linear_to_srgb(np.clip(px, 0.0, 1.0))
@@ -108,8 +106,12 @@ def _linear_colour(img: images.Image, name: str) -> np.ndarray:
         px = np.clip(px, 0.0, 1.0)
     else:
         px = srgb_table(img.bits)[img.data]
-    px = np.repeat(px, 3, axis=2) if px.shape[2] == 1 else px[..., :3]
-    return np.ascontiguousarray(px, dtype=np.float32)
+    return np.ascontiguousarray(_rgb(px), dtype=np.float32)
+
+
+def _rgb(px: np.ndarray) -> np.ndarray:
+    """``(H, W, C)`` samples as RGB: a grey channel repeated, an alpha channel dropped."""
+    return np.repeat(px, 3, axis=2) if px.shape[2] == 1 else px[..., :3]
 
 
 def _check_range(img: images.Image, px: np.ndarray, name: str) -> None:
@@ -227,9 +229,7 @@ def floats(name: str, band: np.ndarray) -> np.ndarray:
     """A converted band kept as ``float32`` (:class:`MaterialMaps` checks the whole maps);
     8-bit samples scaled to [0, 1] as ``Image.rows`` scales them."""
     if band.dtype == np.uint8:
-        out = band.astype(np.float32)
-        out /= 255.0
-        return out
+        return images.scaled(band)
     return np.ascontiguousarray(band, np.float32)
 
 
@@ -256,15 +256,15 @@ def in_threads(fn, items: list, threads: int | None = None) -> list:
 
 
 def _cpus() -> int:
-    """The CPUs this process may use: those it may run on (all of them where the OS does not
-    say: macOS), at most ``OMP_NUM_THREADS`` when that is set (Ray sets it to a task's or an
-    actor's CPUs, so a farm worker reads on its own share; a value that is not a positive
-    integer is ignored, as OpenMP leaves it)."""
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    """The CPUs this process may use (``render_jobs.cpus.usable_cpus``), at most
+    ``OMP_NUM_THREADS`` when that is set (Ray sets it to a task's or an actor's CPUs, so a
+    farm worker reads on its own share; a value that is not a positive integer is ignored, as
+    OpenMP leaves it)."""
+    cpus = usable_cpus()
     omp = os.environ.get("OMP_NUM_THREADS", "").strip()
     if omp.isdigit() and int(omp) > 0:
-        return min(cpus or 1, int(omp))
-    return cpus or 1
+        return min(cpus, int(omp))
+    return cpus
 
 
 def read_map_folder(folder: Path, finish) -> tuple[dict[str, np.ndarray], Reading]:

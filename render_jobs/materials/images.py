@@ -56,11 +56,7 @@ class Image:
     def rows(self, start: int = 0, stop: int | None = None) -> np.ndarray:
         """Rows ``start:stop`` as ``float32``: integers scaled to [0, 1], floats as they are."""
         band = self.data[start:stop]
-        if band.dtype not in (np.uint8, np.uint16):
-            return band
-        out = band.astype(np.float32)
-        out /= 255.0 if band.dtype == np.uint8 else 65535.0  # in place: no second copy
-        return out
+        return scaled(band) if band.dtype in (np.uint8, np.uint16) else band
 
     def band(self, start: int, stop: int) -> Image:
         """The same image's rows ``start:stop`` (a view of its samples)."""
@@ -75,6 +71,13 @@ class Image:
         h, w = self.size
         kind = "float" if self.is_float else f"{self.bits}-bit"
         return f"{w}x{h} {kind}, {self.channels} channel(s)"
+
+
+def scaled(samples: np.ndarray) -> np.ndarray:
+    """8- or 16-bit samples as ``float32`` in [0, 1] (``v / 255`` or ``v / 65535``)."""
+    out = samples.astype(np.float32)
+    out /= 255.0 if samples.dtype == np.uint8 else 65535.0  # in place: no second copy
+    return out
 
 
 def read(path: Path) -> Image:
