@@ -37,6 +37,7 @@ import psutil
 from tabulate import tabulate
 
 from benchmarks.trainstore import DEFAULT, ensure_store
+from farm.actor import Revocable
 from farm.assembly import ShardAssembly
 from farm.scheduler import Scheduler
 from storage.convert import payload_from_packed
@@ -112,13 +113,14 @@ def commits(src: Store, shards: int) -> tuple[float, float, float]:
     return frames / seconds, cpu / frames, size / frames
 
 
-class SimWorker:
+class SimWorker(Revocable):
     """A render actor without Blender (the methods of ``farm.actor.RenderWorker``): each
     material's result is a stored material's real arrays, renumbered, at once."""
 
     store = DEFAULT  # read by each actor at start
 
     def __init__(self, worker_id: str, settings: dict, recycle_after: int, rss_limit_mb: int):
+        super().__init__()
         self.worker_id = worker_id
         self.results = templates(Store(self.store))
 
@@ -128,7 +130,10 @@ class SimWorker:
         return {"worker": self.worker_id, "pid": os.getpid(), "host": socket.gethostname(),
                 "blender_pid": 0, "nice": os.getpriority(os.PRIO_PROCESS, 0)}  # fmt: skip
 
-    def render(self, job: dict, timeout_s: float) -> tuple[dict, dict]:
+    def render(self, job: dict, timeout_s: float, ticket: int | None = None) -> tuple[dict, dict]:
+        skipped = self.skipped(ticket, job)
+        if skipped is not None:
+            return skipped
         m, suns = job["material_index"], len(job["suns"])
         arrays = dict(self.results[m % len(self.results)])
         for key in ("renders", "sun_direction", "turbidity", "seed", "seconds"):

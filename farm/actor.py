@@ -7,6 +7,12 @@ memory growth) and kill a hung render (per-sun ``timeout``) without losing the a
 GPUs, Ray sets ``CUDA_VISIBLE_DEVICES`` to the actor's one GPU, so each Blender sees only its
 own (``device`` OPTIX or CUDA).
 
+A task waiting in a worker's queue may be given to another worker (the scheduler's recall):
+the driver then *revokes* its ticket, and the worker skips that task when it comes to it
+(:class:`Revocable`). ``revoke`` runs in the actor's own ``control`` concurrency group (see
+:data:`CONCURRENCY_GROUPS`), so it is answered while a render runs, where a plain call would
+wait behind the queue it is meant to shorten.
+
 Tests plant failures through :mod:`farm.faults` (``SHADERBALL_FARM_FAULTS``); unset, the
 actor runs as in production.
 """
@@ -23,12 +29,38 @@ from render_jobs.process import RenderProcess
 from render_jobs.specs import RenderJob, RenderSettings
 from storage.convert import pack_material
 
+#: the actor's concurrency groups besides Ray's default one (one thread, where the renders
+#: run in order): ``control`` runs :meth:`Revocable.revoke` beside a render
+CONCURRENCY_GROUPS = {"control": 1}
 
-class RenderWorker:
+
+class Revocable:
+    """Tickets of queued tasks that are to be skipped: a task submitted with ticket ``t``
+    (unique within a job) returns :meth:`skipped`'s report at once after ``revoke(t)``. A
+    revocation that comes after its task started changes nothing (the driver drops that
+    run's outcome either way)."""
+
+    def __init__(self) -> None:
+        self._revoked: set[int] = set()
+
+    def revoke(self, ticket: int) -> None:
+        self._revoked.add(ticket)
+
+    def skipped(self, ticket: int | None, job: dict) -> tuple[dict, dict] | None:
+        """``(report, {})`` when ``ticket`` was revoked (and the ticket forgotten), else
+        ``None``."""
+        if ticket is None or ticket not in self._revoked:
+            return None
+        self._revoked.discard(ticket)
+        return {"material_index": job["material_index"], "skipped": True}, {}
+
+
+class RenderWorker(Revocable):
     """Renders :class:`RenderJob`\\ s; each result is a small report for the driver and the
     packed, store-ready arrays, which go to the shard's commit (:mod:`farm.commit`)."""
 
     def __init__(self, worker_id: str, settings: dict, recycle_after: int, rss_limit_mb: int):
+        super().__init__()
         self.worker_id = worker_id
         self.settings = RenderSettings.from_dict(settings)
         self.recycle_after = recycle_after
@@ -47,9 +79,13 @@ class RenderWorker:
             "nice": os.getpriority(os.PRIO_PROCESS, 0),
         }
 
-    def render(self, job: dict, timeout_s: float) -> tuple[dict, dict]:
+    def render(self, job: dict, timeout_s: float, ticket: int | None = None) -> tuple[dict, dict]:
         """Render one material under all its suns (``job``: ``RenderJob.to_dict()``); returns
-        ``(report, arrays)``, two Ray objects when called with ``num_returns=2``."""
+        ``(report, arrays)``, two Ray objects when called with ``num_returns=2``; nothing is
+        rendered when ``ticket`` was revoked (:class:`Revocable`)."""
+        skipped = self.skipped(ticket, job)
+        if skipped is not None:
+            return skipped
         task = RenderJob.from_dict(job)
         if self.faults is not None:
             self.faults.before_render(self.worker_id, task.material_index)

@@ -29,6 +29,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from tqdm import tqdm
 
@@ -57,6 +58,15 @@ PIPELINE = 2
 
 class FarmError(RuntimeError):
     """The job could not start (bad input, incompatible store, no Ray)."""
+
+
+class InFlight(NamedTuple):
+    """A task handed to a worker: the refs of its arrays, and the ticket it went with."""
+
+    worker: str
+    material: int
+    arrays: object
+    ticket: int
 
 
 _TERMINATED = threading.Event()
@@ -247,7 +257,8 @@ class Loop:
             pipeline=PIPELINE,
         )
         self.shards = ShardAssembly(layout)
-        self.refs: dict[object, tuple[str, int, object]] = {}
+        self.refs: dict[object, InFlight] = {}  # report ref -> the task it answers
+        self.tickets = 0  # the last task's ticket (what a revocation names)
         self.recalled: set = set()  # refs of recalled tasks' runs: their outcome is dropped
         self.whole: collections.deque = collections.deque()  # (shard, arrays refs)
         self.commits: dict[object, int] = {}
@@ -287,15 +298,16 @@ class Loop:
         self.ask_screen_uv()  # first in its worker's queue
         usable = self.pool.usable()
         for wid, m in self.sched.recall(usable, self.pool.actors, now()):
-            ref = next(r for r, (q, t, _) in self.refs.items()
-                       if (q, t) == (wid, m) and r not in self.recalled)  # fmt: skip
+            ref = next(r for r, f in self.refs.items()
+                       if f[:2] == (wid, m) and r not in self.recalled)  # fmt: skip
             self.recalled.add(ref)
-            self.pool.cancel(ref)
+            self.pool.revoke(wid, self.refs[ref].ticket)
             self.state.workers[wid].recalled += 1
         for wid, m in self.sched.dispatch(usable, self.pool.actors, now()):
             task = task_for(self.cfg, m, self.job.specs[m]).to_dict()
-            report, arrays = self.pool.submit(wid, task, self.cfg.task_timeout_s)
-            self.refs[report] = (wid, m, arrays)
+            self.tickets += 1
+            report, arrays = self.pool.submit(wid, task, self.cfg.task_timeout_s, self.tickets)
+            self.refs[report] = InFlight(wid, m, arrays, self.tickets)
             w = self.state.workers[wid]
             if w.status == "idle":
                 w.status, w.current = "busy", m
@@ -334,10 +346,10 @@ class Loop:
             return
         if ref not in self.refs:  # dropped by an earlier event of the same batch (removal)
             return
-        wid, m, arrays = self.refs.pop(ref)
+        wid, m, arrays, _ = self.refs.pop(ref)
         w = self.state.workers[wid]
         w.last_seen, w.current = now(), None
-        if ref in self.recalled:  # skipped (cancelled) or run all the same: dropped
+        if ref in self.recalled:  # skipped (revoked) or run all the same: dropped
             self.recalled.discard(ref)
             self.sched.dropped(wid, m, now())
             self.settle(wid)
@@ -399,8 +411,8 @@ class Loop:
     def remove(self, wid: str, status: str, keep: int | None = None) -> None:
         """Take ``wid`` out (its other tasks back to the queue) and start a replacement."""
         back = set(self.sched.remove_worker(wid, keep))
-        for r, (q, m, _) in list(self.refs.items()):
-            if q == wid and m in back:
+        for r, f in list(self.refs.items()):
+            if f.worker == wid and f.material in back:
                 del self.refs[r]
         self.pool.replace(wid, status)
 

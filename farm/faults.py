@@ -13,7 +13,8 @@ and the actor never calls in here. Keys:
   ``<path>.held`` to say so. Set in one Ray node's environment only, it keeps that node's
   worker busy for as long as a test needs, and tells the test when it is;
 - ``wait_for``: a path; each task waits until that file exists (another node's ``.held``
-  file: this node's worker cannot finish the job before that node's worker has a task).
+  file: this node's worker cannot finish the job before that node's worker has a task);
+- ``trace``: a path; each task appends ``<worker> <material>`` to it as it starts.
 """
 
 from __future__ import annotations
@@ -35,6 +36,9 @@ class Faults:
     def before_render(self, worker: str, material: int) -> None:
         """Raise, sleep or hang as the plan says for ``material`` on ``worker``."""
         f = self.plan
+        if f.get("trace"):
+            with open(f["trace"], "a") as trace:
+                trace.write(f"{worker} {material}\n")
         time.sleep(
             float(f.get("slow_s", 0)) + float(f.get("slow_materials", {}).get(str(material), 0))
         )

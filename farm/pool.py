@@ -12,7 +12,7 @@ import contextlib
 import os
 import sys
 
-from farm.actor import RenderWorker
+from farm.actor import CONCURRENCY_GROUPS, RenderWorker
 from farm.commit import commit_shard, placement
 from farm.plan import JobConfig
 from farm.state import JobState, WorkerStats, now
@@ -89,7 +89,7 @@ class WorkerPool:
             denoise=cfg.denoise,
         ).to_dict()
         self.settings = settings
-        self.cls = ray.remote(actor_cls).options(
+        self.cls = ray.remote(concurrency_groups=CONCURRENCY_GROUPS)(actor_cls).options(
             num_cpus=cfg.cpus_per_worker,
             num_gpus=cfg.gpus_per_worker,
             max_restarts=0,
@@ -158,17 +158,20 @@ class WorkerPool:
         """Workers that are placed, alive and not being removed, in start order."""
         return [w for w in self.actors if self.state.workers[w].status in USABLE]
 
-    def submit(self, wid: str, task: dict, timeout_s: float) -> tuple:
-        """Queue ``task`` at worker ``wid``; returns the refs of its report and its arrays."""
-        return tuple(self.actors[wid].render.options(num_returns=2).remote(task, timeout_s))
+    def submit(self, wid: str, task: dict, timeout_s: float, ticket: int) -> tuple:
+        """Queue ``task`` at worker ``wid`` under ``ticket`` (unique in the job: what
+        :meth:`revoke` names); returns the refs of its report and its arrays."""
+        render = self.actors[wid].render.options(num_returns=2)
+        return tuple(render.remote(task, timeout_s, ticket))
 
-    def cancel(self, report) -> None:
-        """Cancel the task of ``report``: Ray skips it if it has not reached its actor yet;
-        one that has is run all the same (a sync actor's queue), and ``ray.get`` of either
-        raises ``TaskCancelledError``."""
-        import ray
-
-        ray.cancel(report)
+    def revoke(self, wid: str, ticket: int) -> None:
+        """Have worker ``wid`` skip the task of ``ticket`` when it comes to it
+        (:class:`farm.actor.Revocable`; answered while the worker renders). Not
+        ``ray.cancel``: on Ray 2.60 an actor without concurrency groups ran a cancelled task
+        that was already in its queue, and that one with them skips it is not documented."""
+        actor = self.actors.get(wid)
+        if actor is not None:
+            actor.revoke.options(concurrency_group="control").remote(ticket)
 
     def screen_uv(self, wid: str, supersample: int):
         """Ask worker ``wid`` for the scene's screen UV layout; returns the result's ref."""

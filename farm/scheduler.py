@@ -16,14 +16,13 @@ Rules:
 * **Recall.** A usable worker that holds nothing, with nothing in the queue it may take now,
   gets a task waiting behind another at a busy worker: :meth:`Scheduler.recall` puts that
   task at the queue's front, uncounted, and keeps a *recalled* mark of it at the busy worker
-  until that run ends (:meth:`Scheduler.dropped`). The driver cancels it there, but Ray
-  skips a cancelled actor task only if it has not reached the actor yet, so it mostly runs
-  there all the same: its outcome is dropped, and the job does not wait for it (marks do not
+  until that run ends (:meth:`Scheduler.dropped`). The driver revokes it there, and that
+  worker skips it when it comes to it; had it started already, it runs to its end all the
+  same. Either way its outcome is dropped and the job does not wait for it (marks do not
   count in :attr:`Scheduler.finished`; the driver stops such a worker at the end at once),
   but a mark holds its place in its worker's queue (it counts against the pipeline, and its
-  worker takes no recall: the run may be going). A
-  job's last tasks and a worker that starts late thus never wait behind another worker's
-  task; the price is that run, on a worker that would otherwise be idle at a job's end.
+  worker takes no recall: the run may be going). A job's last tasks and a worker that
+  starts late thus never wait behind another worker's task.
 * **Retry.** A failed task goes back to the queue's end after a backoff of
   ``backoff_s * 2**(attempt - 1)``, and is given to a worker that has not failed it, unless
   every known worker has. After ``max_attempts`` failures it is final.
@@ -137,7 +136,7 @@ class Scheduler:
         """``(worker, task)`` pairs, one for each usable worker that holds nothing (not even a
         recalled mark, whose run may be going) and has nothing in the queue to take now: a
         task waiting at ``worker`` that it may run, now at the queue's front and marked
-        recalled at ``worker`` (the driver cancels it there, then calls :meth:`dropped`)."""
+        recalled at ``worker`` (the driver revokes it there, then calls :meth:`dropped`)."""
         # the common cases first, cheaply: a queued task for every worker (unless queued
         # retries wait their backoff: rare, and recalled once the queue runs short), or none
         # free
@@ -161,7 +160,7 @@ class Scheduler:
         return out
 
     def dropped(self, worker: str, task: int, now: float) -> None:
-        """The recalled ``task``'s run at ``worker`` ended (cancelled, or run and dropped)."""
+        """The recalled ``task``'s run at ``worker`` ended (skipped, or run and dropped)."""
         self._release(worker, task, now, recalled=True)
 
     def _release(self, worker: str, task: int, now: float, recalled: bool = False) -> None:

@@ -307,15 +307,17 @@ def test_an_idle_worker_takes_back_a_task_waiting_behind_a_slow_one(tmp_path):
     """Three materials on two workers, material 0 taking 30 s and the others 12: whichever way
     they are dealt, one worker runs material 0 with another queued behind it, and the other,
     done with nothing queued, takes that one (recalled) and renders it. The job ends with
-    material 0, in about 32 s of rendering, not 44: the busy worker's own run of the recalled
-    task, which Ray starts all the same, is dropped and not waited for. Every sample once."""
-    out = tmp_path / "set.zarr"
-    faults = {"slow_materials": {"0": 30, "1": 12, "2": 12}}
+    material 0, in about 32 s of rendering, not 44, and the busy worker skips the recalled
+    task (revoked): every material starts once. Every sample once."""
+    out, trace = tmp_path / "set.zarr", tmp_path / "trace"
+    faults = {"slow_materials": {"0": 30, "1": 12, "2": 12}, "trace": str(trace)}
     r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2", "-o", out, faults=faults)
     assert r.returncode == 0, r.stderr[-3000:]
     assert_exactly_once(out, 3)
     workers = sorted((w["materials"], w["recalled"]) for w in job(out)["workers"].values())
     assert workers == [(1, 1), (2, 0)]  # the slow one gave its waiting task to the other
+    started = sorted(int(line.split()[1]) for line in trace.read_text().splitlines())
+    assert started == [0, 1, 2], trace.read_text()  # no run of the recalled task at the slow one
     wall, startup = map(
         float, re.search(r"time +([\d.]+) s .*start-up ([\d.]+) s", r.stdout).groups()
     )
