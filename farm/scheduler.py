@@ -79,6 +79,7 @@ class Scheduler:
     worker_failures: collections.Counter = field(default_factory=collections.Counter, init=False)
     final: dict[int, str] = field(default_factory=dict, init=False)  # task -> last error
     timed_out: set[int] = field(default_factory=set, init=False)
+    backoff_until: float = field(default=0.0, init=False)  # the last retry deadline yet
 
     def __post_init__(self) -> None:
         self.queue = collections.deque(self.tasks)
@@ -137,10 +138,9 @@ class Scheduler:
         recalled mark, whose run may be going) and has nothing in the queue to take now: a
         task waiting at ``worker`` that it may run, now at the queue's front and marked
         recalled at ``worker`` (the driver revokes it there, then calls :meth:`dropped`)."""
-        # the common cases first, cheaply: a queued task for every worker (unless queued
-        # retries wait their backoff: rare, and recalled once the queue runs short), or none
-        # free
-        if len(self.queue) >= len(usable):
+        # the common cases first, cheaply: a queued task for every worker (when no retry
+        # waits its backoff, so that every queued task may go now), or none free
+        if len(self.queue) >= len(usable) and now >= self.backoff_until:
             return []
         free = [w for w in usable if not self.assigned.get(w)]  # marks too: they may be running
         if not free:
@@ -190,6 +190,7 @@ class Scheduler:
             self.final[task] = error
         else:
             self.not_before[task] = now + self.backoff_s * 2 ** (n - 1)
+            self.backoff_until = max(self.backoff_until, self.not_before[task])
             self.queue.append(task)
         return Outcome(final, self.worker_failures[worker] >= self.blocklist_after, n)
 

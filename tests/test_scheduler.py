@@ -154,6 +154,17 @@ def test_no_recall_while_the_queue_has_work_or_for_a_worker_that_failed_the_task
     assert s.recall(["a", "b"], ["a", "b"], 1.0) == []  # a has not failed it: it waits for a
 
 
+def test_retries_waiting_their_backoff_do_not_keep_an_idle_worker_from_a_recall():
+    s = sched(4)
+    s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0, 2; b: 1, 3
+    s.failed("b", 1, "boom", 1.0)  # due at 6 s
+    s.failed("b", 3, "boom", 1.0)  # due at 6 s: as many queued as workers, none to go now
+    assert s.recall(["a", "b"], ["a", "b"], 1.0) == [("a", 2)]
+    assert list(s.queue) == [2, 1, 3] and s.dispatch(["a", "b"], ["a", "b"], 1.0) == [("b", 2)]
+    s.completed("b", 2, 2.0)
+    assert s.recall(["a", "b"], ["a", "b"], 2.0) == []  # nothing else waits behind a's 0
+
+
 def test_a_removed_worker_gives_back_its_tasks_but_not_the_recalled_ones():
     s = sched(4)
     s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0, 2; b: 1, 3
