@@ -35,6 +35,22 @@ def test_processes_are_bounded_by_materials_cpus_and_the_cap(monkeypatch):
     assert validate.processes(100) == 2
 
 
+def omp_threads(_) -> str | None:
+    import os
+
+    return os.environ.get("OMP_NUM_THREADS")
+
+
+def test_the_reading_processes_share_the_cpus(monkeypatch):
+    """Each of the pool's processes reads on its share of the CPUs, or on fewer threads
+    where ``OMP_NUM_THREADS`` says so already."""
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(validate, "usable_cpus", lambda: 9)  # 4 processes, 2 threads each
+    assert list(validate.InOrder(omp_threads, range(5))) == ["2"] * 5
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert list(validate.InOrder(omp_threads, range(5))) == ["1"] * 5
+
+
 def test_a_resumed_job_reads_only_the_materials_of_uncommitted_shards(tmp_path):
     cfg = JobConfig(sources=("uniform:5",), out=str(tmp_path / "set.zarr"), suns=2,
                     shard_size=4, resolution=32, samples=2)  # fmt: skip
