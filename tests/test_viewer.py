@@ -125,7 +125,8 @@ def test_recent_with_a_byte_budget_drops_the_oldest_bytes_and_keeps_the_newest()
 
 def test_textures_are_the_8_bit_values_and_prepare_the_same_from_bytes_or_floats():
     """The library keeps a material's textures as bytes (a quarter of floats); the mapper
-    prepares the same floats from them as from the float maps, so it maps the same."""
+    prepares the same rows of texels from them as from the float maps, so it maps the
+    same."""
     maps = procedural_maps(5, 24)
     tex = textures_from_maps(maps)
     floats = np.concatenate([maps.diffuse, maps.specular, maps.roughness, maps.normal], axis=2)
@@ -134,19 +135,20 @@ def test_textures_are_the_8_bit_values_and_prepare_the_same_from_bytes_or_floats
     mapper = made_up_mapper()
     from_floats = mapper.prepare(torch.from_numpy(floats.transpose(2, 0, 1).copy()))
     from_bytes = mapper.prepare(tex)
-    assert torch.equal(from_bytes, from_floats) and from_bytes.dtype == torch.float32
-    assert from_bytes.is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(from_bytes, from_floats) and from_bytes.dtype == torch.uint8
+    rows = torch.from_numpy(want).permute(1, 2, 0)  # (H, W, 10), then the repeat wrap
+    assert torch.equal(from_bytes, torch.cat([rows, rows[:1]])[:, [*range(24), 0]])
     assert torch.equal(tex, torch.from_numpy(want))  # prepare left its input as it was
 
 
-def test_lookups_split_over_threads_are_the_same_numbers_and_finish_keeps_them():
+def test_lookups_on_any_thread_count_are_the_same_numbers_and_finish_keeps_them():
     mapper = made_up_mapper()
     prepared = mapper.prepare(textures_from_maps(procedural_maps(4, 40)))
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
         one = mapper.lookup(prepared, 1.7)
-        torch.set_num_threads(3)  # 3 runs: the hits do not divide evenly
+        torch.set_num_threads(3)  # the hits do not divide evenly
         three = mapper.lookup(prepared, 1.7)
     finally:
         torch.set_num_threads(threads)

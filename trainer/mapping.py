@@ -22,10 +22,10 @@ as ``storage.schema.encode_maps`` stores the AOVs. Against Cycles' own AOVs: see
 from __future__ import annotations
 
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from render_jobs.materials.maps import MAP_CHANNELS, MapBytes, MaterialMaps
 from render_jobs.screen_uv import ScreenUV
@@ -69,13 +69,24 @@ def _levels(x: torch.Tensor) -> torch.Tensor:
     return x.clamp_(0.0, 1.0).mul_(255.0).add_(0.5).floor_()
 
 
+class Corners(NamedTuple):
+    """Where each hit sub-sample reads a texture: its top-left texel's index in
+    :meth:`ScreenMapper.prepare`'s rows ``(hits,)``, and the weights of the texels to its
+    right and below ``(hits, 1) float32``."""
+
+    texel: torch.Tensor
+    wx: torch.Tensor
+    wy: torch.Tensor
+
+
 class ScreenMapper:
     """Maps batches of textures to stored-map form with one :class:`ScreenUV`.
 
     >>> mapper = ScreenMapper(screen_uv, device="cpu")            # doctest: +SKIP
     >>> packed = mapper(textures)   # (B, 10, Ht, Wt) in [0, 1] → (B, 11, R, R) uint8
 
-    Only the sub-samples that hit the ball are looked up (``grid_sample``). A sub-sample
+    Only the sub-samples that hit the ball are looked up, straight from the 8-bit textures
+    (a gather of each one's four texels, in float64 coordinates). A sub-sample
     weighs on the 3 x 3 pixels around its own, so the pixel filter is a sparse matrix
     ``(R², hits)`` with 9 entries a column, applied as one CSR product: no super-resolution
     image is ever made. The layout's constant parts are built once on ``device``; textures
@@ -95,30 +106,31 @@ class ScreenMapper:
         ones = torch.ones(self.hits, 1, dtype=torch.float32, device=self.device)
         coverage = (self.filter @ ones).view(self.r, self.r)
         self.coverage = _levels(coverage).to(torch.uint8)
-        self._grids: dict[tuple[int, int, float], torch.Tensor] = {}
+        self._kept: dict[tuple[int, int, float], Corners] = {}
         self._lut_words = _decode_table().to(self.device).view(torch.int64).view(-1)
 
-    def _grid(self, height: int, width: int, tiling: float) -> torch.Tensor:
-        """grid_sample coordinates ``(1, 1, hits, 2)`` into a texture padded by one texel
-        on every side (the repeat wrap), for textures of ``height`` x ``width`` repeated
+    def _corners(self, height: int, width: int, tiling: float) -> Corners:
+        """Where each hit sub-sample reads a texture of ``height`` x ``width`` repeated
         ``tiling`` times as often as the layout's own tiling (kept for the last few)."""
         key = (height, width, tiling)
-        grid = self._grids.get(key)
-        if grid is None:
-            # texel coordinates in the padded texture: t = frac · size - 0.5 + 1 (x along u,
-            # y down the file's rows: frac_y = 1 - fraction of v); grid_sample's coordinates:
-            # (t + 0.5) / (size + 2) · 2 - 1, one multiply-add a column from frac
-            size = torch.tensor([width, height], dtype=torch.float64, device=self.device)
-            scale = 2.0 * size / (size + 2.0)
-            offset = 2.0 / (size + 2.0) - 1.0
-            scale[1], offset[1] = -scale[1], offset[1] + scale[1]
+        corners = self._kept.get(key)
+        if corners is None:
+            # texel coordinates (x along u; y down the file's rows, from 1 - v), in float64:
+            # texel k's centre is at k + 0.5; the corner texel before is wrapped into
+            # [0, size), the one after may be the repeated first row or column
             frac = self.st * tiling
             frac.sub_(frac.floor())  # the remainder of 1, exactly (floor is the faster op)
-            grid = torch.addcmul(offset, frac, scale).to(torch.float32)
-            if len(self._grids) >= 4:
-                self._grids.pop(next(iter(self._grids)))
-            grid = self._grids[key] = grid.view(1, 1, -1, 2)
-        return grid
+            x = frac[:, 0] * width - 0.5
+            y = (1.0 - frac[:, 1]) * height - 0.5
+            x0, y0 = x.floor(), y.floor()
+            weights = torch.stack([x - x0, y - y0]).to(torch.float32)[..., None]
+            x0 = x0.long().remainder_(width)
+            y0 = y0.long().remainder_(height)
+            corners = Corners(y0 * (width + 1) + x0, weights[0], weights[1])
+            if len(self._kept) >= 4:
+                self._kept.pop(next(iter(self._kept)))
+            self._kept[key] = corners
+        return corners
 
     @torch.inference_mode()
     def __call__(self, textures: torch.Tensor, tiling: float = 1.0, adjust=None) -> torch.Tensor:
@@ -129,19 +141,23 @@ class ScreenMapper:
         return out[0] if textures.dim() == 3 else out
 
     def prepare(self, textures: torch.Tensor) -> torch.Tensor:
-        """The textures as Blender loads them (8-bit values), padded by one texel on every
-        side for the repeat wrap: ``(B, 10, Ht + 2, Wt + 2) float32`` on ``device``,
-        channels_last (a lookup then reads its 10 values from one place: 1.7x faster on CPU
-        for 1K textures). ``textures`` are floats in [0, 1] (rounded to 8 bits here) or
-        :func:`textures_from_maps`' uint8, which go to the device as bytes. Kept by callers
-        that map one material many times."""
+        """The textures as Blender loads them (8-bit values), as rows of texels for the
+        lookups: ``(Ht + 1, Wt + 1, B · 10) uint8`` on ``device``, texel (y, x) holding the
+        B textures' 10 values, the first row and column repeated at the end (the repeat
+        wrap: a lookup's four texels are then two pairs of neighbours). ``textures`` are
+        floats in [0, 1] (rounded to 8 bits here) or :func:`textures_from_maps`' uint8,
+        which go to the device as bytes. Kept by callers that map one material many times
+        (168 MB for a 4K material)."""
         x = textures[None] if textures.dim() == 3 else textures
         if x.dim() != 4 or x.shape[1] != TEXTURE_CHANNELS:
             raise ValueError(f"textures have shape {tuple(textures.shape)}, expected (B, 10, H, W)")
+        b, c, h, w = x.shape
         x = x.to(self.device) if x.dtype == torch.uint8 else _bytes(x.to(self.device))
-        x = F.pad(x, (1, 1, 1, 1), mode="circular")
-        x = x.to(torch.float32, memory_format=torch.channels_last)  # one converting copy
-        return x.div_(255.0)
+        out = torch.empty(h + 1, w + 1, b, c, dtype=torch.uint8, device=self.device)
+        out[:h, :w] = x.permute(2, 3, 0, 1)  # one transposing copy (a cast, from floats)
+        out[:h, w] = out[:h, 0]
+        out[h] = out[0]
+        return out.view(h + 1, w + 1, b * c)
 
     @torch.inference_mode()
     def lookup(self, prepared: torch.Tensor, tiling: float = 1.0) -> torch.Tensor:
@@ -150,18 +166,25 @@ class ScreenMapper:
         times as often as the layout's tiling does (1: as rendered). The result depends on
         nothing else, so a caller that edits values keeps it and only :meth:`finish` runs
         again (``trainer.viewer.engine``)."""
-        b, c, h, w = prepared.shape
-        grid = self._grid(h - 2, w - 2, float(tiling))
-        parts = torch.get_num_threads() if self.device.type == "cpu" and b == 1 else 1
-        looked = _lookup(prepared, grid, parts)  # (B or parts, C, n): colours in one block
-        p, _, n = looked.shape
-        # the result's layout (n, B, C) or (parts, n, C) written as a view in the lookup's
-        # (·, C, n) order: the decode and the copy of the other channels are its one pass
-        out = looked.new_empty((n, p, c) if parts == 1 else (p, n, c))
-        view = out.permute(1, 2, 0) if parts == 1 else out.permute(0, 2, 1)
-        view[:, COLOUR.stop :].copy_(looked[:, COLOUR.stop :])
-        self._decode(looked[:, COLOUR], out=view[:, COLOUR])
-        return out if parts == 1 else out.view(-1, 1, c)[: self.hits]
+        rows, cols, bc = prepared.shape
+        at = self._corners(rows - 1, cols - 1, float(tiling))
+        # a texel and its right-hand neighbour are 2 · bc bytes in a row: each of the two
+        # gathers reads both (an overlapping view: no copy)
+        pairs = prepared.view(-1).as_strided((rows * cols - 1, 2 * bc), (bc, 1))
+        out = torch.empty(self.hits, bc, dtype=torch.float32, device=self.device)
+        step = self.hits if self.device.type == "cuda" else _CHUNK
+        raw = torch.empty(2, min(step, self.hits), 2 * bc, dtype=torch.uint8, device=self.device)
+        floats = torch.empty(raw.shape, dtype=torch.float32, device=self.device)
+        for i in range(0, self.hits, step):
+            texel, n = at.texel[i : i + step], min(step, self.hits - i)
+            torch.index_select(pairs, 0, texel, out=raw[0, :n])
+            torch.index_select(pairs, 0, texel + cols, out=raw[1, :n])
+            f = floats[:, :n].copy_(raw[:, :n]).view(2, n, 2, bc)
+            across = torch.lerp(f[:, :, 0], f[:, :, 1], at.wx[i : i + n])
+            torch.lerp(across[0], across[1], at.wy[i : i + n], out=out[i : i + n])
+        out = out.div_(255.0).view(self.hits, -1, TEXTURE_CHANNELS)
+        self._decode(out[..., COLOUR], out=out[..., COLOUR])  # reads its input first
+        return out
 
     @torch.inference_mode()
     def finish(self, looked: torch.Tensor, adjust=None) -> torch.Tensor:
@@ -195,6 +218,10 @@ class ScreenMapper:
 
 
 _LUT_STEPS = 4096
+#: hits looked up at once on CPU: the gathered bytes and their floats (2.6 MB for one
+#: material) stay in cache between the steps and are reused (33-36 ms at 400² for a 4K
+#: material, against 39-44 ms in one pass that allocates them: docs/benchmarks.md)
+_CHUNK = 16384
 
 
 def _decode_table() -> torch.Tensor:
@@ -204,20 +231,6 @@ def _decode_table() -> torch.Tensor:
     lut = srgb_decode(steps).to(torch.float32)
     slope = torch.cat([lut[1:] - lut[:-1], lut.new_zeros(1)])
     return torch.stack([lut, slope], 1).contiguous()
-
-
-def _lookup(prepared: torch.Tensor, grid: torch.Tensor, parts: int) -> torch.Tensor:
-    """``grid_sample`` of textures ``(B, C, H, W)`` at ``grid (1, 1, hits, 2)``: ``(B, C,
-    hits)``. With ``parts`` > 1 (one texture), the hits go as a batch of ``parts`` equal runs
-    over the same texture (a view), ``(parts, C, n)``, the last run padded: the CPU kernel
-    shares out its work by batch item, so one item keeps one thread busy (1.8x on 2 threads
-    at 256²). The same numbers either way."""
-    if parts > 1:
-        grid = F.pad(grid, (0, 0, 0, -grid.shape[2] % parts)).view(parts, 1, -1, 2)
-        prepared = prepared.expand(parts, -1, -1, -1)
-    else:
-        grid = grid.expand(prepared.shape[0], -1, -1, -1)
-    return F.grid_sample(prepared, grid, mode="bilinear", align_corners=False)[:, :, 0]
 
 
 def _filter_matrix(screen_uv: ScreenUV, index: torch.Tensor) -> torch.Tensor:

@@ -35,8 +35,8 @@ from trainer.viewer.recent import Recent
 
 JPEG_QUALITY = 92
 FORMATS = ("jpeg", "png")
-#: the most bytes of prepared textures kept (float32: 42 MB a 1K material, 670 MB a 4K one)
-PREPARED_BYTES = 2 << 30
+#: the most bytes of prepared textures kept (8-bit: 10.5 MB a 1K material, 168 MB a 4K one)
+PREPARED_BYTES = 1 << 30
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 An ``OrderedDict`` in recency order is the whole of it, so no caching library is needed. A
 cache of textures is bounded by bytes as well as by count: a 4K material's prepared textures
-take 670 MB, a 1K one's 42 MB. The server's two thread pools (frames, thumbnails) share the
+take 168 MB, a 1K one's 10.5 MB. The server's two thread pools (frames, thumbnails) share the
 library's caches, hence the lock.
 """
 
