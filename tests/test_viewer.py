@@ -119,6 +119,7 @@ def test_recent_with_a_byte_budget_drops_the_oldest_bytes_and_keeps_the_newest()
     assert r.bytes == 50 and len(r) == 2
     r.put("big", torch.zeros(50, dtype=torch.float32))  # 200 bytes alone: kept, the rest go
     assert len(r) == 1 and r.bytes == 200 and r.get("big") is not None
+    assert r.pop("big").nbytes == 200 and r.bytes == 0 and r.pop("big") is None
     with pytest.raises(ValueError, match="max_bytes must be at least 1"):
         Recent(2, max_bytes=0)
 
@@ -189,6 +190,24 @@ def test_the_engine_reuses_lookups_for_value_edits_and_maps_as_a_fresh_engine(tm
     assert first.maps(mid, edited)[2]  # the same edits again: the mapped maps are kept
     tiled, _, _ = first.maps(mid, Edits(roughness_scale=0.3, specular_scale=2.0, tiling=2.0))
     assert lookups == [(1.0,), (2.0,)] and not torch.equal(tiled, maps)
+    assert len(first.library._textures) == 0  # held once: as the engine's prepared textures
+
+
+def test_an_uploads_textures_are_read_once_and_then_held_by_the_engine_alone(tmp_path):
+    from trainer.infer import Renderer
+    from trainer.model import ModelConfig, NeuralRenderer
+    from trainer.targets import Tonemap
+    from trainer.viewer.engine import Engine
+
+    renderer = Renderer(NeuralRenderer(ModelConfig(16, width=4)), Tonemap(), torch.device("cpu"))
+    library = Library([], [], tmp_path / "up")
+    engine = Engine(renderer, made_up_mapper(), library, "-")
+    e = library.add_upload([("m.png", panel(32))])
+    assert library._textures.get(e.id) is not None  # read to check it: kept for its frame
+    (library.upload_dir / e.id / "m.png").unlink()  # a second read would fail
+    engine.maps(e.id, Edits())
+    assert len(library._textures) == 0 and library._textures.bytes == 0
+    assert engine._prepared.get(e.id) is not None
 
 
 def test_light_angles_round_trip_and_bad_suns_are_refused():

@@ -2,8 +2,9 @@
 timed in three parts. Plain code: no web server in it (``benchmarks/viewer.py`` times it).
 
 - **mapping**: the material's texture maps UV-mapped to the network's input, with its edits
-  (:class:`trainer.mapping.ScreenMapper`). Three caches: the prepared textures per material,
-  the looked-up sub-samples per (material, tiling), so that an edit of values (tints,
+  (:class:`trainer.mapping.ScreenMapper`). Three caches: the prepared textures per material
+  (the one copy of its textures that the viewer keeps: the library hands them over), the
+  looked-up sub-samples per (material, tiling), so that an edit of values (tints,
   scales, normal strength) costs only the mapper's ``finish``, and the result per
   (material, edits), so that moving the sun costs no mapping;
 - **network**: the trained network (:class:`trainer.infer.Renderer`, its fp32 inference
@@ -35,8 +36,9 @@ from trainer.viewer.recent import Recent
 
 JPEG_QUALITY = 92
 FORMATS = ("jpeg", "png")
-#: the most bytes of prepared textures kept (8-bit: 10.5 MB a 1K material, 168 MB a 4K one)
-PREPARED_BYTES = 1 << 30
+#: the most bytes of prepared textures kept (8-bit: 10.5 MB a 1K material, 168 MB a 4K one,
+#: so the count bounds 4K ones: 8, 1.3 GB)
+PREPARED_BYTES = 2 << 30
 
 
 @dataclass(frozen=True)
@@ -133,7 +135,7 @@ class Engine:
     def _prepare(self, material_id: str, edits: Edits) -> torch.Tensor | None:
         """The material's textures, prepared for the mapper and kept for the next edits;
         ``None`` (stored maps stand in) for a stored material whose files are not here."""
-        tex = self.library.textures(material_id)
+        tex = self.library.textures(material_id, keep=False)  # held once: prepared, below
         if tex is None:
             if not edits.identity:
                 raise MaterialError(

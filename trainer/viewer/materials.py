@@ -37,7 +37,8 @@ from trainer.viewer.recent import Recent
 MAX_UPLOAD_BYTES = MAX_UPLOAD_MB << 20
 #: the largest image (pixels)
 MAX_PIXELS = 8192 * 8192
-#: the most bytes of texture maps kept (uint8: 10 MB a 1K material, 168 MB a 4K one)
+#: the most bytes of texture maps kept until the engine takes them (uint8: 10 MB a 1K
+#: material, 168 MB a 4K one): an upload's, read to check it, and a gallery picture's
 TEXTURE_BYTES = 1 << 30
 _SAFE_NAME = re.compile(r"[^A-Za-z0-9._ -]")
 
@@ -130,11 +131,13 @@ class Library:
             return Entry(material_id, "uniform", "uniform", material_id, spec=spec)
         raise MaterialError(f"{material_id}: no such material in this viewer")
 
-    def textures(self, material_id: str) -> torch.Tensor | None:
+    def textures(self, material_id: str, keep: bool = True) -> torch.Tensor | None:
         """``(10, H, W) uint8`` texture maps of the material (cached), or ``None`` for a
         stored material whose source cannot be read here (a file on another machine):
-        :meth:`stored_maps` then stands in."""
-        cached = self._textures.get(material_id)
+        :meth:`stored_maps` then stands in. ``keep=False`` hands them over, kept here no
+        longer: for a caller that keeps them in its own form (the engine's prepared
+        textures), so that a material's bytes are held once."""
+        cached = self._textures.get(material_id) if keep else self._textures.pop(material_id)
         if cached is not None:
             return cached
         e = self.entry(material_id)
@@ -150,7 +153,8 @@ class Library:
         else:
             return None
         tex = textures_from_bytes(maps)
-        self._textures.put(material_id, tex)
+        if keep:
+            self._textures.put(material_id, tex)
         return tex
 
     def stored_maps(self, material_id: str) -> np.ndarray:

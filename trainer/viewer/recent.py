@@ -49,6 +49,13 @@ class Recent:
             ):
                 self._bytes -= nbytes(self._items.popitem(last=False)[1])
 
+    def pop(self, key):
+        """The entry of ``key``, no longer kept (``None`` when there is none)."""
+        with self._lock:
+            value = self._items.pop(key, None)
+            self._bytes -= nbytes(value)
+            return value
+
     @property
     def bytes(self) -> int:
         return self._bytes
