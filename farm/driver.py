@@ -61,7 +61,8 @@ class FarmError(RuntimeError):
 
 
 class InFlight(NamedTuple):
-    """A task handed to a worker: the refs of its arrays, and the ticket it went with."""
+    """A task handed to a worker: the worker, the material, the ref of its arrays, and the
+    ticket it went with (what a revocation names)."""
 
     worker: str
     material: int

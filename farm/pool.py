@@ -167,8 +167,8 @@ class WorkerPool:
     def revoke(self, wid: str, ticket: int) -> None:
         """Have worker ``wid`` skip the task of ``ticket`` when it comes to it
         (:class:`farm.actor.Revocable`; answered while the worker renders). Not
-        ``ray.cancel``: on Ray 2.60 an actor without concurrency groups ran a cancelled task
-        that was already in its queue, and that one with them skips it is not documented."""
+        ``ray.cancel``: on Ray 2.60 a cancelled task already in an actor's queue still ran
+        when the actor had no concurrency groups (docs/farm.md)."""
         actor = self.actors.get(wid)
         if actor is not None:
             actor.revoke.options(concurrency_group="control").remote(ticket)

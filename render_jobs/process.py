@@ -71,8 +71,9 @@ def thread_pool_of(threads: int):
 def _die_with_parent(parent: int) -> None:  # in the child
     """Have the kernel kill this process when its parent goes (Linux ``PR_SET_PDEATHSIG``;
     elsewhere a no-op). The signal comes when the *thread* that started the child ends: every
-    caller starts it from its main thread (Ray runs a sync actor's methods on its main
-    thread)."""
+    caller starts it from a thread that lasts as long as its process (its main thread; in a
+    farm actor, also the one thread Ray runs the actor's default concurrency group on, where
+    a recycled Blender starts)."""
     if not sys.platform.startswith("linux"):
         return
     import ctypes
