@@ -165,28 +165,37 @@ def test_script_without_main_guard_gets_a_clear_error(tmp_path):
     assert 'needs an `if __name__ == "__main__":` guard' in last
 
 
-# a parent that starts a long render, says so, and waits to be killed
+# a parent that starts a long render, says so, and waits to be killed; with "thread", from a
+# thread other than the main one (where a farm actor's recycled Blender starts)
 LONG_RENDER = """
-import sys
+import sys, threading
 from render_jobs.materials.procedural import procedural_maps
 from render_jobs.process import RenderProcess
 from render_jobs.specs import RenderSettings
 from render_jobs.sun import sun_from_angles
-if __name__ == "__main__":
+def render():
     with RenderProcess(RenderSettings(resolution=128, samples=4096, threads=1)) as w:
         print(w.pid, flush=True)
         w.render_material(procedural_maps(0, 64), [sun_from_angles(35, 0, 3.0)], [0])
+if __name__ == "__main__":
+    if sys.argv[1:] == ["thread"]:
+        threading.Thread(target=render).start()
+    else:
+        render()
 """
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
-def test_a_killed_parent_takes_its_rendering_blender_with_it(tmp_path):
+@pytest.mark.parametrize("where", ["main", "thread"])
+def test_a_killed_parent_takes_its_rendering_blender_with_it(tmp_path, where):
     """What a Ray actor killed mid-render does to its Blender child: it ends at once rather
-    than rendering on (this render alone takes minutes)."""
+    than rendering on (this render alone takes minutes), whether the main thread or another
+    one that lasts started it."""
     script = tmp_path / "parent.py"
     script.write_text(LONG_RENDER)
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, env=env)
+    cmd = [sys.executable, str(script), where]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, env=env)
     child = None
     try:
         child = psutil.Process(int(proc.stdout.readline()))
