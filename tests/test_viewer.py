@@ -9,6 +9,7 @@ import io
 import json
 import os
 import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
@@ -299,7 +300,7 @@ def test_gallery_pictures_of_file_materials_are_their_colour_maps_and_kept(tmp_p
 
     from render_jobs.materials.maps import linear_to_srgb
     from tests.test_material_libraries import write
-    from trainer.viewer.app import THUMB
+    from trainer.viewer.app import THUMB, THUMB_NICE
     from trainer.viewer.app import Viewer as App
 
     lib_dir = tmp_path / "lib"
@@ -328,6 +329,11 @@ def test_gallery_pictures_of_file_materials_are_their_colour_maps_and_kept(tmp_p
             assert np.abs(pic.astype(int) - rgb).max() <= 1, (label, pic[0, 0])
         (lib_dir / "five.png").unlink()
         assert viewer.thumb(by_label["five.png"]) == viewer.thumb(by_label["five.png"])  # kept
+        if sys.platform.startswith("linux"):  # the pictures' thread yields to frames
+            nice = viewer.thumb_pool.submit(
+                lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+            ).result()
+            assert nice == min(19, os.getpriority(os.PRIO_PROCESS, 0) + THUMB_NICE)
 
         busy, done = threading.Event(), threading.Event()
         viewer.pool.submit(busy.wait, 30)  # a long frame on the frames thread

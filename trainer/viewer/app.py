@@ -16,11 +16,15 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import functools
 import io
+import os
 import re
 import shutil
+import sys
 import tempfile
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -37,6 +41,8 @@ from trainer.viewer.recent import Recent
 from trainer.viewer.thumbs import colour_preview
 
 THUMB = 96
+#: how much nicer than the rest of the viewer its gallery-picture thread runs
+THUMB_NICE = 10
 
 
 class Viewer:
@@ -45,7 +51,9 @@ class Viewer:
     def __init__(self, engine: Engine, upload_dir: Path, info: dict):
         self.engine, self.upload_dir, self.info = engine, upload_dir, info
         self.pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="frames")
-        self.thumb_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="thumbs")
+        self.thumb_pool = ThreadPoolExecutor(
+            max_workers=1, thread_name_prefix="thumbs", initializer=lower_priority
+        )
         self._thumbs = Recent(1024)  # material → PNG bytes (a few KB each)
 
     async def run(self, fn, *args, pool=None):
@@ -78,6 +86,18 @@ class Viewer:
         self.thumb_pool.shutdown(wait=False, cancel_futures=True)
         self.pool.shutdown(wait=False, cancel_futures=True)
         shutil.rmtree(self.upload_dir, ignore_errors=True)
+
+
+def lower_priority() -> None:
+    """This thread yields the CPU to the rest of the process: nice ``THUMB_NICE`` above it
+    (Linux gives each thread its own nice value; elsewhere a no-op). The gallery's pictures
+    are made on such a thread, so they still come while a frame is in the works, but they
+    do not slow that frame where the cores are few."""
+    if not sys.platform.startswith("linux"):
+        return
+    tid = threading.get_native_id()
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + THUMB_NICE)
 
 
 def _png(pic: Image.Image) -> bytes:
