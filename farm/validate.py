@@ -24,7 +24,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 from tqdm import tqdm
 
-from render_jobs.cpus import usable_cpus
+from render_jobs.cpus import omp_threads, usable_cpus
 from render_jobs.materials import load_map_bytes
 
 #: reading processes at most: each may hold a 4K material's files and 8-bit maps, about 0.5 GB
@@ -96,8 +96,8 @@ def read_all(specs: list, progress: bool = True) -> None:
 def _threads(count: int) -> None:
     """A reading process's thread share (the material reader reads ``OMP_NUM_THREADS``;
     a smaller value set already stays)."""
-    given = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if not (given.isdigit() and 0 < int(given) <= count):
+    given = omp_threads()
+    if given is None or given > count:
         os.environ["OMP_NUM_THREADS"] = str(count)
 
 

@@ -19,3 +19,10 @@ def usable_cpus(cpu_max: Path = CGROUP_CPU_MAX) -> int:
     except (OSError, ValueError):
         pass
     return max(1, cpus or 1)
+
+
+def omp_threads() -> int | None:
+    """``OMP_NUM_THREADS`` when it is a positive integer (Ray sets it to a task's or an
+    actor's CPUs), else ``None``: another value is ignored, as OpenMP ignores it."""
+    omp = os.environ.get("OMP_NUM_THREADS", "").strip()
+    return int(omp) if omp.isdigit() and int(omp) > 0 else None

@@ -35,14 +35,13 @@ Every problem raises :class:`MaterialError` as ``"<file or folder>: <problem>"``
 from __future__ import annotations
 
 import functools
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from render_jobs.cpus import usable_cpus
+from render_jobs.cpus import omp_threads, usable_cpus
 from render_jobs.errors import MaterialError
 from render_jobs.materials import images
 from render_jobs.materials.library import FolderPlan, looks_like_material, plan_folder
@@ -257,14 +256,10 @@ def in_threads(fn, items: list, threads: int | None = None) -> list:
 
 def _cpus() -> int:
     """The CPUs this process may use (``render_jobs.cpus.usable_cpus``), at most
-    ``OMP_NUM_THREADS`` when that is set (Ray sets it to a task's or an actor's CPUs, so a
-    farm worker reads on its own share; a value that is not a positive integer is ignored, as
-    OpenMP leaves it)."""
+    ``OMP_NUM_THREADS`` when that is set (``omp_threads``: so a farm worker reads on its own
+    share)."""
     cpus = usable_cpus()
-    omp = os.environ.get("OMP_NUM_THREADS", "").strip()
-    if omp.isdigit() and int(omp) > 0:
-        return min(cpus, int(omp))
-    return cpus
+    return min(cpus, omp_threads() or cpus)
 
 
 def read_map_folder(folder: Path, finish) -> tuple[dict[str, np.ndarray], Reading]:

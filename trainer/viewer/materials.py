@@ -134,8 +134,8 @@ class Library:
     def textures(self, material_id: str, keep: bool = True) -> torch.Tensor | None:
         """``(10, H, W) uint8`` texture maps of the material (cached), or ``None`` for a
         stored material whose source cannot be read here (a file on another machine):
-        :meth:`stored_maps` then stands in. ``keep=False`` hands them over, kept here no
-        longer: for a caller that keeps them in its own form (the engine's prepared
+        :meth:`stored_maps` then stands in. ``keep=False`` hands them over and removes them from
+        this cache: for a caller that keeps them in its own form (the engine's prepared
         textures), so that a material's bytes are held once."""
         cached = self._textures.get(material_id) if keep else self._textures.pop(material_id)
         if cached is not None:

@@ -50,7 +50,7 @@ class Recent:
                 self._bytes -= nbytes(self._items.popitem(last=False)[1])
 
     def pop(self, key):
-        """The entry of ``key``, no longer kept (``None`` when there is none)."""
+        """Remove the entry of ``key`` and give its value (``None`` when there is none)."""
         with self._lock:
             value = self._items.pop(key, None)
             self._bytes -= nbytes(value)
