@@ -9,7 +9,7 @@ raw operation retries transient object-store errors (:mod:`storage.retry`).
 from __future__ import annotations
 
 import os
-import tempfile
+import secrets
 from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
@@ -124,13 +124,28 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+def create_beside(target: Path, suffix: str = "") -> tuple[int, Path]:
+    """A new empty file beside ``target``, under a random hidden name, open for writing:
+    ``(fd, path)``. Its mode is what a plain ``open`` gives (0o666 less the umask), so that
+    other users of a shared folder (a dashboard or trainer under another uid) can read what
+    it becomes; ``tempfile.mkstemp`` would make it 0o600."""
+    for _ in range(100):
+        tmp = target.parent / f".{target.name}.{secrets.token_hex(4)}{suffix}"
+        try:
+            return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free temporary name beside {target}")
+
+
 def write_atomic(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -> None:
     """Create or replace the local file ``path`` so that readers see the old file or the whole
-    new one, never a part, even across a crash: ``write(f)`` fills a temporary file beside it,
-    which is fsynced, renamed over ``path`` (``os.replace``), and its folder fsynced."""
+    new one, never a part, even across a crash: ``write(f)`` fills a temporary file beside it
+    (:func:`create_beside`), which is fsynced, renamed over ``path`` (``os.replace``), and its
+    folder fsynced."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
+    fd, tmp = create_beside(target)
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -138,6 +153,6 @@ def write_atomic(path: str | os.PathLike, write: Callable[[BinaryIO], object]) -
             os.fsync(f.fileno())
         os.replace(tmp, target)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
     _fsync_dir(target.parent)

@@ -127,6 +127,27 @@ def test_uncommitted_shard_is_invisible_and_rewritable(tmp_path):
     assert store.committed_shards() == [1]
 
 
+def test_files_get_the_umask_mode_so_other_users_can_read_them(tmp_path):
+    """Commit records, the screen UV layout and job state (atomic writes) get the mode a
+    plain ``open`` gives, as zarr's own chunks do: 0o666 less the umask, not mkstemp's 0o600
+    (a dashboard or trainer under another uid reads a shared store)."""
+    from storage.backend import write_atomic
+
+    umask = os.umask(0o022)
+    os.umask(umask)  # read back as it was
+    store = full_store(tmp_path / "s.zarr")
+    write_atomic(tmp_path / "s.zarr" / "farm" / "job.json", lambda f: f.write(b"{}"))
+    files = [p for p in (tmp_path / "s.zarr").rglob("*") if p.is_file()]
+    assert len(store.commits()) == LAYOUT.num_shards
+    assert any(p.parent.name == "commits" for p in files) and any(
+        p.name == "job.json" for p in files
+    )
+    assert {p.relative_to(tmp_path).as_posix(): oct(p.stat().st_mode & 0o777) for p in files} == {
+        p.relative_to(tmp_path).as_posix(): oct(0o666 & ~umask) for p in files
+    }
+    assert not [p for p in files if p.name.startswith(".")]  # no temporary left
+
+
 def test_committed_shard_is_not_rewritten_unless_asked(tmp_path):
     store = full_store(tmp_path / "s.zarr")
     with pytest.raises(ShardCommittedError, match="shard 2 is already committed"):
