@@ -2,7 +2,8 @@
 
 ``pip install shaderball`` is the store and the material readers; the roles add extras:
 ``[render]`` (bpy: the render workers, ``farm preview``), ``[farm]`` (Ray: ``farm submit``),
-``[train]`` (torch: ``trainer``), ``[dashboard]`` (``farm dashboard``), ``[all]``. This module
+``[train]`` (torch: ``trainer``), ``[dashboard]`` (``farm dashboard``), ``[export]`` (ONNX:
+``trainer export``), ``[all]``. This module
 lives in ``storage`` because every role installs it.
 """
 
@@ -18,6 +19,9 @@ EXTRA_OF = {
     "aiohttp": "dashboard",
     "jinja2": "dashboard",
     "prometheus_client": "dashboard",
+    "onnx": "export",
+    "onnxscript": "export",
+    "onnxruntime": "export",
 }
 
 

@@ -51,3 +51,11 @@ def test_the_train_extra_alone_trains_and_names_the_missing_extras(tmp_path):
         "Error: farm submit needs ray, which this install lacks: pip install 'shaderball[farm]'"
     )
     assert not (tmp_path / "x.zarr").exists()
+    export = [str(venv / "bin" / "trainer"), "export", "--checkpoint", str(run), "-o", "b.onnx"]
+    r = subprocess.run(export, capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 1
+    assert r.stderr.strip() == (
+        "Error: trainer export needs onnx, which this install lacks: "
+        "pip install 'shaderball[export]'"
+    )
+    assert not (tmp_path / "b.onnx").exists()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -140,6 +141,63 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     assert two.shape == (2, 3, 64, 64) and not np.allclose(two[0], two[1])
     with pytest.raises(ValueError, match="maps have shape"):
         renderer.render(maps[:, :32, :32].copy(), (0, 0, 1), 3)
+
+
+def test_export_onnx_renders_as_the_checkpoint_and_a_failed_check_writes_nothing(
+    tiny_store, trained, tmp_path, monkeypatch
+):
+    """``trainer export``: ONNX Runtime, fed stored maps and suns of the store, renders as
+    the torch renderer does, at a batch size the export never saw; the screen UV layout lies
+    beside the model; a model that fails the check leaves the old file as it was."""
+    import onnxruntime as ort
+
+    from render_jobs.screen_uv import ScreenUV
+    from trainer import export
+
+    out = tmp_path / "m" / "ball.onnx"
+    r = CliRunner().invoke(trainer_main, ["export", "--checkpoint", str(trained), "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    assert f"wrote {out} (" in r.output and "ONNX Runtime renders it within" in r.output
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    assert [(i.name, i.type, i.shape[1:]) for i in session.get_inputs()] == [
+        ("maps", "tensor(uint8)", [11, 64, 64]), ("sun", "tensor(float)", [3]),
+        ("turbidity", "tensor(float)", []),
+    ]  # fmt: skip
+    assert isinstance(session.get_inputs()[0].shape[0], str)  # any batch size
+    meta = session.get_modelmeta().custom_metadata_map
+    assert meta["shaderball.resolution"] == "64"
+    assert json.loads(meta["shaderball.tonemap"]) == checkpoint.load(trained)["tonemap"]
+    samples = [0, 4, 7, 9, 13]  # five materials' stored maps, under their own suns
+    maps = np.stack(
+        [tiny_store.packed_maps(tiny_store.layout.material_of_sample(i)) for i in samples]
+    )
+    lights = [tiny_store.light(i) for i in samples]
+    sun = np.array([d for d, _ in lights], np.float32)
+    turbidity = np.array([t for _, t in lights], np.float32)
+    (got,) = session.run(["image"], {"maps": maps, "sun": sun, "turbidity": turbidity})
+    want = Renderer.from_checkpoint(trained, "cpu").render(maps, sun, turbidity)
+    assert got.shape == want.shape == (5, 3, 64, 64) and np.abs(got - want).max() < 1e-4
+    layout = ScreenUV.from_bytes((tmp_path / "m" / "ball.screen_uv.npz").read_bytes())
+    kept = ScreenUV.from_bytes(checkpoint.load(trained)["screen_uv"])
+    assert layout.meta() == kept.meta() and np.array_equal(layout.uv, kept.uv)
+
+    before = out.read_bytes()
+    monkeypatch.setattr(export, "TOLERANCE", -1.0)  # no model can pass
+    r = CliRunner().invoke(trainer_main, ["export", "--checkpoint", str(trained), "-o", str(out)])
+    assert r.exit_code == 1 and len(r.stderr.splitlines()) == 2  # progress, then the error
+    assert re.fullmatch(
+        r"Error: the exported model renders up to \S+ away from the checkpoint \(allowed "
+        r"-1e\+00\); nothing written", r.stderr.splitlines()[1]
+    )  # fmt: skip
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in out.parent.iterdir()) == ["ball.onnx", "ball.screen_uv.npz"]
+    blocked = tmp_path / "file"
+    blocked.write_text("")
+    r = CliRunner().invoke(
+        trainer_main, ["export", "--checkpoint", str(trained), "-o", str(blocked / "b.onnx")]
+    )
+    assert r.exit_code == 1 and len(r.stderr.splitlines()) == 2, r.stderr
+    assert r.stderr.splitlines()[1].startswith(f"Error: [Errno 17] File exists: '{blocked}'")
 
 
 @pytest.mark.filterwarnings("ignore:This DataLoader will create")  # 3 > 2 cores
@@ -446,3 +504,6 @@ def test_the_zsolnai_feher_baseline_trains_saves_loads_and_evaluates(tiny_store,
     r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(out), "--json"])
     assert r.exit_code == 0, r.output
     assert json.loads(r.output[r.output.index("{") :])["overall"]["n"] > 0
+    from trainer.export import export
+
+    assert export(renderer, tmp_path / "zf.onnx").max_difference < 1e-4  # exports as well

@@ -337,6 +337,52 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
 
 @main.command()
 @click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
+              help="the .onnx file (its screen UV layout goes beside it)")  # fmt: skip
+def export(ckpt, output):
+    """Export the network as an ONNX model, to run it without Python or torch (ONNX Runtime
+    in a tool, a game engine or a browser).
+
+    The model takes stored maps (N, 11, R, R) uint8, the sun direction (N, 3) and the
+    turbidity (N,), and gives the display-ready image (N, 3, R, R) in [0, 1]: everything
+    `trainer render` does after the maps. It is checked against the checkpoint in ONNX
+    Runtime before it is kept. The checkpoint's screen UV layout, which maps new materials
+    to stored maps, is written beside it as NAME.screen_uv.npz. Details: docs/training.md.
+
+    \b
+    Examples:
+      trainer export --checkpoint runs/demo -o runs/demo/ball.onnx
+      trainer export --checkpoint runs/a/checkpoints/step-00004000.pt -o ball-4000.onnx
+    """
+    from storage.extras import MissingExtra, require
+
+    try:
+        require("trainer export", "onnx", "onnxscript", "onnxruntime")
+    except MissingExtra as exc:
+        _fail(exc)
+    from trainer.checkpoint import CheckpointError
+    from trainer.export import OPSET, ExportError
+    from trainer.export import export as export_onnx
+    from trainer.infer import Renderer
+
+    if output.suffix != ".onnx":
+        raise click.BadParameter(f"{str(output)!r} does not end in .onnx", param_hint="-o")
+    try:
+        renderer = Renderer.from_checkpoint(ckpt, "cpu")
+        click.echo("exporting, then checking the model in ONNX Runtime ...", err=True)
+        done = export_onnx(renderer, output)
+    except (CheckpointError, ExportError, OSError) as exc:
+        _fail(exc)
+    click.echo(
+        f"wrote {done.model} ({done.bytes / 2**20:.1f} MiB, ONNX opset {OPSET}); ONNX Runtime "
+        f"renders it within {done.max_difference:.1e} of the checkpoint"
+    )
+    if done.screen_uv is not None:
+        click.echo(f"wrote {done.screen_uv} (the screen UV layout for new materials)")
+
+
+@main.command()
+@click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
 @click.option("--store", "stores", multiple=True,
               help="a store whose materials fill the gallery (repeatable)")  # fmt: skip
 @click.option("--materials", "folders", multiple=True, metavar="DIR",
