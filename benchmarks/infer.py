@@ -6,11 +6,13 @@
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
 rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
 every device (``trainer.infer.Renderer`` runs one of the last two on CPU, by resolution:
-``trainer.infer.CPU_SUBPIXEL_FROM``); on CUDA also bf16 + channels_last eager
-(cudnn.benchmark), the same with BatchNorm folded, that with the weights cast to bf16 once
-and replayed as a CUDA graph (``trainer.infer.GraphedRenderer``), the rewrite so replayed,
-and with ``--compile`` both after torch.compile (Inductor ``max-autotune-no-cudagraphs``:
-fused pointwise work around the tuned convolutions, then captured).
+``trainer.infer.CPU_SUBPIXEL_FROM``); on CPU, where onnxruntime is installed, the folded
+network exported as ``trainer export`` exports it, run by ONNX Runtime; on CUDA also bf16 +
+channels_last eager (cudnn.benchmark), the same with BatchNorm folded, that with the weights
+cast to bf16 once and replayed as a CUDA graph (``trainer.infer.GraphedRenderer``), the
+rewrite so replayed, and with ``--compile`` both after torch.compile (Inductor
+``max-autotune-no-cudagraphs``: fused pointwise work around the tuned convolutions, then
+captured).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -23,7 +25,9 @@ the largest difference of each mode's batch-1 image from eager fp32 (display uni
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import statistics
+import tempfile
 import time
 
 import torch
@@ -130,11 +134,35 @@ def main() -> None:
         many = timed(lambda: gb(x_all, l_all), args.iters, cuda)
         report(name, one, many, error(g1(x_all[:1], l_all[:1])))
 
+    def onnx_row(name, net):
+        """The folded network exported (``trainer.export.save_onnx``) and run by ONNX
+        Runtime's CPU provider, on numpy copies of the same inputs."""
+        if args.only not in name or cuda or importlib.util.find_spec("onnxruntime") is None:
+            return
+        import onnxruntime as ort
+
+        from trainer.export import save_onnx
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = f"{tmp}/net.onnx"
+            save_onnx(net, {"x": x_all[:1], "light": l_all[:1]}, "image", path)
+            session = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
+
+        def run(x, light):
+            return session.run(["image"], {"x": x, "light": light})[0]
+
+        (x1, l1), (xb, lb) = [(x.numpy(), light.numpy()) for x, light in [
+            (x_all[:1], l_all[:1]), (x_all, l_all)]]  # fmt: skip
+        one = timed(lambda: run(x1, l1), args.iters, cuda)
+        many = timed(lambda: run(xb, lb), args.iters, cuda)
+        report(name, one, many, error(torch.from_numpy(run(x1, l1))))
+
     folded = fold_batchnorm(model)  # its own weights: the rewrite below copies them
     eager_row("eager fp32", model, False, torch.contiguous_format)
     eager_row("folded fp32 channels_last", folded, False, torch.channels_last)
     subpixel = SubpixelRenderer(folded)
     eager_row("subpixel fp32 channels_last", subpixel, False, torch.channels_last)
+    onnx_row("ONNX Runtime fp32 (CPU)", folded.to(memory_format=torch.contiguous_format))
     if cuda:
         torch.backends.cudnn.benchmark = True
         eager_row("eager bf16 channels_last", model, True, torch.channels_last)
