@@ -3,8 +3,8 @@
 ``pip install shaderball`` is the store and the material readers; the roles add extras:
 ``[render]`` (bpy: the render workers, ``farm preview``), ``[farm]`` (Ray: ``farm submit``),
 ``[train]`` (torch: ``trainer``), ``[dashboard]`` (``farm dashboard``), ``[export]`` (ONNX:
-``trainer export``), ``[all]``. This module
-lives in ``storage`` because every role installs it.
+``trainer export``), ``[all]``. This module lives in ``storage`` because every role installs
+it.
 """
 
 from __future__ import annotations
