@@ -151,8 +151,7 @@ def main() -> None:
         def run(x, light):
             return session.run(["image"], {"x": x, "light": light})[0]
 
-        (x1, l1), (xb, lb) = [(x.numpy(), light.numpy()) for x, light in [
-            (x_all[:1], l_all[:1]), (x_all, l_all)]]  # fmt: skip
+        x1, l1, xb, lb = (t.numpy() for t in (x_all[:1], l_all[:1], x_all, l_all))
         one = timed(lambda: run(x1, l1), args.iters, cuda)
         many = timed(lambda: run(xb, lb), args.iters, cuda)
         report(name, one, many, error(torch.from_numpy(run(x1, l1))))

@@ -299,8 +299,10 @@ class Loop:
         self.ask_screen_uv()  # first in its worker's queue
         usable = self.pool.usable()
         for wid, m in self.sched.recall(usable, self.pool.actors, now()):
-            ref = next(r for r, f in self.refs.items()
-                       if f[:2] == (wid, m) and r not in self.recalled)  # fmt: skip
+            ref = next(
+                r for r, f in self.refs.items()
+                if f.worker == wid and f.material == m and r not in self.recalled
+            )  # fmt: skip
             self.recalled.add(ref)
             self.pool.revoke(wid, self.refs[ref].ticket)
             self.state.workers[wid].recalled += 1

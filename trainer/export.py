@@ -78,9 +78,9 @@ class StoredMapsGraph(nn.Module):
 def graph_of(renderer: Renderer) -> StoredMapsGraph:
     """The module that is exported: the checkpoint's network in fp32 on CPU, BatchNorm folded
     (the Zsolnai-Fehér baseline as it is)."""
-    model = copy.deepcopy(renderer.model).to("cpu").float().eval()
-    net = fold_batchnorm(model) if isinstance(model, NeuralRenderer) else model
-    return StoredMapsGraph(net, renderer.config.roughness_channels).eval()
+    model = renderer.model
+    net = fold_batchnorm(model) if isinstance(model, NeuralRenderer) else copy.deepcopy(model)
+    return StoredMapsGraph(net.to("cpu").float(), renderer.config.roughness_channels).eval()
 
 
 def example_inputs(resolution: int, n: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -163,12 +163,9 @@ def _trace(renderer: Renderer, path: Path) -> None:
     save_onnx(graph_of(renderer), inputs, OUTPUT, path, metadata(renderer))
 
 
-def difference(path: Path, renderer: Renderer, inputs: dict[str, np.ndarray]) -> float:
-    """The largest absolute difference between ONNX Runtime running ``path`` on ``inputs``
+def difference(session, renderer: Renderer, inputs: dict[str, np.ndarray]) -> float:
+    """The largest absolute difference between the ONNX Runtime ``session`` on ``inputs``
     and the torch renderer on the same."""
-    import onnxruntime as ort
-
-    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     (got,) = session.run([OUTPUT], inputs)
     want = renderer.render(inputs["maps"], inputs["sun"], inputs["turbidity"])
     return float(np.abs(got - want).max())
@@ -191,14 +188,18 @@ def export(renderer: Renderer, out: str | os.PathLike) -> Exported:
             raise ExportError(
                 f"the network could not be exported: {lines[0] if lines else type(exc).__name__}"
             ) from None
+        import onnxruntime as ort
+
         reference = renderer
         if renderer.device.type != "cpu":  # fp32 proper: no TF32 convolutions
             model = copy.deepcopy(renderer.model)
             reference = Renderer(model, renderer.tonemap, torch.device("cpu"))
+        session = ort.InferenceSession(str(tmp), providers=["CPUExecutionProvider"])
         worst = max(
-            difference(tmp, reference, example_inputs(renderer.config.resolution, n, seed=n))
+            difference(session, reference, example_inputs(renderer.config.resolution, n, seed=n))
             for n in (1, 3)
         )
+        del session  # the file is renamed or removed below
         if not worst <= TOLERANCE:
             raise ExportError(
                 f"the exported model renders up to {worst:.2e} away from the checkpoint "
