@@ -200,6 +200,39 @@ def test_export_onnx_renders_as_the_checkpoint_and_a_failed_check_writes_nothing
     assert r.stderr.splitlines()[1].startswith(f"Error: [Errno 17] File exists: '{blocked}'")
 
 
+def test_export_at_an_older_opset_renders_as_the_checkpoint(tiny_store, trained, tmp_path):
+    """``--opset 15`` (Unity Sentis 1.x reads no newer) writes opset 15 through the other
+    exporter, with the same metadata, and renders a store's maps as the torch renderer does;
+    an opset outside the offered range is a usage error that names it."""
+    import onnx
+    import onnxruntime as ort
+
+    from trainer import export
+
+    out = tmp_path / "ball-15.onnx"
+    args = ["export", "--checkpoint", str(trained), "-o", str(out), "--opset", "15"]
+    r = CliRunner().invoke(trainer_main, args)
+    assert r.exit_code == 0, r.output
+    assert "ONNX opset 15)" in r.output
+    model = onnx.load(str(out))
+    assert {o.domain: o.version for o in model.opset_import}[""] == 15
+    assert {p.key for p in model.metadata_props} >= {"shaderball.resolution", "shaderball.tonemap"}
+    maps = np.stack([tiny_store.packed_maps(m) for m in range(3)])
+    sun = np.array([[0.3, -0.2, 0.9], [0, 0, 1], [-0.7, 0.1, 0.2]], np.float32)
+    turbidity = np.array([2, 5, 9], np.float32)
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    (got,) = session.run(["image"], {"maps": maps, "sun": sun, "turbidity": turbidity})
+    want = Renderer.from_checkpoint(trained, "cpu").render(maps, sun, turbidity)
+    assert got.shape == want.shape and np.abs(got - want).max() < 1e-4
+
+    option = next(p for p in trainer_main.commands["export"].params if p.name == "opset")
+    assert (option.type.min, option.type.max) == (export.MIN_OPSET, export.OPSET)
+    r = CliRunner().invoke(trainer_main, [*args[:-1], "10"])
+    assert r.exit_code == 2 and "Invalid value for '--opset': 10 is not in the range" in r.output
+    with pytest.raises(ValueError, match="opset 19 is not offered"):
+        export.save_onnx(torch.nn.Identity(), {"x": torch.zeros(1)}, "y", out, opset=19)
+
+
 @pytest.mark.filterwarnings("ignore:This DataLoader will create")  # 3 > 2 cores
 @pytest.mark.parametrize("workers", [0, 2, 3])
 def test_one_iteration_reads_across_epochs_in_the_planned_order(tiny_store, workers):
@@ -504,6 +537,11 @@ def test_the_zsolnai_feher_baseline_trains_saves_loads_and_evaluates(tiny_store,
     r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(out), "--json"])
     assert r.exit_code == 0, r.output
     assert json.loads(r.output[r.output.index("{") :])["overall"]["n"] > 0
+    import onnxruntime as ort
+
     from trainer.export import export
 
-    assert export(renderer, tmp_path / "zf.onnx").max_difference < 1e-4  # exports as well
+    for opset in (18, 15):  # exports as well, through both exporters, with every input
+        assert export(renderer, tmp_path / f"zf{opset}.onnx", opset).max_difference < 1e-4
+        session = ort.InferenceSession(str(tmp_path / f"zf{opset}.onnx"))
+        assert [i.name for i in session.get_inputs()] == ["maps", "sun", "turbidity"]

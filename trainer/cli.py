@@ -339,7 +339,9 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
 @click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
 @click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
               help="the .onnx file (its screen UV layout goes beside it)")  # fmt: skip
-def export(ckpt, output):
+@click.option("--opset", type=click.IntRange(11, 18), default=18, show_default=True,
+              help="the ONNX opset, for older importers (Unity Sentis 1.x: 15)")  # fmt: skip
+def export(ckpt, output, opset):
     """Export the network as an ONNX model, to run it without Python or torch (ONNX Runtime
     in a tool, a game engine or a browser).
 
@@ -353,6 +355,7 @@ def export(ckpt, output):
     Examples:
       trainer export --checkpoint runs/demo -o runs/demo/ball.onnx
       trainer export --checkpoint runs/a/checkpoints/step-00004000.pt -o ball-4000.onnx
+      trainer export --checkpoint runs/demo --opset 15 -o ball-15.onnx   # Unity Sentis 1.x
     """
     from storage.extras import MissingExtra, require
 
@@ -361,7 +364,7 @@ def export(ckpt, output):
     except MissingExtra as exc:
         _fail(exc)
     from trainer.checkpoint import CheckpointError
-    from trainer.export import OPSET, ExportError
+    from trainer.export import ExportError
     from trainer.export import export as export_onnx
     from trainer.infer import Renderer
 
@@ -370,11 +373,11 @@ def export(ckpt, output):
     try:
         renderer = Renderer.from_checkpoint(ckpt, "cpu")
         click.echo("exporting, then checking the model in ONNX Runtime ...", err=True)
-        done = export_onnx(renderer, output)
+        done = export_onnx(renderer, output, opset)
     except (CheckpointError, ExportError, OSError) as exc:
         _fail(exc)
     click.echo(
-        f"wrote {done.model} ({done.bytes / 2**20:.1f} MiB, ONNX opset {OPSET}); ONNX Runtime "
+        f"wrote {done.model} ({done.bytes / 2**20:.1f} MiB, ONNX opset {done.opset}); ONNX Runtime "
         f"renders it within {done.max_difference:.1e} of the checkpoint"
     )
     if done.screen_uv is not None:

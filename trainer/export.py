@@ -19,6 +19,10 @@ the images of the torch :class:`trainer.infer.Renderer` on CPU before it keeps i
 metadata (``metadata_props``) carries ``shaderball.*`` keys: the resolution, tonemap, model
 configuration and checkpoint step, and the inputs' meaning.
 
+The model is ONNX opset 18 by default, from torch's dynamo exporter; an older opset, down to
+11, for importers that read no newer, comes from torch's TorchScript exporter. Both are
+checked the same way.
+
 A new material's maps become ``maps`` through the checkpoint's screen UV layout
 (``trainer.mapping.ScreenMapper``); :func:`export` writes that layout beside the model
 (``<name>.screen_uv.npz``: ``uv``, ``hit`` and ``meta``, as
@@ -28,6 +32,7 @@ A new material's maps become ``maps`` through the checkpoint's screen UV layout
 from __future__ import annotations
 
 import copy
+import io
 import json
 import logging
 import os
@@ -49,9 +54,13 @@ OUTPUT = "image"
 #: the largest difference from the torch renderer an exported model may show (fp32 both; seen:
 #: under 1e-6)
 TOLERANCE = 1e-4
-#: the ONNX opset written: torch's exporter's own (its conversion to older opsets fails on
-#: this network's Resize and falls back to 18); ONNX Runtime 1.14 and later run it
+#: the ONNX opset written by default: torch's dynamo exporter's own (ONNX Runtime 1.14 and
+#: later run it)
 OPSET = 18
+#: the oldest opset offered (the network's ``Resize`` needs 11), for importers that stop short
+#: of 18 (Unity Sentis 1.x reads 7 to 15). Opsets below :data:`OPSET` are written by
+#: torch's TorchScript exporter: the dynamo exporter's conversion to them fails on ``Resize``.
+MIN_OPSET = 11
 
 
 class ExportError(RuntimeError):
@@ -104,6 +113,7 @@ class Exported:
     screen_uv: Path | None
     bytes: int
     max_difference: float
+    opset: int
 
 
 def metadata(renderer: Renderer) -> dict[str, str]:
@@ -129,38 +139,80 @@ def save_onnx(
     output: str,
     path: str | os.PathLike,
     metadata: dict[str, str] | None = None,
+    opset: int = OPSET,
 ) -> None:
     """``module`` traced on ``inputs`` (named, in its argument order; the first dimension of
-    each left free) and written to ``path`` as an ONNX model of :data:`OPSET` with
-    ``metadata`` in its ``metadata_props``, quietly."""
+    each, and of ``output``, left free) and written to ``path`` as an ONNX model of ``opset``
+    (:data:`MIN_OPSET` to :data:`OPSET`) with ``metadata`` in its ``metadata_props``,
+    quietly."""
     import onnx
 
-    batch = torch.export.Dim("batch", min=1)
+    if not MIN_OPSET <= opset <= OPSET:
+        raise ValueError(f"opset {opset} is not offered (only {MIN_OPSET} to {OPSET})")
     log = logging.getLogger("torch.onnx")
     level = log.level
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the exporter's deprecation and naming chatter
+        warnings.simplefilter("ignore")  # deprecation, naming and tracer chatter
         log.setLevel(logging.ERROR)  # "torchvision is not installed", per operator
         try:
-            program = torch.onnx.export(
-                module, tuple(inputs.values()), input_names=list(inputs),
-                output_names=[output], opset_version=OPSET, dynamo=True, verbose=False,
-                dynamic_shapes=tuple({0: batch} for _ in inputs),
-            )  # fmt: skip
+            trace = _dynamo if opset == OPSET else _torchscript
+            proto = trace(module, inputs, output, opset)
         finally:
             log.setLevel(level)
-    proto = program.model_proto
     for key, value in (metadata or {}).items():
         entry = proto.metadata_props.add()
         entry.key, entry.value = key, value
     onnx.save_model(proto, str(path))
 
 
-def _trace(renderer: Renderer, path: Path) -> None:
+def _dynamo(module: nn.Module, inputs: dict[str, torch.Tensor], output: str, opset: int):
+    batch = torch.export.Dim("batch", min=1)
+    program = torch.onnx.export(
+        module, tuple(inputs.values()), input_names=list(inputs), output_names=[output],
+        opset_version=opset, dynamo=True, verbose=False,
+        dynamic_shapes=tuple({0: batch} for _ in inputs),
+    )  # fmt: skip
+    return program.model_proto
+
+
+def _torchscript(module: nn.Module, inputs: dict[str, torch.Tensor], output: str, opset: int):
+    import onnx
+
+    buffer = io.BytesIO()
+    torch.onnx.export(
+        module, tuple(inputs.values()), buffer, input_names=list(inputs), output_names=[output],
+        opset_version=opset, dynamo=False, verbose=False,
+        dynamic_axes={name: {0: "batch"} for name in [*inputs, output]},
+    )  # fmt: skip
+    proto = onnx.load_model_from_string(buffer.getvalue())
+    _restore_unused_inputs(proto, inputs)
+    return proto
+
+
+def _restore_unused_inputs(proto, inputs: dict[str, torch.Tensor]) -> None:
+    """Put back, in ``inputs``' order, the inputs the TorchScript exporter drops when the
+    graph does not read them (the Zsolnai-Fehér baseline's sun and turbidity), so that
+    every exported model takes the same inputs."""
+    from onnx import helper
+    from onnx.helper import np_dtype_to_tensor_dtype
+
+    kept = {i.name: i for i in proto.graph.input}
+    declared = []
+    for name, tensor in inputs.items():
+        if name not in kept:
+            dtype = np_dtype_to_tensor_dtype(tensor.numpy().dtype)
+            shape = ["batch", *tensor.shape[1:]]
+            kept[name] = helper.make_tensor_value_info(name, dtype, shape)
+        declared.append(kept[name])
+    del proto.graph.input[:]
+    proto.graph.input.extend(declared)
+
+
+def _trace(renderer: Renderer, path: Path, opset: int) -> None:
     """The ONNX file of :func:`graph_of` at ``path``, with a free batch size and metadata."""
     ex = example_inputs(renderer.config.resolution, 2)
     inputs = {k: torch.from_numpy(ex[k]) for k in INPUTS}
-    save_onnx(graph_of(renderer), inputs, OUTPUT, path, metadata(renderer))
+    save_onnx(graph_of(renderer), inputs, OUTPUT, path, metadata(renderer), opset)
 
 
 def difference(session, renderer: Renderer, inputs: dict[str, np.ndarray]) -> float:
@@ -171,18 +223,18 @@ def difference(session, renderer: Renderer, inputs: dict[str, np.ndarray]) -> fl
     return float(np.abs(got - want).max())
 
 
-def export(renderer: Renderer, out: str | os.PathLike) -> Exported:
-    """Write ``renderer``'s network to ``out`` as ONNX (and its screen UV layout beside it),
-    after checking that ONNX Runtime renders it as torch does (:data:`TOLERANCE`, on random
-    inputs at batch 1 and 3). Nothing is left at ``out`` unless the check passed; an old
-    file there is replaced whole."""
+def export(renderer: Renderer, out: str | os.PathLike, opset: int = OPSET) -> Exported:
+    """Write ``renderer``'s network to ``out`` as ONNX of ``opset`` (and its screen UV layout
+    beside it), after checking that ONNX Runtime renders it as torch does (:data:`TOLERANCE`,
+    on random inputs at batch 1 and 3). Nothing is left at ``out`` unless the check passed;
+    an old file there is replaced whole."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = create_beside(out, ".onnx")
     os.close(fd)
     try:
         try:
-            _trace(renderer, tmp)
+            _trace(renderer, tmp, opset)
         except Exception as exc:  # noqa: BLE001 - the exporter raises many types
             lines = str(exc).strip().splitlines()
             raise ExportError(
@@ -211,7 +263,7 @@ def export(renderer: Renderer, out: str | os.PathLike) -> Exported:
         os.replace(tmp, out)
     finally:
         tmp.unlink(missing_ok=True)
-    return Exported(out, layout, out.stat().st_size, worst)
+    return Exported(out, layout, out.stat().st_size, worst, opset)
 
 
 def layout_path(out: Path) -> Path:
