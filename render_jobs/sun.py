@@ -126,3 +126,14 @@ def sun_from_angles(elevation_deg: float, azimuth_deg: float, turbidity: float) 
     el, az = math.radians(elevation_deg), math.radians(azimuth_deg)
     d = (math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el))
     return Sun(direction=d, turbidity=turbidity)
+
+
+def sun_sweep(sun: Sun, n: int) -> list[Sun]:
+    """``n`` suns a full turn around the zenith from ``sun``, at its elevation and turbidity,
+    evenly spaced in azimuth (the first is ``sun``'s azimuth)."""
+    if n < 1:
+        raise ValueError(f"a sweep needs at least one sun, not {n}")
+    return [
+        sun_from_angles(sun.elevation_deg, sun.azimuth_deg + 360.0 * k / n, sun.turbidity)
+        for k in range(n)
+    ]

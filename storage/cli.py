@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from storage.cli_group import Commands
 from storage.errors import StoreError
+from storage.image_files import image_format, save_image
 
 
 def _open(url: str):
@@ -192,7 +193,8 @@ def _parse_range(text: str, total: int) -> range:
 @main.command()
 @click.argument("store")
 @click.option("--sample", "-s", "index", required=True, type=int, help="Sample index.")
-@click.option("--out", "-o", required=True, type=click.Path(path_type=Path), help="PNG to write.")
+@click.option("--out", "-o", required=True, type=click.Path(path_type=Path),
+              help="the picture to write: .png, .jpg or .webp")  # fmt: skip
 def show(store, index, out):
     """Write a labelled contact sheet of one sample: maps, mask, tonemapped render, light.
 
@@ -203,11 +205,14 @@ def show(store, index, out):
     from render_jobs.contact_sheet import contact_sheet
     from render_jobs.results import ScreenMaps
 
+    try:
+        image_format(out)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="-o") from None
     s = _sample(_open(store), index)
     title = f"sample {s.index}  material {s.material_index} ({s.kind}: {s.source_id})"
     sheet = contact_sheet(ScreenMaps(**s.maps), [(s.render, s.sun.label())], title)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    sheet.save(out)
+    save_image(sheet, out)
     click.echo(f"wrote {out}")
 
 

@@ -354,6 +354,11 @@ def test_cli_bad_input_is_one_line(tmp_path):
     assert not (tmp_path / "e").exists() or not list((tmp_path / "e").iterdir())
     r = shards("export", path, tmp_path / "e", "--samples", "9:2")
     assert r.returncode == 2 and "outside" in r.stderr
+    r = shards("show", path, "--sample", "5", "-o", tmp_path / "s5.txt")
+    assert r.returncode == 2 and "'s5.txt' does not name a picture" in r.stderr.replace(
+        str(tmp_path) + "/", ""
+    )  # fmt: skip
+    assert not (tmp_path / "s5.txt").exists()
 
 
 def test_fast_reads_match_zarr_and_catch_corruption(tmp_path):

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from render_jobs.sun import air_mass, sample_suns, sun_from_angles, sun_lamp
+from render_jobs.sun import air_mass, sample_suns, sun_from_angles, sun_lamp, sun_sweep
 
 
 def test_sampling_is_seeded_and_in_range():
@@ -68,3 +68,17 @@ def test_material_suns_are_their_own_stream():
     assert a != suns_for_material(1, 3)
     # not the draws of the material's own seed (which seeds its generator)
     assert a != sample_suns(np.random.default_rng(derive_seed(0, 3)), 5)
+
+
+def test_a_sweep_turns_the_sun_once_round_at_its_elevation():
+    start = sun_from_angles(35.0, 300.0, 4.0)
+    suns = sun_sweep(start, 8)
+    assert len(suns) == 8 and np.allclose(suns[0].direction, start.direction)
+    assert all(abs(s.elevation_deg - 35.0) < 1e-9 and s.turbidity == 4.0 for s in suns)
+    steps = [
+        (b.azimuth_deg - a.azimuth_deg) % 360
+        for a, b in zip(suns, suns[1:] + suns[:1], strict=True)
+    ]
+    assert np.allclose(steps, 45.0)
+    with pytest.raises(ValueError, match="at least one sun"):
+        sun_sweep(start, 0)

@@ -18,7 +18,7 @@ import psutil
 import pytest
 import torch
 from click.testing import CliRunner
-from PIL import Image
+from PIL import Image, ImageSequence
 from torch.utils.data import DataLoader
 
 from storage.schema import Layout
@@ -133,6 +133,29 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     assert r.exit_code == 0, r.output
     a, b = np.asarray(Image.open(out)), np.asarray(Image.open(other))
     assert a.shape == (64, 64, 3) and np.abs(a.astype(int) - b).mean() > 0  # the sun matters
+    assert json.loads(Image.open(other).info["shaderball:light"])["turbidity"] == 8
+    assert json.loads(Image.open(out).info["shaderball:material"]) == {
+        "store": tiny_store.url, "sample": 4,
+    }  # fmt: skip
+
+    # the sun once round at the sample's own elevation: frame 0 is the still above
+    sweep = tmp_path / "sweep.png"
+    r = CliRunner().invoke(trainer_main, [*args, "--sweep", "6", "--fps", "5", "-o", str(sweep)])
+    assert r.exit_code == 0, r.output
+    with Image.open(sweep) as im:
+        assert im.n_frames == 6 and im.info["duration"] == 200
+        assert json.loads(im.info["shaderball:light"])["sweep"] == 6
+        frames = [np.asarray(f.convert("RGB"), int) for f in ImageSequence.Iterator(im)]
+    assert np.abs(frames[0] - a).max() <= 1  # batched against alone: float rounding at most
+    assert min(np.abs(f - frames[0]).mean() for f in frames[1:]) > 0
+    for bad, needle in [
+        ([*args, "-o", str(tmp_path / "x.foo")], f"-o: '{tmp_path / 'x.foo'}' does not name"),
+        ([*args, "--sweep", "6", "-o", str(tmp_path / "x.jpg")], "does not name an animation"),
+        (["eval", "--checkpoint", str(trained), "--grid", str(tmp_path / "g.bmp")], "--grid"),
+    ]:
+        r = CliRunner().invoke(trainer_main, bad)
+        assert r.exit_code == 2 and needle in r.output, r.output
+    assert not list(tmp_path.glob("x.*")) and not (tmp_path / "g.bmp").exists()
 
     # the Python API: one material under two suns at once, as the CLI did
     renderer = Renderer.from_checkpoint(trained, "cpu")

@@ -173,7 +173,8 @@ def launch(
 @click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
 @click.option("--store", "stores", multiple=True, help="the run's stores at another address")
 @click.option("--batch-size", default=8, show_default=True, type=int, help="images per batch")
-@click.option("--grid", type=click.Path(path_type=Path), default=None, help="PNG grid path")
+@click.option("--grid", type=click.Path(path_type=Path), default=None,
+              help="the grid picture (.png, .jpg, .webp) [RUN/eval.png]")  # fmt: skip
 @click.option("--grid-count", default=4, show_default=True, type=int, help="samples in the grid")
 @click.option(
     "--on",
@@ -203,6 +204,7 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
 
     if grid is None and Path(ckpt).is_dir() and not on:
         grid = Path(ckpt) / "eval.png"
+    _picture_name(grid, "--grid")
     try:
         result = evaluate(
             ckpt, list(stores) or None, batch_size, grid, grid_count, device, list(on) or None
@@ -227,6 +229,17 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
     click.echo(tabulate(rows, head, floatfmt=("", "", ".2f", ".4f", ".4f")))
     if "grid" in result:
         click.echo(f"grid: {result['grid']}")
+
+
+def _picture_name(path: Path | None, option: str, animated: bool = False) -> None:
+    """A usage error, before any work, when ``path`` names no picture format we write."""
+    from storage.image_files import image_format
+
+    try:
+        if path is not None:
+            image_format(path, animated)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint=option) from None
 
 
 def _floats(text: str | None, n: int, name: str):
@@ -281,14 +294,23 @@ DEFAULT_LIGHT = ((-0.5, -0.6, 0.62), 3.0)
 @click.option("--sample", type=int, default=None, help="sample index in --store")
 @click.option("--sun", default=None, help="X,Y,Z sun direction, z up [the sample's, or front left]")
 @click.option("--turbidity", type=float, default=None, help="sky turbidity [the sample's, or 3]")
-@click.option("-o", "--output", type=click.Path(path_type=Path), required=True, help="PNG")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
+              help="the picture: .png, .jpg or .webp; with --sweep, the animation: .png "
+              "(APNG), .gif or .webp")  # fmt: skip
+@click.option("--sweep", type=click.IntRange(2, 720), default=None, metavar="N",
+              help="N frames of the sun going once round the sky at its elevation, as an "
+              "animation")  # fmt: skip
+@click.option("--fps", type=click.FloatRange(1, 60), default=12.0, show_default=True,
+              help="the --sweep animation's frames a second")  # fmt: skip
 @device_option
-def render(ckpt, material, store, sample, sun, turbidity, output, device):
+def render(ckpt, material, store, sample, sun, turbidity, output, sweep, fps, device):
     """Render any material with the network, under any sun, without Blender.
 
     --material takes anything farm submit accepts for one material; its maps are UV-mapped
     onto the ball with the screen UV layout the checkpoint carries. --store with --sample
     renders a stored material (its own sun unless --sun / --turbidity say otherwise).
+    --sweep turns the sun once round the sky: the material under every sun, as an animation.
+    PNGs carry the checkpoint, the material and the light in their text chunks.
 
     \b
     Examples:
@@ -297,23 +319,56 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
       trainer render --checkpoint runs/demo -o red.png \\
           --material 'uniform:diffuse=#b03a2e;specular=0.04;roughness=0.3'
       trainer render --checkpoint runs/demo --store out/demo.zarr --sample 3 -o ball.png
+      trainer render --checkpoint runs/demo --material textures/leather.png \\
+          --sun 0.3,-0.5,0.5 --sweep 48 -o leather.webp     # the sun once round, 4 s
     """
     from PIL import Image
 
+    from render_jobs.tonemap import to_uint8
+    from storage.image_files import save_animation, save_image
+
+    if (material is None) == (sample is None):
+        raise click.UsageError("give --material, or --store with --sample")
+    if sample is not None and store is None:
+        raise click.UsageError("--sample needs --store")
+    _picture_name(output, "-o", animated=sweep is not None)
+    r, packed, light = _render_inputs(ckpt, material, store, sample, sun, turbidity, device)
+    text = {
+        "shaderball:checkpoint": str(ckpt),
+        "shaderball:material": json.dumps(
+            {"source": material} if material else {"store": store, "sample": sample}
+        ),
+        "shaderball:light": json.dumps({**light.to_dict(), "sweep": sweep}),
+        "Software": "shaderball trainer render",
+    }
+    try:
+        if sweep is None:
+            images = [r.render(packed, light.direction, light.turbidity)]
+        else:
+            images = _sweep(r, packed, light, sweep)
+        pictures = [Image.fromarray(to_uint8(img)) for img in images]
+    except ValueError as exc:  # maps that do not fit the network
+        _fail(exc)
+    if sweep is None:
+        save_image(pictures[0], output, text)
+    else:
+        save_animation(pictures, output, fps, text)
+    click.echo(f"wrote {output}")
+
+
+def _render_inputs(ckpt, material, store, sample, sun, turbidity, device):
+    """``(renderer, stored maps, Sun)`` of ``trainer render``'s options; bad input ends the
+    command in one line."""
     from render_jobs.errors import MaterialError
     from render_jobs.materials.sources import load_map_bytes, one_material
     from render_jobs.screen_uv import ScreenUVError
-    from render_jobs.tonemap import to_uint8
+    from render_jobs.specs import Sun
     from storage.errors import StoreError
     from storage.reader import Store
     from trainer.checkpoint import CheckpointError
     from trainer.infer import NoScreenUV, Renderer, material_mapper
     from trainer.mapping import textures_from_bytes
 
-    if (material is None) == (sample is None):
-        raise click.UsageError("give --material, or --store with --sample")
-    if sample is not None and store is None:
-        raise click.UsageError("--sample needs --store")
     try:
         if material is not None:
             maps = load_map_bytes(one_material(material))  # the material first: cheap errors
@@ -325,14 +380,25 @@ def render(ckpt, material, store, sample, sun, turbidity, output, device):
             packed = s.packed_maps(s.layout.material_of_sample(sample))
             direction, t = _light(sun, turbidity, s.light(sample))
             r = Renderer.from_checkpoint(ckpt, device)
-        img = r.render(packed, direction, t)
     except (MaterialError, StoreError, CheckpointError, NoScreenUV, ScreenUVError) as exc:
         _fail(exc)
     except (ValueError, IndexError) as exc:
         _fail(exc)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(to_uint8(img)).save(output)
-    click.echo(f"wrote {output}")
+    norm = sum(c * c for c in direction) ** 0.5
+    return r, packed, Sun(tuple(float(c) / norm for c in direction), float(t))
+
+
+def _sweep(renderer, packed, sun, n: int):
+    """The frames of ``--sweep n``, with a progress bar on a terminal."""
+    import sys
+
+    from tqdm import tqdm
+
+    from render_jobs.sun import sun_sweep
+    from trainer.infer import render_under
+
+    frames = render_under(renderer, packed, sun_sweep(sun, n))
+    return tqdm(frames, total=n, desc="rendering", unit="frame", file=sys.stderr, disable=None)
 
 
 @main.command()

@@ -20,6 +20,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from render_jobs.tonemap import to_uint8
+from storage.image_files import save_image
 from storage.reader import Store
 from trainer.data import Catalog, SampleReader
 from trainer.infer import Renderer
@@ -226,6 +227,4 @@ def write_grid(
     draw, font = ImageDraw.Draw(grid), ImageFont.load_default(size=14)
     for i, name in enumerate(GRID_COLUMNS):
         draw.text((i * tile + 6, 4), name.format(gain=error_gain), fill=(235, 235, 235), font=font)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    grid.save(path)
+    save_image(grid, path)

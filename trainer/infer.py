@@ -182,3 +182,19 @@ class GraphedRenderer:
         self.light.copy_(light)
         self.graph.replay()
         return self.out
+
+
+#: frames a batch in :func:`render_under`
+UNDER_BATCH = 8
+
+
+def render_under(renderer: Renderer, maps: np.ndarray, suns, batch: int = UNDER_BATCH):
+    """One material's stored maps ``(11, H, W) uint8`` under each of ``suns``
+    (:class:`render_jobs.specs.Sun`), ``batch`` at a time: an iterator of ``(3, H, W)``
+    images in [0, 1], in the order of ``suns``."""
+    suns = list(suns)
+    for i in range(0, len(suns), batch):
+        part = suns[i : i + batch]
+        stack = np.ascontiguousarray(np.broadcast_to(maps, (len(part), *np.shape(maps))))
+        directions = np.array([s.direction for s in part], np.float32)
+        yield from renderer.render(stack, directions, np.array([s.turbidity for s in part]))
