@@ -15,7 +15,6 @@ from tqdm import tqdm
 
 from storage.cli_group import Commands
 from storage.errors import StoreError
-from storage.image_files import image_format, save_image
 
 
 def _open(url: str):
@@ -204,6 +203,7 @@ def show(store, index, out):
     """
     from render_jobs.contact_sheet import contact_sheet
     from render_jobs.results import ScreenMaps
+    from storage.image_files import image_format, save_image
 
     try:
         image_format(out)
