@@ -555,6 +555,20 @@ def test_the_page_in_chromium_drags_the_sun_edits_uploads_and_compares(run, tiny
         page.wait_for_timeout(1000)
         assert page.evaluate(DIGEST) != dragged
 
+        # the sun turns round the sky by itself, as fast as frames come, until stopped
+        n, light = frames(page), page.locator("#light-v").inner_text()
+        page.click("#turn")
+        wait_new_frame(page, n + 3)
+        page.wait_for_function(
+            "document.getElementById('turn-rate').textContent.endsWith(' frames/s')"
+        )
+        assert page.locator("#light-v").inner_text() != light
+        page.click("#turn")
+        light = page.locator("#light-v").inner_text()
+        page.wait_for_timeout(700)
+        assert page.locator("#light-v").inner_text() == light
+        assert page.locator("#turn-rate").inner_text() == ""
+
         # a stored sun shows the Cycles ground truth beside the network (edits reset first)
         page.click("#reset")
         page.click("#suns button >> nth=0")

@@ -6,7 +6,8 @@ image whenever any of it changes, with at most one request in flight and the lat
 sent next (so dragging the sun never queues stale frames), and shows the ``Server-Timing``
 parts. The sun is dragged on an SVG hemisphere seen from above: the centre is the zenith,
 the rim the horizon, the camera at the bottom (it looks along +Y); distance from the centre
-is 90° minus the elevation.
+is 90° minus the elevation. "Turn the sun" moves it round the sky at its elevation until
+stopped (or dragged), as fast as frames come, and shows the frames a second.
 """
 
 from __future__ import annotations
@@ -203,7 +204,7 @@ function dragTo(ev) {
   state.stored = null; hideTruth(); drawSun(); requestFrame();
 }
 $('sky').addEventListener('pointerdown', (ev) => {
-  ev.preventDefault();
+  ev.preventDefault(); turnSun(false);
   $('sky').setPointerCapture(ev.pointerId); dragTo(ev);
   $('sky').onpointermove = dragTo;
 });
@@ -213,12 +214,37 @@ $('turbidity').addEventListener('input', () => {
   requestFrame();
 });
 
+// the sun turning round the sky at its elevation, a turn in TURN_S seconds: each animation
+// frame moves it by the time passed, and requestFrame sends the newest light when the last
+// frame is in, so the network, not a timer, sets the frame rate shown
+const TURN_S = 12;
+let turning = null;
+function turnStep(now) {
+  if (!turning) return;
+  state.az = (state.az + 360 * (now - turning.last) / 1000 / TURN_S) % 360;
+  turning.last = now;
+  state.stored = null; hideTruth(); drawSun(); requestFrame();
+  const got = parseInt($('frame').dataset.frames) - turning.frames;
+  const s = (now - turning.start) / 1000;
+  if (s > 1) $('turn-rate').textContent = (got / s).toFixed(1) + ' frames/s';
+  requestAnimationFrame(turnStep);
+}
+function turnSun(on) {
+  const now = performance.now();
+  turning = on ? {start: now, last: now, frames: parseInt($('frame').dataset.frames)} : null;
+  $('turn').textContent = on ? '■ stop the sun' : '▶ turn the sun';
+  $('turn').classList.toggle('quiet', !on);
+  if (on) requestAnimationFrame(turnStep); else $('turn-rate').textContent = '';
+}
+$('turn').onclick = () => turnSun(!turning);
+
 // ---- ground truth ---------------------------------------------------------------------------
 function hideTruth() {
   $('truth').style.display = 'none';
   for (const b of document.querySelectorAll('#suns button')) b.classList.remove('on');
 }
 async function storedSun(m, s) {
+  turnSun(false);
   state.az = s.azimuth; state.el = s.elevation; state.t = s.turbidity;
   drawSun(); requestFrame();
   for (const [i, b] of [...document.querySelectorAll('#suns button')].entries())
@@ -295,6 +321,8 @@ value="0.3"><span id="u-roughness-v">0.30</span></label></section>
 <text x="112" y="40" fill="#6d7a92" font-size="9">30°</text>
 <circle id="sun" r="9" fill="#ffd75e" stroke="#fff6c8" stroke-width="2"/></svg>
 <div id="light-v" style="text-align:center;font-size:12px;color:#9aa3b2"></div>
+<div style="text-align:center;margin:4px 0"><button class="quiet" id="turn">▶ turn the sun</button>
+<small id="turn-rate"></small></div>
 <label>turbidity <input type="range" id="turbidity" min="1" max="10" step="0.1" value="3">
 <span id="turbidity-v">3.0</span></label>
 <div id="suns-box" style="display:none"><small>stored suns (Cycles ground truth):</small>
