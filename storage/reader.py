@@ -225,6 +225,7 @@ class Store:
         cached = self._maps_cache.get(material)
         if cached is not None:
             return cached
+        self.layout.check_material(material)
         shard = material // self.layout.materials_per_shard
         self._require_committed(shard * self.layout.shard_size)
         k = material - shard * self.layout.materials_per_shard

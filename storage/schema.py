@@ -71,12 +71,21 @@ class Layout:
         return range(shard * m, min((shard + 1) * m, self.num_materials))
 
     def shard_of_sample(self, sample: int) -> int:
-        if not 0 <= sample < self.num_samples:
-            raise IndexError(f"sample {sample} out of range (store has {self.num_samples})")
+        self._check_sample(sample)
         return sample // self.shard_size
 
     def material_of_sample(self, sample: int) -> int:
+        self._check_sample(sample)
         return sample // self.suns_per_material
+
+    def _check_sample(self, sample: int) -> None:
+        if not 0 <= sample < self.num_samples:
+            raise IndexError(f"sample {sample} out of range (store has {self.num_samples})")
+
+    def check_material(self, material: int) -> None:
+        """An ``IndexError`` naming ``material`` when the store has no such material."""
+        if not 0 <= material < self.num_materials:
+            raise IndexError(f"material {material} out of range (store has {self.num_materials})")
 
     def _check_shard(self, shard: int) -> None:
         if not 0 <= shard < self.num_shards:

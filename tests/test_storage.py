@@ -59,6 +59,17 @@ def test_layout_partitions_samples_and_materials(materials, suns, shard_size):
         assert all(lay.shard_of_sample(s) == sh for s in lay.shard_samples(sh))
 
 
+def test_indices_outside_the_store_are_refused_naming_the_index_asked_for(tmp_path):
+    for bad in (-1, LAYOUT.num_samples):
+        for find in (LAYOUT.material_of_sample, LAYOUT.shard_of_sample):
+            with pytest.raises(IndexError, match=rf"^sample {bad} out of range \(store has 21\)$"):
+                find(bad)
+    store = full_store(tmp_path / "s.zarr")
+    for bad in (-1, 7):
+        with pytest.raises(IndexError, match=rf"^material {bad} out of range \(store has 7\)$"):
+            store.packed_maps(bad)
+
+
 def test_shard_size_must_hold_whole_materials():
     with pytest.raises(ValueError, match="multiple of the suns"):
         Layout(4, 5, 16, 12)
