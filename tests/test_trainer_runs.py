@@ -393,6 +393,17 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
     assert not run.exists()  # nothing half written
 
     assert "no checkpoints" in one_line_error(["eval", "--checkpoint", str(tmp_path)])
+    # files that are not checkpoints: one line each, without torch's advice to load unsafely
+    (tmp_path / "text.pt").write_text("not a checkpoint\n")
+    torch.save({"x": SimpleNamespace()}, tmp_path / "object.pt")
+    torch.save({"step": 3}, tmp_path / "dict.pt")
+    for name, reason in [
+        ("text.pt", "not a readable checkpoint (not a file torch.save writes)"),
+        ("object.pt", "not a readable checkpoint (Unsupported global: GLOBAL types.Simple"),
+        ("dict.pt", "not a shaderball checkpoint (no 'model')"),
+    ]:
+        line = one_line_error(["eval", "--checkpoint", str(tmp_path / name)])
+        assert line.startswith(f"Error: {tmp_path / name}: {reason}") and "weights_only" not in line
 
 
 def test_existing_run_needs_resume_and_eval_needs_a_holdout(tiny_store, tmp_path):

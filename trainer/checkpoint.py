@@ -58,6 +58,24 @@ def save(run_dir: str | os.PathLike, state: dict, keep: int = 3) -> Path:
 REQUIRED = ("model", "step", "epoch", "position", "config", "model_config", "tonemap", "catalog")
 
 
+#: the first bytes of every file ``torch.save`` writes (a zip archive)
+TORCH_MAGIC = b"PK\x03\x04"
+
+
+def why_unreadable(path: Path, exc: Exception) -> str:
+    """One line on why ``torch.load`` refused ``path``: not a torch file at all, or the
+    unpickler's own reason without torch's advice to load untrusted files unsafely."""
+    with open(path, "rb") as f:
+        if f.read(len(TORCH_MAGIC)) != TORCH_MAGIC:
+            return "not a file torch.save writes"
+    text = str(exc)
+    marker = "WeightsUnpickler error:"
+    if marker in text:
+        text = text[text.index(marker) + len(marker) :]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return lines[0] if lines else type(exc).__name__
+
+
 def load(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
     """A checkpoint (``path``: a file, or a run folder meaning its latest)."""
     p = Path(path)
@@ -71,7 +89,9 @@ def load(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> d
     try:
         state = torch.load(p, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for a bad file
-        raise CheckpointError(f"{p}: not a readable checkpoint ({exc})") from None
+        raise CheckpointError(
+            f"{p}: not a readable checkpoint ({why_unreadable(p, exc)})"
+        ) from None
     missing = [k for k in REQUIRED if not isinstance(state, dict) or k not in state]
     if missing:
         raise CheckpointError(f"{p}: not a shaderball checkpoint (no {missing[0]!r})")
