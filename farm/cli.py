@@ -135,7 +135,8 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
         spec, maps = prepare(material, seed)  # validate before anything renders
     except MaterialError as exc:
         raise click.ClickException(str(exc)) from None
-    bar = tqdm(total=suns, desc="rendering", unit="frame", file=sys.stderr)
+    # shown after a second: an output folder that cannot be written fails in one line first
+    bar = tqdm(total=suns, desc="rendering", unit="frame", file=sys.stderr, delay=1)
     try:
         result = render_preview(
             spec,

@@ -55,15 +55,17 @@ def render_preview(
     seed: int = 0,
     on_progress: Callable[[int], None] | None = None,
 ) -> Preview:
-    """Render validated ``maps`` under ``suns`` seeded suns into the folder ``out``."""
+    """Render validated ``maps`` under ``suns`` seeded suns into the folder ``out``. The
+    temporary folder is made first, so an output folder that cannot be written fails before
+    anything renders."""
     sun_list = suns_for_material(seed, 0, suns)
     seeds = [derive_seed(seed, 0, k) for k in range(suns)]
-    with RenderProcess(settings) as worker:
-        result = worker.render_material(maps, sun_list, seeds, on_progress=on_progress)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
+        with RenderProcess(settings) as worker:
+            result = worker.render_material(maps, sun_list, seeds, on_progress=on_progress)
         _write(tmp, spec, settings, result)
         out.mkdir(exist_ok=True)
         for f in sorted(tmp.iterdir()):

@@ -115,6 +115,16 @@ def test_farm_preview_bad_material_is_one_line_and_writes_nothing(tmp_path, mate
     assert not (tmp_path / "out").exists()
 
 
+def test_farm_preview_to_a_folder_it_cannot_write_fails_before_rendering(tmp_path):
+    (tmp_path / "file").write_text("")
+    r = run("farm", "preview", "-m", "uniform", "-o", "file/out", "--resolution", "16",
+            "--samples", "1", cwd=tmp_path)  # fmt: skip
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 1 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("Error: FileExistsError") and "file" in lines[0]
+    assert "rendering" not in r.stderr  # nothing rendered first
+
+
 def test_bad_option_values_are_refused(tmp_path):
     r = run("farm", "preview", "-m", "uniform", "--resolution", "2", "-o", str(tmp_path / "o"))
     assert r.returncode == 2 and "--resolution" in r.stderr
