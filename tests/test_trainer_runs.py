@@ -416,6 +416,27 @@ def test_existing_run_needs_resume_and_eval_needs_a_holdout(tiny_store, tmp_path
     assert "no held-out samples" in one_line_error(["eval", "--checkpoint", str(out)])
 
 
+def test_a_run_names_its_store_absolutely_and_is_read_from_any_folder(
+    tiny_store, tmp_path, monkeypatch
+):
+    """A store given relative to the folder training started in is recorded absolute: the
+    run evaluates from another folder, and resumes with the same store named either way."""
+    store = Path(tiny_store.url)
+    monkeypatch.chdir(store.parent)
+    cfg = TrainConfig(**{**BASE, "store": (store.name, "s3://b/d.zarr"), "out": "r"})
+    assert cfg.store == (str(store), "s3://b/d.zarr")
+    run = tmp_path / "run"
+    relative = SimpleNamespace(url=store.name)
+    train(config(relative, run, max_steps=1, holdout_fraction=0.3))
+    assert json.loads((run / "config.json").read_text())["store"] == [str(store)]
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", "run", "--json"])
+    assert r.exit_code == 0, r.output
+    monkeypatch.chdir(store.parent)
+    train(config(relative, run, max_steps=2, holdout_fraction=0.3, resume=True))
+    assert checkpoint.load(run)["step"] == 2
+
+
 def test_launch_commands():
     r = CliRunner().invoke(trainer_main, ["launch", "--dry-run", "--store", "s.zarr"])
     assert r.exit_code == 0 and "--standalone --nnodes 1 --nproc-per-node 1" in r.output

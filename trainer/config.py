@@ -8,6 +8,7 @@ arguments (:func:`to_argv`).
 
 from __future__ import annotations
 
+import os
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
 import click
@@ -17,6 +18,13 @@ LOSSES = ("l1+vgg", "l1")
 
 def _opt(default, help: str, **extra):
     return field(default=default, metadata={"help": help, **extra})
+
+
+def absolute_store(url: str) -> str:
+    """A local store path made absolute, so that the run's config and checkpoints name a
+    store that ``trainer eval``, the viewer and the dashboard find from any folder; a URL
+    (``s3://``, ``file://``) as given."""
+    return url if "://" in url else os.path.abspath(url)
 
 
 @dataclass
@@ -61,7 +69,7 @@ class TrainConfig:
     log_samples: bool = _opt(False, "record each rank's sample ids in samples/rank-R.txt")
 
     def __post_init__(self) -> None:
-        self.store = tuple(self.store)
+        self.store = tuple(absolute_store(u) for u in self.store)
         checks = {
             "epochs": self.epochs >= 1,
             "batch_size": self.batch_size >= 1,

@@ -39,7 +39,7 @@ from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from trainer import checkpoint, faults
-from trainer.config import TrainConfig
+from trainer.config import TrainConfig, absolute_store
 from trainer.data import Catalog, ShardStream, steps_left
 from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
@@ -252,7 +252,7 @@ def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found) -> Catalog:
     taken by rank 0 and shared with every rank (even if a farm is still writing them)."""
     if state is not None:
         catalog = Catalog.from_dict(state["catalog"])
-        if [str(Path(u)) for u in cfg.store] != [str(Path(u)) for u in catalog.urls]:
+        if list(cfg.store) != [absolute_store(u) for u in catalog.urls]:
             raise RunError(f"{found} trained on {catalog.urls}, not {list(cfg.store)}")
         for name in ("seed", "shuffle_buffer"):  # they fix the epoch order being resumed
             if state["config"][name] != getattr(cfg, name):
