@@ -432,6 +432,9 @@ def test_a_run_names_its_store_absolutely_and_is_read_from_any_folder(
     monkeypatch.chdir(tmp_path)
     r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", "run", "--json"])
     assert r.exit_code == 0, r.output
+    gone = one_line_error(["eval", "--checkpoint", "run", "--store", "moved.zarr"])
+    assert gone.endswith("moved.zarr: not a shard store (no zarr.json): the run's store is not "
+                         "there; --store says where it is")  # fmt: skip
     monkeypatch.chdir(store.parent)
     train(config(relative, run, max_steps=2, holdout_fraction=0.3, resume=True))
     assert checkpoint.load(run)["step"] == 2

@@ -20,6 +20,7 @@ from PIL import Image
 from tqdm import tqdm
 
 from render_jobs.tonemap import to_uint8
+from storage.errors import StoreError
 from storage.image_files import save_image
 from storage.reader import Store
 from trainer.data import Catalog, SampleReader
@@ -104,6 +105,15 @@ def test_split(renderer: Renderer, stores: list[str] | None, on: list[str] | Non
     run's stores at another address, when given), or every sample of the stores ``on``,
     which must not be stores the run trained on."""
     catalog = Catalog.from_dict(renderer.state["catalog"])
+    if stores:
+        if len(stores) != len(catalog.urls):
+            raise EvalError(
+                f"the checkpoint's run trained on {len(catalog.urls)} store(s) "
+                f"({', '.join(catalog.urls)}), {len(stores)} given"
+            )
+        catalog.urls = list(stores)
+    for url in catalog.urls:
+        _run_store(url)
     if on:
         trained = _trained_sources(catalog)
         for url in on:
@@ -120,13 +130,6 @@ def test_split(renderer: Renderer, stores: list[str] | None, on: list[str] | Non
                     "--on takes stores of other materials"
                 )
         return Catalog.snapshot(list(on), 0, 0.0, None).split("all")
-    if stores:
-        if len(stores) != len(catalog.urls):
-            raise EvalError(
-                f"the checkpoint's run trained on {len(catalog.urls)} store(s) "
-                f"({', '.join(catalog.urls)}), {len(stores)} given"
-            )
-        catalog.urls = list(stores)
     split = catalog.split("test")
     if len(split) == 0:
         raise EvalError(
@@ -134,6 +137,15 @@ def test_split(renderer: Renderer, stores: list[str] | None, on: list[str] | Non
             "> 0, or evaluate --on a store of other materials)"
         )
     return split
+
+
+def _run_store(url: str) -> Store:
+    """A store the run trained on; an :class:`EvalError` that says how to point at it when it
+    is not where the run recorded it."""
+    try:
+        return Store(url)
+    except StoreError as exc:
+        raise EvalError(f"{exc}: the run's store is not there; --store says where it is") from None
 
 
 def _trained_sources(catalog: Catalog) -> set[str]:
