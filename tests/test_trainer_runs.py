@@ -440,6 +440,22 @@ def test_a_run_names_its_store_absolutely_and_is_read_from_any_folder(
     assert checkpoint.load(run)["step"] == 2
 
 
+def test_eval_on_other_materials_refuses_the_runs_own(tiny_store, trained, tmp_path):
+    """``--on`` evaluates every sample of a store of other materials; a store whose materials
+    the run trained on is refused, and so is a run store that is not where ``--store`` says."""
+    layout = Layout(num_materials=2, suns_per_material=2, resolution=64, shard_size=4)
+    other = create_store(str(tmp_path / "other.zarr"), layout, {})
+    write_shard(other, 0, synthetic_payload(layout, 0))
+    r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(trained), "--json",
+                                          "--on", other.url])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output[r.output.index("{") :])["overall"]["n"] == 4
+    own = one_line_error(["eval", "--checkpoint", str(trained), "--on", tiny_store.url])
+    assert "of its materials were trained on" in own and own.startswith(f"Error: {tiny_store.url}")
+    moved = ["eval", "--checkpoint", str(trained), "--store", str(tmp_path / "moved.zarr")]
+    assert "the run's store is not there" in one_line_error([*moved, "--on", other.url])
+
+
 def test_launch_commands():
     r = CliRunner().invoke(trainer_main, ["launch", "--dry-run", "--store", "s.zarr"])
     assert r.exit_code == 0 and "--standalone --nnodes 1 --nproc-per-node 1" in r.output

@@ -256,8 +256,9 @@ def _floats(text: str | None, n: int, name: str):
 
 
 def _light(sun: str | None, turbidity: float | None, default):
-    """``(direction, turbidity)`` from the options, each falling back to ``default``'s; a
-    sun below the horizon or a turbidity outside [1, 10] is a usage error."""
+    """The :class:`Sun` of the options, each falling back to ``default``'s
+    ``(direction, turbidity)``; a sun below the horizon or a turbidity outside [1, 10] is a
+    usage error."""
     from render_jobs.specs import Sun
 
     direction = _floats(sun, 3, "--sun") or default[0]
@@ -266,11 +267,10 @@ def _light(sun: str | None, turbidity: float | None, default):
     if norm == 0:
         raise click.BadParameter("the sun direction must not be 0,0,0", param_hint="--sun")
     try:
-        Sun(tuple(c / norm for c in direction), t)
+        return Sun(tuple(float(c) / norm for c in direction), float(t))
     except ValueError as exc:
         hint = "--turbidity" if "turbidity" in str(exc) else "--sun"
         raise click.BadParameter(str(exc), param_hint=hint) from None
-    return direction, t
 
 
 #: the light of ``trainer render --material`` when none is given: from the front left, 40°
@@ -362,7 +362,6 @@ def _render_inputs(ckpt, material, store, sample, sun, turbidity, device):
     from render_jobs.errors import MaterialError
     from render_jobs.materials.sources import load_map_bytes, one_material
     from render_jobs.screen_uv import ScreenUVError
-    from render_jobs.specs import Sun
     from storage.errors import StoreError
     from storage.reader import Store
     from trainer.checkpoint import CheckpointError
@@ -372,20 +371,19 @@ def _render_inputs(ckpt, material, store, sample, sun, turbidity, device):
     try:
         if material is not None:
             maps = load_map_bytes(one_material(material))  # the material first: cheap errors
-            direction, t = _light(sun, turbidity, DEFAULT_LIGHT)
+            light = _light(sun, turbidity, DEFAULT_LIGHT)
             r = Renderer.from_checkpoint(ckpt, device)
             packed = material_mapper(r, store)(textures_from_bytes(maps)).cpu().numpy()
         else:
             s = Store(store)
             packed = s.packed_maps(s.layout.material_of_sample(sample))
-            direction, t = _light(sun, turbidity, s.light(sample))
+            light = _light(sun, turbidity, s.light(sample))
             r = Renderer.from_checkpoint(ckpt, device)
     except (MaterialError, StoreError, CheckpointError, NoScreenUV, ScreenUVError) as exc:
         _fail(exc)
     except (ValueError, IndexError) as exc:
         _fail(exc)
-    norm = sum(c * c for c in direction) ** 0.5
-    return r, packed, Sun(tuple(float(c) / norm for c in direction), float(t))
+    return r, packed, light
 
 
 def _sweep(renderer, packed, sun, n: int):

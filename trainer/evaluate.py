@@ -112,10 +112,9 @@ def test_split(renderer: Renderer, stores: list[str] | None, on: list[str] | Non
                 f"({', '.join(catalog.urls)}), {len(stores)} given"
             )
         catalog.urls = list(stores)
-    for url in catalog.urls:
-        _run_store(url)
+    run_stores = [_run_store(url) for url in catalog.urls]
     if on:
-        trained = _trained_sources(catalog)
+        trained = _trained_sources(run_stores, catalog.heldout)
         for url in on:
             store = Store(url)
             if store.layout.resolution != renderer.config.resolution:
@@ -148,12 +147,12 @@ def _run_store(url: str) -> Store:
         raise EvalError(f"{exc}: the run's store is not there; --store says where it is") from None
 
 
-def _trained_sources(catalog: Catalog) -> set[str]:
-    """Source ids of the materials a run trained on (its stores' committed materials, less
-    the held-out ones)."""
+def _trained_sources(stores: list[Store], heldout: list[list[int]]) -> set[str]:
+    """Source ids of the materials a run trained on (its ``stores``' committed materials,
+    less the ``heldout`` ones of each)."""
     out = set()
-    for url, held in zip(catalog.urls, catalog.heldout, strict=True):
-        for m, rec in Store(url).materials().items():
+    for store, held in zip(stores, heldout, strict=True):
+        for m, rec in store.materials().items():
             if m not in set(held):
                 out.add(rec["source_id"])
     return out
