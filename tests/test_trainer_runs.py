@@ -19,7 +19,6 @@ import pytest
 import torch
 from click.testing import CliRunner
 from PIL import Image, ImageSequence
-from torch.utils.data import DataLoader
 
 from storage.schema import Layout
 from storage.writer import create_store, write_shard
@@ -29,7 +28,7 @@ from tests.test_trainer import vgg_weights_file
 from trainer import checkpoint
 from trainer.cli import main as trainer_main
 from trainer.config import TrainConfig
-from trainer.data import Catalog, ShardStream
+from trainer.data import Catalog, ShardStream, loader
 from trainer.infer import Renderer
 from trainer.model import ModelConfig, NeuralRenderer
 from trainer.targets import Tonemap, model_inputs
@@ -266,8 +265,7 @@ def test_one_iteration_reads_across_epochs_in_the_planned_order(tiny_store, work
     stream = ShardStream(split, batch=3, seed=0, buffer=256, world=2, rank=1, epochs=3)
     stream.set_position(1, 12)
     want = [(e, b.tolist()) for e in (1, 2) for b in stream.batches(e, 12 if e == 1 else 0)]
-    loader = DataLoader(stream, batch_size=None, num_workers=workers)
-    got = [(b["epoch"], b["id"].tolist()) for b in loader]
+    got = [(b["epoch"], b["id"].tolist()) for b in loader(stream, workers)]  # the trainer's
     assert got == want and len(want) == 2 + 4
 
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from torch.utils.data import IterableDataset, get_worker_info
+from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 
 from storage.catalog import Catalog, Split
 from storage.errors import StoreError
@@ -176,3 +176,24 @@ class ShardStream(IterableDataset):
             for b in worker_batches(len(mine), workers, (worker - made) % workers):
                 yield {**self.reader.batch(mine[b]), "epoch": epoch}
             made += len(mine)
+
+
+#: how DataLoader workers start: spawned, like the farm's validation pool, because a fork
+#: copies the parent's threads' locks mid-use (zarr's I/O loop, tqdm's monitor, a viewer or
+#: torch thread pool) and a worker can then wait forever on a lock no thread will release.
+#: A spawned worker imports the trainer once, at the start of the one iteration that reads
+#: every epoch.
+WORKER_START = "spawn"
+
+
+def loader(stream: ShardStream, workers: int, pin_memory: bool = False) -> DataLoader:
+    """The trainer's DataLoader over ``stream``: ``workers`` spawned processes (0: read in
+    this process), four batches ahead each."""
+    return DataLoader(
+        stream,
+        batch_size=None,
+        num_workers=workers,
+        pin_memory=pin_memory,
+        prefetch_factor=4 if workers else None,
+        multiprocessing_context=WORKER_START if workers else None,
+    )

@@ -35,12 +35,11 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel as DDP
-from torch.utils.data import DataLoader
 from tqdm import tqdm
 
 from trainer import checkpoint, faults
 from trainer.config import TrainConfig, absolute_store
-from trainer.data import Catalog, ShardStream, steps_left
+from trainer.data import Catalog, ShardStream, loader, steps_left
 from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
 from trainer.targets import Tonemap, model_inputs
@@ -160,13 +159,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         split, batch=cfg.batch_size, seed=cfg.seed, buffer=cfg.shuffle_buffer, world=rk.world,
         rank=rk.rank, epochs=cfg.epochs,
     )  # fmt: skip
-    loader = DataLoader(
-        stream,
-        batch_size=None,
-        num_workers=cfg.workers,
-        pin_memory=rk.cuda,
-        prefetch_factor=4 if cfg.workers else None,
-    )
+    reader = loader(stream, cfg.workers, pin_memory=rk.cuda)
     log = RunLog(cfg, rk, out)
     if t.screen_uv is None:
         log.start(
@@ -184,7 +177,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     while t.epoch < cfg.epochs and not _at_max_steps(cfg, t):
         if batches is None:
             stream.set_position(t.epoch, t.position)
-            batches = iter(loader)
+            batches = iter(reader)
         mine = len(stream.batches(t.epoch, t.position))  # this rank's; one fewer on some ranks
         total = steps_left(len(split), rk.world, cfg.batch_size, t.position)
         bar = tqdm(total=total, desc=f"epoch {t.epoch + 1}/{cfg.epochs}", disable=not rk.master)
