@@ -30,19 +30,19 @@ from torch.utils.data import DataLoader
 
 from benchmarks.trainstore import DEFAULT, ensure_store, replicate
 from trainer.config import TrainConfig
-from trainer.data import Catalog, ShardStream, Split
+from trainer.data import WORKER_START, Catalog, ShardStream, Split, loader
 from trainer.perceptual import vgg16_relu3_3
 from trainer.train import train
 
 
 def loader_rate(split: Split, batch: int, workers: int, batches: int) -> float:
     """Images/s of the DataLoader alone over the store's training split (as many epochs as
-    it takes, in one iteration, as training reads it)."""
+    it takes, in one iteration, as training reads it, through the trainer's loader)."""
     stream = ShardStream(split, batch=batch, seed=0, buffer=256, epochs=10**6)
-    loader = iter(DataLoader(stream, batch_size=None, num_workers=workers))
-    next(loader)  # from the first batch on: worker start-up is not throughput
+    batches_in = iter(loader(stream, workers))
+    next(batches_in)  # from the first batch on: worker start-up is not throughput
     t0 = time.perf_counter()
-    n = sum(len(next(loader)["id"]) for _ in range(batches))
+    n = sum(len(next(batches_in)["id"]) for _ in range(batches))
     return n / (time.perf_counter() - t0)
 
 
@@ -55,14 +55,18 @@ def epoch_end_wait(
     iteration an epoch (persistent workers), as it read before, when each epoch start waited
     for every worker's first batch."""
     stream = ShardStream(split, batch=batch, seed=0, buffer=256, epochs=epochs if across else None)
-    loader = DataLoader(
-        stream, batch_size=None, num_workers=workers, prefetch_factor=4, persistent_workers=True
-    )  # as trainer.train makes it
+    if across:
+        batches_in = loader(stream, workers)  # as trainer.train makes it
+    else:
+        batches_in = DataLoader(
+            stream, batch_size=None, num_workers=workers, prefetch_factor=4,
+            persistent_workers=True, multiprocessing_context=WORKER_START,
+        )  # fmt: skip
     waits, images, t0 = [], 0, None
     for epoch in range(1 if across else epochs):
         stream.set_position(epoch, 0)
         t = time.perf_counter()
-        for b in loader:
+        for b in batches_in:
             if t0 is None:
                 t0 = time.perf_counter()
             else:

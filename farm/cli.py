@@ -14,6 +14,7 @@ from farm.web import server_options
 from render_jobs.errors import MaterialError, RenderError
 from render_jobs.specs import DEVICES, RenderSettings
 from storage.cli_group import Commands
+from storage.schema import untrainable
 
 
 def _require(what: str, *modules: str) -> None:
@@ -59,7 +60,7 @@ def render_options(command):
             default=400,
             show_default=True,
             type=click.IntRange(16, 8192),
-            help="Image side in pixels.",
+            help="Image side in pixels (farm submit: a multiple of 16, which the trainer needs).",
         ),
         click.option(
             "--samples",
@@ -319,6 +320,8 @@ def submit(
         )
         if cfg.shard_size % suns:
             raise FarmError(f"--shard-size {shard_size} must be a multiple of --suns {suns}")
+        if why := untrainable(resolution):
+            raise FarmError(f"--{why}")
         summary = run(cfg, echo=click.echo)
     except (FarmError, MaterialError) as exc:
         raise click.ClickException(str(exc)) from None

@@ -20,6 +20,9 @@ COMMITS = "commits"
 MAP_CHANNELS = {"diffuse": 3, "specular": 3, "roughness": 1, "normal": 3, "mask": 1}
 PACKED_CHANNELS = sum(MAP_CHANNELS.values())  # 11: the maps of one material, packed
 KINDS = MATERIAL_KINDS
+#: a store's image side must be a multiple of this for the trainer's U-Net, which halves
+#: the image four times; the store itself takes any side of 8 or more
+TRAINABLE_MULTIPLE = 16
 PER_SAMPLE = {  # name: (trailing shape, dtype)
     "material_index": ((), "int32"),
     "sun_direction": ((3,), "float32"),
@@ -27,6 +30,22 @@ PER_SAMPLE = {  # name: (trailing shape, dtype)
     "seed": ((), "int64"),
     "render_seconds": ((), "float32"),
 }
+
+
+def untrainable(resolution: int, nearest: bool = True) -> str | None:
+    """Why the trainer cannot learn from images ``resolution`` pixels a side, with (if
+    ``nearest``) the nearest sides it can; ``None`` when it can."""
+    m = TRAINABLE_MULTIPLE
+    if resolution >= m and resolution % m == 0:
+        return None
+    why = (
+        f"resolution {resolution} is not a multiple of {m}, which the trainer's U-Net needs "
+        "(it halves the image four times)"
+    )
+    if not nearest:
+        return why
+    lower, upper = max(m, resolution // m * m), (resolution // m + 1) * m
+    return f"{why}: try {lower} or {upper}" if lower < resolution else f"{why}: try {upper}"
 
 
 @dataclass(frozen=True)

@@ -215,6 +215,10 @@ def test_bad_material_stops_before_anything_starts(tmp_path):
         "submit", "-m", "uniform:2", "--suns", "3", "--shard-size", "4", "-o", tmp_path / "x.zarr"
     )
     assert r.returncode == 1 and "multiple of --suns" in r.stderr
+    r = farm("submit", "-m", "uniform:2", "--resolution", "100", "-o", tmp_path / "y.zarr")
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "--resolution 100 is not a multiple of 16" in r.stderr and "try 96 or 112" in r.stderr
+    assert not (tmp_path / "y.zarr").exists()
 
 
 def _children(name: str) -> list[psutil.Process]:

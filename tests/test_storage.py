@@ -15,7 +15,7 @@ import pytest
 from storage.catalog import Catalog, draw_heldout
 from storage.errors import ShardCommittedError, StoreError
 from storage.reader import Store
-from storage.schema import Layout, commit_key, decode_maps, encode_maps
+from storage.schema import Layout, commit_key, decode_maps, encode_maps, untrainable
 from storage.writer import create_store, write_shard
 from tests.storage_helpers import synthetic_payload
 
@@ -73,6 +73,16 @@ def test_indices_outside_the_store_are_refused_naming_the_index_asked_for(tmp_pa
 def test_shard_size_must_hold_whole_materials():
     with pytest.raises(ValueError, match="multiple of the suns"):
         Layout(4, 5, 16, 12)
+
+
+@pytest.mark.parametrize(
+    "side, says",
+    [(16, None), (400, None), (8, "try 16"), (17, "try 16 or 32"), (100, "try 96 or 112")],
+)
+def test_untrainable_sides_are_named_with_the_nearest_trainable_ones(side, says):
+    why = untrainable(side)
+    assert why is None if says is None else (f"resolution {side} is not" in why and says in why)
+    assert (untrainable(side, nearest=False) is None) == (says is None)
 
 
 def test_map_encoding_round_trips_within_8_bit_precision():

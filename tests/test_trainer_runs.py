@@ -371,7 +371,7 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
     odd = create_store(str(tmp_path / "odd.zarr"), odd_layout, {})
     for shard in range(2):
         write_shard(odd, shard, synthetic_payload(odd_layout, shard))
-    assert "resolution 40 is not divisible by 16" in one_line_error([*base, "--store", odd.url])
+    assert "resolution 40 is not a multiple of 16" in one_line_error([*base, "--store", odd.url])
 
     env = {"TORCH_HOME": str(tmp_path / "torch-home")}
     msg = one_line_error(["train", "--out", str(run), "--store", tiny_store.url], env=env)

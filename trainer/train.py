@@ -37,6 +37,7 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
+from storage.schema import untrainable
 from trainer import checkpoint, faults
 from trainer.config import TrainConfig, absolute_store
 from trainer.data import Catalog, ShardStream, loader, steps_left
@@ -260,11 +261,8 @@ def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found) -> Catalog:
         if rk.distributed:
             dist.broadcast_object_list(snap, src=0)
         catalog = snap[0]
-    if catalog.resolution % 16:
-        raise RunError(
-            f"{catalog.urls[0]}: resolution {catalog.resolution} is not divisible by 16 "
-            "(the U-Net halves it four times)"
-        )
+    if why := untrainable(catalog.resolution, nearest=False):
+        raise RunError(f"{catalog.urls[0]}: {why}")
     return catalog
 
 
