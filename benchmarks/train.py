@@ -50,10 +50,10 @@ def epoch_end_wait(
     split: Split, batch: int, workers: int, step_ms: float, epochs: int, across: bool
 ) -> tuple[float, float, float]:
     """Images/s, data-wait share and longest wait (s) of a consumer that spends ``step_ms`` on
-    every batch (a stand-in for a GPU step) over ``epochs`` epochs, timed from the first batch.
-    ``across``: one iteration over all epochs, as ``trainer.train`` reads; otherwise one
-    iteration an epoch (persistent workers), as it read before, when each epoch start waited
-    for every worker's first batch."""
+    every batch (a stand-in for a GPU step) over ``epochs`` epochs, timed from the first batch
+    to the end of the last step (the workers' shutdown is not timed). ``across``: one
+    iteration over all epochs, as ``trainer.train`` reads; otherwise one iteration an epoch
+    (persistent workers), where each epoch's start waits for every worker's first batch."""
     stream = ShardStream(split, batch=batch, seed=0, buffer=256, epochs=epochs if across else None)
     if across:
         batches_in = loader(stream, workers)  # as trainer.train makes it
@@ -74,7 +74,7 @@ def epoch_end_wait(
                 images += len(b["id"])
             time.sleep(step_ms / 1000)
             t = time.perf_counter()
-    seconds = time.perf_counter() - t0
+    seconds = t - t0
     return images / seconds, sum(waits) / seconds, max(waits)
 
 
@@ -104,11 +104,14 @@ def main() -> None:
         "--sim-epochs", type=int, default=6, help="epochs of the epoch-end rows (0: no such rows)"
     )
     args = ap.parse_args()
+    if args.steps <= args.warmup:
+        ap.error(f"--steps {args.steps} leaves no step after the --warmup {args.warmup} to time")
     store = ensure_store(args.store)
     with tempfile.TemporaryDirectory(prefix="bench-train-") as tmp:
         if args.replicate > 1:
             store = replicate(store, f"{tmp}/replicated.zarr", args.replicate)
-        split = Catalog.snapshot([store], 0, 0.0, None).split("train")
+        catalog = Catalog.snapshot([store], 0, 0.0, None)
+        split = catalog.split("train")
         load = loader_rate(split, args.batch, args.workers, args.steps)
         step_ms = args.step_ms or 2000 * args.batch / load
         ends = {
@@ -134,7 +137,8 @@ def main() -> None:
     seconds = sum(r["images"] / r["images_per_second"] for r in timed)
     wait = sum(r["data_wait"] * r["images"] / r["images_per_second"] for r in timed) / seconds
     print(
-        f"\ndevice: {device_name(args.device)}; 400², batch {args.batch}, {args.workers} "
+        f"\ndevice: {device_name(args.device)}; {catalog.resolution}², batch {args.batch}, "
+        f"{args.workers} "
         f"workers, loss {args.loss}, {len(split)} samples an epoch"
     )
     print(f"{'row':<50}{'images/s':>10}{'data wait':>11}{'longest wait':>14}")
