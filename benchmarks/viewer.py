@@ -1,7 +1,7 @@
 """Viewer benchmark: the time from an edit to the new image's bytes, in three parts.
 
     .venv/bin/python -m benchmarks.viewer [--resolutions 128,256,400] [--frames 12]
-        [--texture 1024] [--device auto] [--library N]
+        [--texture 1024] [--device auto] [--runtimes torch,onnx] [--library N]
 
 For each resolution: the screen UV layout rendered by Blender at the farm's sub-sampling
 (``render_jobs.screen_uv.default_supersample``; cached in ``benchmarks/.cache``), the paper's
@@ -14,6 +14,10 @@ viewer`` answers the page (``trainer.viewer.engine``); each **tiling edit** fram
 the tiling, so it also looks the textures up again; each **drag** frame moves the sun (the
 mapping is cached). Medians over ``--frames``; the share outside the network is (mapping +
 encoding) / frame. Targets: under 20 % of the frame on CPU, under 1 ms on CUDA.
+
+``--runtimes torch,onnx`` also times the same network exported (``trainer export``) and run
+by ONNX Runtime on the CPU, as ``trainer viewer --checkpoint ball.onnx`` runs it
+(``trainer.onnx_renderer``), row after row in one run.
 
 ``--library N`` measures a gallery of large materials instead, at the first resolution: N
 procedural ``--texture``² materials in a ``--materials`` folder, picked one after the other.
@@ -85,11 +89,29 @@ def library(resolution: int, count: int, texture: int, device: torch.device, tmp
     return rows
 
 
-def measure(resolution: int, frames: int, texture: int, device: torch.device, tmp: Path):
+def renderer_for(resolution: int, device: torch.device, runtime: str, tmp: Path):
+    """The paper's network at ``resolution`` with the same fresh weights every call: torch's
+    :class:`Renderer` on ``device``, or (``onnx``) exported to ``tmp`` and run by ONNX Runtime."""
+    torch.manual_seed(0)
+    renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
+    if runtime == "torch":
+        return renderer
+    from trainer.export import export
+    from trainer.onnx_renderer import OnnxRenderer
+
+    return OnnxRenderer.load(export(renderer, tmp / "net.onnx").model)
+
+
+def measure(
+    resolution: int, frames: int, texture: int, device: torch.device, tmp: Path, runtime: str
+):
     """Median milliseconds of value-edit frames (mapping, network, encoding, frame), the
     mapping of tiling-edit frames, and drag frames."""
     suv = layout(resolution)
-    renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
+    (tmp / "model").mkdir()  # beside the material folder, not in it
+    renderer = renderer_for(resolution, device, runtime, tmp / "model")
+    tmp = tmp / "material"
+    tmp.mkdir()
     panel_png(tmp, texture)
     library = Library([], [str(tmp)], tmp / "uploads")
     engine = Engine(renderer, ScreenMapper(suv, device), library, "fresh weights")
@@ -142,6 +164,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--texture", type=int, default=1024)
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
+    ap.add_argument("--runtimes", default="torch",
+                    help="torch, onnx or both (torch,onnx): what runs the network")  # fmt: skip
     ap.add_argument("--library", type=int, default=0, metavar="N",
                     help="time a gallery of N --texture² materials (see above)")  # fmt: skip
     args = ap.parse_args()
@@ -149,23 +173,30 @@ def main() -> None:
         ap.error("--frames must be at least 1")
     if args.library < 0:
         ap.error("--library must be 0 or more")
+    runtimes = args.runtimes.split(",")
+    if not set(runtimes) <= {"torch", "onnx"}:
+        ap.error(f"--runtimes {args.runtimes!r}: torch, onnx or torch,onnx")
     device = pick_device(args.device)
+    if "onnx" in runtimes and device.type != "cpu":
+        ap.error("--runtimes onnx runs on the CPU: add --device cpu")
     if args.library:
         return print_library(int(args.resolutions.split(",")[0]), args, device)
     print(f"device: {device_name(device)}; torch threads {torch.get_num_threads()}; "
           f"texture {args.texture}²; medians of {args.frames} frames")  # fmt: skip
     print(
-        "| resolution | sub-samples | mapping ms | network ms | encoding ms | edit frame ms "
-        "| outside the network | tiling edit: mapping ms | outside the network | drag frame ms |"
+        "| resolution | runtime | sub-samples | mapping ms | network ms | encoding ms "
+        "| edit frame ms | outside the network | tiling edit: mapping ms | outside the network "
+        "| drag frame ms |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
-        for r in (int(v) for v in args.resolutions.split(",")):
-            sub = Path(tmp) / str(r)
+        for r, runtime in ((int(v), t) for v in args.resolutions.split(",") for t in runtimes):
+            sub = Path(tmp) / f"{r}-{runtime}"
             sub.mkdir()
-            m = measure(r, args.frames, args.texture, device, sub)
+            m = measure(r, args.frames, args.texture, device, sub, runtime)
             print(
-                f"| {r}² | {m['supersample']}² ({m['hits']:,} hits) | {m['mapping']:.1f} | "
+                f"| {r}² | {runtime} | {m['supersample']}² ({m['hits']:,} hits) | "
+                f"{m['mapping']:.1f} | "
                 f"{m['network']:.1f} | {m['encoding']:.2f} | {m['frame']:.1f} | "
                 f"{100 * m['outside']:.1f} % | {m['tiling']:.1f} | "
                 f"{100 * m['tiling_outside']:.1f} % | {m['drag']:.1f} |",

@@ -255,6 +255,82 @@ def test_export_at_an_older_opset_renders_as_the_checkpoint(tiny_store, trained,
         export.save_onnx(torch.nn.Identity(), {"x": torch.zeros(1)}, "y", out, opset=19)
 
 
+def test_render_takes_an_exported_model_and_draws_what_its_checkpoint_draws(
+    tiny_store, trained, tmp_path
+):
+    """``trainer render --checkpoint ball.onnx`` runs the exported file in ONNX Runtime: a
+    stored sample, a new material (mapped with the layout beside the model) and a sweep come
+    out as the checkpoint's pictures; commands that need the run refuse the model in one line."""
+    from render_jobs.specs import Sun
+    from trainer.export import export
+    from trainer.infer import load_renderer, render_under
+    from trainer.onnx_renderer import OnnxRenderer
+
+    model = tmp_path / "ball.onnx"
+    export(Renderer.from_checkpoint(trained, "cpu"), model)
+    for what in (["--store", tiny_store.url, "--sample", "7"], ["--material", "procedural"]):
+        pictures = []
+        for source in (trained, model):
+            out = tmp_path / f"{len(pictures)}.png"
+            r = CliRunner().invoke(
+                trainer_main, ["render", "--checkpoint", str(source), *what, "-o", str(out)]
+            )
+            assert r.exit_code == 0, r.output
+            pictures.append(np.asarray(Image.open(out), np.int16))
+        assert pictures[0].shape == (64, 64, 3) and pictures[0].std() > 1
+        assert np.abs(pictures[0] - pictures[1]).max() <= 1, what  # 8-bit rounding at most
+
+    onnx, torch_r = load_renderer(model), load_renderer(trained, "cpu")
+    assert isinstance(onnx, OnnxRenderer) and (onnx.runtime, torch_r.runtime) == (
+        "ONNX Runtime", "torch",
+    )  # fmt: skip
+    assert onnx.step == torch_r.step == checkpoint.load(trained)["step"]
+    assert onnx.config == torch_r.config and onnx.tonemap == torch_r.tonemap
+    maps = tiny_store.packed_maps(2)
+    lights = [tiny_store.light(i) for i in range(5)]
+    suns = [Sun(tuple(float(c) for c in d), float(t)) for d, t in lights]
+    got = np.stack(list(render_under(onnx, maps, suns, batch=2)))
+    want = np.stack(list(render_under(torch_r, maps, suns, batch=2)))
+    assert got.shape == (5, 3, 64, 64) and np.abs(got - want).max() < 1e-4
+    with pytest.raises(ValueError, match=r"maps have shape \(1, 10, 32, 32\), the model takes"):
+        onnx.render_batch(torch.zeros(1, 11, 32, 32, dtype=torch.uint8), torch.zeros(1, 4))
+    with pytest.raises(ValueError, match=r"maps are torch.float32 \(1, 11, 64, 64\), expected"):
+        onnx.render_batch(torch.zeros(1, 11, 64, 64), torch.zeros(1, 4))
+
+
+def test_an_exported_model_that_cannot_be_run_is_named_in_one_line(tiny_store, trained, tmp_path):
+    import onnx
+    from onnx import TensorProto, helper
+
+    from trainer.export import export
+
+    model = tmp_path / "ball.onnx"
+    export(Renderer.from_checkpoint(trained, "cpu"), model)
+    (tmp_path / "junk.onnx").write_bytes(b"not a model")
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])
+    y = helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])
+    graph = helper.make_graph([helper.make_node("Relu", ["x"], ["y"])], "relu", [x], [y])
+    onnx.save(helper.make_model(graph), str(tmp_path / "other.onnx"))
+    bare = tmp_path / "bare" / "ball.onnx"  # no screen UV layout beside it
+    bare.parent.mkdir()
+    bare.write_bytes(model.read_bytes())
+    stored = ["--store", tiny_store.url, "--sample", "1", "-o", str(tmp_path / "x.png")]
+    new = ["--material", "procedural", "-o", str(tmp_path / "x.png")]
+    for source, args, says in [
+        (tmp_path / "gone.onnx", stored, "gone.onnx: no such model"),
+        (tmp_path / "junk.onnx", stored, "junk.onnx: not a model ONNX Runtime can load ("),
+        (tmp_path / "other.onnx", stored, "other.onnx: not a model trainer export wrote (it"),
+        (model, [*stored, "--device", "cuda"], "ball.onnx: an .onnx model runs on the CPU here"),
+        (bare, new, "no screen UV layout beside the model (ball.screen_uv.npz): pass --store"),
+    ]:
+        assert says in one_line_error(["render", "--checkpoint", str(source), *args])
+    assert not (tmp_path / "x.png").exists()
+    for args in (["eval"], ["export", "-o", str(tmp_path / "again.onnx")]):
+        msg = one_line_error([*args, "--checkpoint", str(model)])
+        assert "ball.onnx: an exported model, which trainer render and trainer viewer take" in msg
+    assert not (tmp_path / "again.onnx").exists()
+
+
 @pytest.mark.filterwarnings("ignore:This DataLoader will create")  # 3 > 2 cores
 @pytest.mark.parametrize("workers", [0, 2, 3])
 def test_one_iteration_reads_across_epochs_in_the_planned_order(tiny_store, workers):

@@ -496,6 +496,34 @@ def test_off_loopback_the_viewer_needs_a_token(run):
         assert v.get("/api/materials", {"Authorization": "Bearer s3cret"})[0] == 200
 
 
+@pytest.mark.slow
+def test_the_viewer_runs_an_exported_model_as_its_checkpoint(run, tiny_store, tmp_path):
+    """``--checkpoint ball.onnx``: the header says ONNX Runtime, and a stored material, an
+    edit and an upload (mapped with the layout beside the model) give the checkpoint's frames."""
+    model = tmp_path / "ball.onnx"
+    r = subprocess.run([str(BIN / "trainer"), "export", "--checkpoint", str(run), "-o",
+                        str(model)], capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    frames = []
+    for source in (run, model):
+        with Viewer("--checkpoint", source, "--store", tiny_store.url) as v:
+            page = v.get("/")[1].decode()
+            assert ("cpu · ONNX Runtime" in page) == (source == model), page[:600]
+            status, body, _ = v.upload([("panel.png", panel())], v.secret())
+            assert status == 200, body
+            up = json.loads(body)["id"]
+            got = []
+            for query in (frame_query("s0:1"), frame_query("s0:2", roughness_scale="0.5"),
+                          frame_query(up, tiling="2")):  # fmt: skip
+                status, body, _ = v.get(query + "&fmt=png")
+                assert status == 200, body
+                got.append(np.asarray(Image.open(io.BytesIO(body)), np.int16))
+            frames.append(got)
+    for checkpoint_frame, model_frame in zip(*frames, strict=True):
+        assert checkpoint_frame.std() > 1
+        assert np.abs(checkpoint_frame - model_frame).max() <= 1  # 8-bit rounding at most
+
+
 DIGEST = """async () => {
   const img = document.getElementById('frame');
   const bytes = new Uint8Array(await (await fetch(img.src)).arrayBuffer());

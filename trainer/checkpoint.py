@@ -86,6 +86,11 @@ def load(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> d
         p = found
     if not p.is_file():
         raise CheckpointError(f"{p}: no such checkpoint")
+    if p.suffix.lower() == ".onnx":
+        raise CheckpointError(
+            f"{p}: an exported model, which trainer render and trainer viewer take; this "
+            "command takes the checkpoint or run it was exported from"
+        )
     try:
         state = torch.load(p, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for a bad file

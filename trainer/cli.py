@@ -275,10 +275,12 @@ def _light(sun: str | None, turbidity: float | None, default):
 
 #: the light of ``trainer render --material`` when none is given: from the front left, 40°
 DEFAULT_LIGHT = ((-0.5, -0.6, 0.62), 3.0)
+#: the --checkpoint help of the commands that also run an exported model
+CHECKPOINT_OR_MODEL = "a checkpoint file, a run folder, or an .onnx model trainer export wrote"
 
 
 @main.command()
-@click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
+@click.option("--checkpoint", "ckpt", required=True, help=CHECKPOINT_OR_MODEL)
 @click.option(
     "--material",
     default=None,
@@ -308,7 +310,8 @@ def render(ckpt, material, store, sample, sun, turbidity, output, sweep, fps, de
 
     --material takes anything farm submit accepts for one material; its maps are UV-mapped
     onto the ball with the screen UV layout the checkpoint carries. --store with --sample
-    renders a stored material (its own sun unless --sun / --turbidity say otherwise).
+    renders a stored material (its own sun unless --sun / --turbidity say otherwise). An
+    .onnx model from trainer export runs in ONNX Runtime with the layout beside it.
     --sweep turns the sun once round the sky: the material under every sun, as an animation.
     PNGs carry the checkpoint, the material and the light in their text chunks.
 
@@ -321,6 +324,7 @@ def render(ckpt, material, store, sample, sun, turbidity, output, sweep, fps, de
       trainer render --checkpoint runs/demo --store out/demo.zarr --sample 3 -o ball.png
       trainer render --checkpoint runs/demo --material textures/leather.png \\
           --sun 0.3,-0.5,0.5 --sweep 48 -o leather.webp     # the sun once round, 4 s
+      trainer render --checkpoint ball.onnx --material textures/leather.png -o l.png
     """
     from PIL import Image
 
@@ -363,23 +367,26 @@ def _render_inputs(ckpt, material, store, sample, sun, turbidity, device):
     from render_jobs.materials.sources import load_map_bytes, one_material
     from render_jobs.screen_uv import ScreenUVError
     from storage.errors import StoreError
+    from storage.extras import MissingExtra
     from storage.reader import Store
     from trainer.checkpoint import CheckpointError
-    from trainer.infer import NoScreenUV, Renderer, material_mapper
+    from trainer.infer import NoScreenUV, load_renderer, material_mapper
     from trainer.mapping import textures_from_bytes
 
     try:
         if material is not None:
             maps = load_map_bytes(one_material(material))  # the material first: cheap errors
             light = _light(sun, turbidity, DEFAULT_LIGHT)
-            r = Renderer.from_checkpoint(ckpt, device)
+            r = load_renderer(ckpt, device)
             packed = material_mapper(r, store)(textures_from_bytes(maps)).cpu().numpy()
         else:
             s = Store(store)
             packed = s.packed_maps(s.layout.material_of_sample(sample))
             light = _light(sun, turbidity, s.light(sample))
-            r = Renderer.from_checkpoint(ckpt, device)
+            r = load_renderer(ckpt, device)
     except (MaterialError, StoreError, CheckpointError, NoScreenUV, ScreenUVError) as exc:
+        _fail(exc)
+    except MissingExtra as exc:
         _fail(exc)
     except (ValueError, IndexError) as exc:
         _fail(exc)
@@ -449,7 +456,7 @@ def export(ckpt, output, opset):
 
 
 @main.command()
-@click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
+@click.option("--checkpoint", "ckpt", required=True, help=CHECKPOINT_OR_MODEL)
 @click.option("--store", "stores", multiple=True,
               help="a store whose materials fill the gallery (repeatable)")  # fmt: skip
 @click.option("--materials", "folders", multiple=True, metavar="DIR",
@@ -467,13 +474,15 @@ def viewer(ckpt, stores, folders, max_upload_mb, host, port, token, device):
     hemisphere and set the turbidity. The page shows each frame's time (mapping, network,
     encoding); for a stored material under a stored sun it shows the Cycles ground truth and
     the error beside the network's image. Save the view as PNG (material and light in its
-    metadata). No Blender: materials are mapped with the checkpoint's screen UV layout.
+    metadata). No Blender: materials are mapped with the checkpoint's screen UV layout. An
+    .onnx model from trainer export runs in ONNX Runtime, with the layout beside it.
 
     \b
     Examples:
       trainer viewer --checkpoint runs/demo --store out/demo.zarr   # http://127.0.0.1:8267
       trainer viewer --checkpoint runs/a --materials textures/ambientcg --device cuda
       trainer viewer --checkpoint runs/a --host 0.0.0.0   # prints a token, needed by every request
+      trainer viewer --checkpoint ball.onnx --store out/demo.zarr   # an exported model
     """
     from storage.extras import MissingExtra, require
 
@@ -484,12 +493,13 @@ def viewer(ckpt, stores, folders, max_upload_mb, host, port, token, device):
     from farm.web import serve, token_for
     from render_jobs.errors import MaterialError
     from storage.errors import StoreError
+    from storage.extras import MissingExtra
     from trainer.checkpoint import CheckpointError
     from trainer.viewer.app import build, make_app
 
     try:
         view, notes = build(ckpt, list(stores), list(folders), device, max_upload_mb << 20)
-    except (CheckpointError, StoreError, MaterialError, ValueError) as exc:
+    except (CheckpointError, StoreError, MaterialError, ValueError, MissingExtra) as exc:
         _fail(exc)
     for line in notes:
         click.echo(line, err=True)

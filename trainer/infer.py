@@ -47,7 +47,53 @@ def inference_network(model: NeuralRenderer, device: torch.device) -> torch.nn.M
     return folded.to(memory_format=torch.channels_last)
 
 
-class Renderer:
+class MapsRenderer:
+    """What ``trainer render``, ``trainer viewer`` and :func:`render_under` use of a renderer:
+    :meth:`render_batch` (each kind's own), :meth:`render` over it, and ``config``
+    (:class:`ModelConfig`), ``tonemap``, ``device``, ``runtime``, ``step`` (the
+    checkpoint's, or ``None``) and ``screen_uv()``."""
+
+    config: ModelConfig
+    tonemap: Tonemap
+    device: torch.device
+    step: int | None
+    #: what runs the network, for people to read
+    runtime = "torch"
+    #: why ``screen_uv()`` gives ``None``
+    no_layout = "the checkpoint carries no screen UV layout (its store had none)"
+
+    def render_batch(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+        raise NotImplementedError
+
+    def screen_uv(self):
+        raise NotImplementedError
+
+    def render(self, maps: np.ndarray, sun_direction, turbidity) -> np.ndarray:
+        """Stored maps ``(11, H, W)`` or ``(N, 11, H, W) uint8`` under one sun (or ``N`` suns:
+        ``sun_direction (N, 3)``, ``turbidity (N,)``) → ``(3, H, W)`` / ``(N, 3, H, W)``."""
+        arr = np.asarray(maps)
+        if arr.dtype != np.uint8:
+            raise ValueError(f"maps must be stored uint8 maps, not {arr.dtype}")
+        single = arr.ndim == 3
+        batch = torch.from_numpy(np.array(arr[None] if single else arr))
+        light = np.broadcast_to(light_vector(sun_direction, turbidity), (len(batch), 4))
+        out = self.render_batch(batch, torch.from_numpy(np.array(light)))
+        out = out.cpu().numpy()
+        return out[0] if single else out
+
+
+def load_renderer(path, device: str = "auto") -> MapsRenderer:
+    """The renderer of ``path``: a checkpoint or a run folder (:class:`Renderer`, torch on
+    ``device``), or a model ``trainer export`` wrote (``.onnx``:
+    :class:`trainer.onnx_renderer.OnnxRenderer`, ONNX Runtime on the CPU)."""
+    if str(path).lower().endswith(".onnx"):
+        from trainer.onnx_renderer import OnnxRenderer
+
+        return OnnxRenderer.load(path, device)
+    return Renderer.from_checkpoint(path, device)
+
+
+class Renderer(MapsRenderer):
     """A trained model in eval mode, with the tonemap it was trained against.
 
     It renders in fp32 through :func:`inference_network`: the same images as ``model`` to
@@ -70,6 +116,12 @@ class Renderer:
         return r
 
     @property
+    def step(self) -> int | None:
+        """The training step of the checkpoint it was loaded from."""
+        step = getattr(self, "state", {}).get("step")
+        return None if step is None else int(step)
+
+    @property
     def config(self) -> ModelConfig:
         return self.model.config
 
@@ -90,27 +142,14 @@ class Renderer:
         self.model.check_inputs(x, light)
         return self.net(x.contiguous(memory_format=self.fmt), light).float()
 
-    def render(self, maps: np.ndarray, sun_direction, turbidity) -> np.ndarray:
-        """Stored maps ``(11, H, W)`` or ``(N, 11, H, W) uint8`` under one sun (or ``N`` suns:
-        ``sun_direction (N, 3)``, ``turbidity (N,)``) → ``(3, H, W)`` / ``(N, 3, H, W)``."""
-        arr = np.asarray(maps)
-        if arr.dtype != np.uint8:
-            raise ValueError(f"maps must be stored uint8 maps, not {arr.dtype}")
-        single = arr.ndim == 3
-        batch = torch.from_numpy(np.array(arr[None] if single else arr))
-        light = np.broadcast_to(light_vector(sun_direction, turbidity), (len(batch), 4))
-        out = self.render_batch(batch, torch.from_numpy(np.array(light)))
-        out = out.cpu().numpy()
-        return out[0] if single else out
-
 
 class NoScreenUV(ValueError):
     """A new material must be mapped, and no screen UV layout was given."""
 
 
-def material_mapper(renderer: Renderer, store: str | None = None):
+def material_mapper(renderer: MapsRenderer, store: str | None = None):
     """A :class:`trainer.mapping.ScreenMapper` on the renderer's device, with the layout the
-    checkpoint carries, else ``store``'s (which must fit the checkpoint's resolution)."""
+    renderer carries, else ``store``'s (which must fit the network's resolution)."""
     from trainer.mapping import ScreenMapper
 
     layout = renderer.screen_uv()
@@ -120,8 +159,8 @@ def material_mapper(renderer: Renderer, store: str | None = None):
         layout = Store(store).screen_uv()
     if layout is None:
         raise NoScreenUV(
-            "the checkpoint carries no screen UV layout (its store had none): pass --store "
-            "with a store of the same resolution that has one (farm screen-uv STORE adds it)"
+            f"{renderer.no_layout}: pass --store with a store of the same resolution that "
+            "has one (farm screen-uv STORE adds it)"
         )
     if layout.resolution != renderer.config.resolution:
         raise NoScreenUV(
@@ -188,7 +227,7 @@ class GraphedRenderer:
 UNDER_BATCH = 8
 
 
-def render_under(renderer: Renderer, maps: np.ndarray, suns, batch: int = UNDER_BATCH):
+def render_under(renderer: MapsRenderer, maps: np.ndarray, suns, batch: int = UNDER_BATCH):
     """One material's stored maps ``(11, H, W) uint8`` under each of ``suns``
     (:class:`render_jobs.specs.Sun`), ``batch`` at a time: an iterator of ``(3, H, W)``
     images in [0, 1], in the order of ``suns``."""

@@ -222,9 +222,9 @@ def build(
     max_upload_bytes: int = MAX_UPLOAD_BYTES,
 ) -> tuple[Viewer, list[str]]:
     """The viewer of ``checkpoint`` with its gallery; returns it and notes for the console."""
-    from trainer.infer import NoScreenUV, Renderer, material_mapper
+    from trainer.infer import NoScreenUV, load_renderer, material_mapper
 
-    renderer = Renderer.from_checkpoint(checkpoint, device)
+    renderer = load_renderer(checkpoint, device)
     notes = []
     try:
         mapper = material_mapper(renderer, stores[0] if stores else None)
@@ -243,15 +243,15 @@ def build(
     except BaseException:
         shutil.rmtree(upload_dir, ignore_errors=True)
         raise
-    state = renderer.state
     info = {
         "checkpoint": checkpoint,
-        "step": int(state["step"]),
+        "step": renderer.step,
         "resolution": renderer.config.resolution,
         "model": renderer.config.arch,
-        "device": str(renderer.device),
+        "device": f"{renderer.device} · {renderer.runtime}",
         "mapping": mapper is not None,
         "stores": list(stores),
     }
-    engine = Engine(renderer, mapper, library, f"{checkpoint} (step {info['step']})")
+    label = checkpoint if renderer.step is None else f"{checkpoint} (step {renderer.step})"
+    engine = Engine(renderer, mapper, library, label)
     return Viewer(engine, upload_dir, info), notes
