@@ -311,6 +311,9 @@ def test_an_exported_model_that_cannot_be_run_is_named_in_one_line(tiny_store, t
     y = helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])
     graph = helper.make_graph([helper.make_node("Relu", ["x"], ["y"])], "relu", [x], [y])
     onnx.save(helper.make_model(graph), str(tmp_path / "other.onnx"))
+    edited = onnx.load(str(model))
+    next(p for p in edited.metadata_props if p.key == "shaderball.tonemap").value = "{oops"
+    onnx.save(edited, str(tmp_path / "edited.onnx"))
     bare = tmp_path / "bare" / "ball.onnx"  # no screen UV layout beside it
     bare.parent.mkdir()
     bare.write_bytes(model.read_bytes())
@@ -320,6 +323,7 @@ def test_an_exported_model_that_cannot_be_run_is_named_in_one_line(tiny_store, t
         (tmp_path / "gone.onnx", stored, "gone.onnx: no such model"),
         (tmp_path / "junk.onnx", stored, "junk.onnx: not a model ONNX Runtime can load ("),
         (tmp_path / "other.onnx", stored, "other.onnx: not a model trainer export wrote (it"),
+        (tmp_path / "edited.onnx", stored, "edited.onnx: its shaderball metadata is unreadable"),
         (model, [*stored, "--device", "cuda"], "ball.onnx: an .onnx model runs on the CPU here"),
         (bare, new, "no screen UV layout beside the model (ball.screen_uv.npz): pass --store"),
     ]:

@@ -75,7 +75,10 @@ class OnnxRenderer(MapsRenderer):
                 f"{p}: not a model trainer export wrote (it takes {', '.join(names)}; "
                 f"a shaderball model takes {', '.join(INPUTS)} and carries {REQUIRED[0]})"
             )
-        return cls(session, meta, p)
+        try:
+            return cls(session, meta, p)
+        except (ValueError, TypeError) as exc:  # bad JSON, fields ModelConfig does not take
+            raise CheckpointError(f"{p}: its shaderball metadata is unreadable ({exc})") from None
 
     @property
     def no_layout(self) -> str:
