@@ -386,9 +386,7 @@ def _render_inputs(ckpt, material, store, sample, sun, turbidity, device):
             r = load_renderer(ckpt, device)
     except (MaterialError, StoreError, CheckpointError, NoScreenUV, ScreenUVError) as exc:
         _fail(exc)
-    except MissingExtra as exc:
-        _fail(exc)
-    except (ValueError, IndexError) as exc:
+    except (MissingExtra, ValueError, IndexError) as exc:
         _fail(exc)
     return r, packed, light
 
@@ -493,7 +491,6 @@ def viewer(ckpt, stores, folders, max_upload_mb, host, port, token, device):
     from farm.web import serve, token_for
     from render_jobs.errors import MaterialError
     from storage.errors import StoreError
-    from storage.extras import MissingExtra
     from trainer.checkpoint import CheckpointError
     from trainer.viewer.app import build, make_app
 
