@@ -13,7 +13,7 @@ from PIL import Image
 from tabulate import tabulate
 from tqdm import tqdm
 
-from storage.cli_group import Commands
+from storage.cli_group import Commands, check_picture_name
 from storage.errors import StoreError
 
 
@@ -203,12 +203,9 @@ def show(store, index, out):
     """
     from render_jobs.contact_sheet import contact_sheet
     from render_jobs.results import ScreenMaps
-    from storage.image_files import image_format, save_image
+    from storage.image_files import save_image
 
-    try:
-        image_format(out)
-    except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint="-o") from None
+    check_picture_name(out, "-o")
     s = _sample(_open(store), index)
     title = f"sample {s.index}  material {s.material_index} ({s.kind}: {s.source_id})"
     sheet = contact_sheet(ScreenMaps(**s.maps), [(s.render, s.sun.label())], title)

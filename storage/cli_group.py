@@ -25,3 +25,15 @@ class Commands(click.Group):
             raise click.ClickException(f"{type(exc).__name__}: {exc}") from None
         except SettingError as exc:
             raise click.ClickException(str(exc)) from None
+
+
+def check_picture_name(path, option: str, animated: bool = False) -> None:
+    """A usage error naming ``option``, before any work, when ``path`` (``None``: none given)
+    names no picture format the CLIs write (:func:`storage.image_files.image_format`)."""
+    from storage.image_files import image_format
+
+    try:
+        if path is not None:
+            image_format(path, animated)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint=option) from None

@@ -11,7 +11,7 @@ import click
 from tabulate import tabulate
 
 from farm.web import server_options
-from storage.cli_group import Commands
+from storage.cli_group import Commands, check_picture_name
 from trainer import config as train_config
 from trainer.viewer import MAX_UPLOAD_MB
 
@@ -204,7 +204,7 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
 
     if grid is None and Path(ckpt).is_dir() and not on:
         grid = Path(ckpt) / "eval.png"
-    _picture_name(grid, "--grid")
+    check_picture_name(grid, "--grid")
     try:
         result = evaluate(
             ckpt, list(stores) or None, batch_size, grid, grid_count, device, list(on) or None
@@ -229,17 +229,6 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
     click.echo(tabulate(rows, head, floatfmt=("", "", ".2f", ".4f", ".4f")))
     if "grid" in result:
         click.echo(f"grid: {result['grid']}")
-
-
-def _picture_name(path: Path | None, option: str, animated: bool = False) -> None:
-    """A usage error, before any work, when ``path`` names no picture format we write."""
-    from storage.image_files import image_format
-
-    try:
-        if path is not None:
-            image_format(path, animated)
-    except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint=option) from None
 
 
 def _floats(text: str | None, n: int, name: str):
@@ -335,7 +324,7 @@ def render(ckpt, material, store, sample, sun, turbidity, output, sweep, fps, de
         raise click.UsageError("give --material, or --store with --sample")
     if sample is not None and store is None:
         raise click.UsageError("--sample needs --store")
-    _picture_name(output, "-o", animated=sweep is not None)
+    check_picture_name(output, "-o", animated=sweep is not None)
     r, packed, light = _render_inputs(ckpt, material, store, sample, sun, turbidity, device)
     text = {
         "shaderball:checkpoint": str(ckpt),
@@ -384,9 +373,8 @@ def _render_inputs(ckpt, material, store, sample, sun, turbidity, device):
             packed = s.packed_maps(s.layout.material_of_sample(sample))
             light = _light(sun, turbidity, s.light(sample))
             r = load_renderer(ckpt, device)
-    except (MaterialError, StoreError, CheckpointError, NoScreenUV, ScreenUVError) as exc:
-        _fail(exc)
-    except (MissingExtra, ValueError, IndexError) as exc:
+    except (MaterialError, StoreError, CheckpointError, NoScreenUV, ScreenUVError, MissingExtra,
+            ValueError, IndexError) as exc:  # fmt: skip
         _fail(exc)
     return r, packed, light
 
