@@ -260,7 +260,7 @@ def test_render_takes_an_exported_model_and_draws_what_its_checkpoint_draws(
 ):
     """``trainer render --checkpoint ball.onnx`` runs the exported file in ONNX Runtime: a
     stored sample, a new material (mapped with the layout beside the model) and a sweep come
-    out as the checkpoint's pictures; commands that need the run refuse the model in one line."""
+    out as the checkpoint's pictures."""
     from render_jobs.specs import Sun
     from trainer.export import export
     from trainer.infer import load_renderer, render_under
@@ -329,10 +329,52 @@ def test_an_exported_model_that_cannot_be_run_is_named_in_one_line(tiny_store, t
     ]:
         assert says in one_line_error(["render", "--checkpoint", str(source), *args])
     assert not (tmp_path / "x.png").exists()
-    for args in (["eval"], ["export", "-o", str(tmp_path / "again.onnx")]):
-        msg = one_line_error([*args, "--checkpoint", str(model)])
-        assert "ball.onnx: an exported model, which trainer render and trainer viewer take" in msg
+    msg = one_line_error(["export", "-o", str(tmp_path / "again.onnx"), "--checkpoint", str(model)])
+    assert "ball.onnx: an exported model, which trainer render, viewer and eval take" in msg
     assert not (tmp_path / "again.onnx").exists()
+
+
+def test_eval_scores_an_exported_model_as_its_checkpoint(tiny_store, trained, tmp_path):
+    """``trainer eval --checkpoint ball.onnx`` scores the file in ONNX Runtime on its run's
+    held-out materials (named in its metadata) and on ``--on`` stores, with the checkpoint's
+    figures; a model without its run's catalog is refused in one line, writing nothing."""
+    import onnx
+
+    from trainer.export import export
+
+    model = tmp_path / "ball.onnx"
+    export(Renderer.from_checkpoint(trained, "cpu"), model)
+    layout = Layout(num_materials=2, suns_per_material=2, resolution=64, shard_size=4)
+    other = create_store(str(tmp_path / "other.zarr"), layout, {})
+    write_shard(other, 0, synthetic_payload(layout, 0))
+    for on in ([], ["--on", other.url]):
+        results = []
+        for source in (trained, model):
+            grid = tmp_path / f"{source.name}.png"
+            r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(source), *on,
+                                                  "--json", "--grid", str(grid)])  # fmt: skip
+            assert r.exit_code == 0, r.output
+            results.append(json.loads(r.output[r.output.index("{") :]))
+            assert Image.open(grid).size[0] == 3 * 256
+        ours, theirs = results
+        assert (ours["runtime"], theirs["runtime"]) == ("torch", "ONNX Runtime")
+        assert ours["checkpoint_step"] == theirs["checkpoint_step"] == 54
+        assert ours["samples"] == theirs["samples"] > 0
+        for kind in ("overall", *ours["by_kind"]):
+            a = ours if kind == "overall" else ours["by_kind"]
+            b = theirs if kind == "overall" else theirs["by_kind"]
+            for metric in ("psnr", "ssim", "flip"):
+                assert a[kind][metric] == pytest.approx(b[kind][metric], abs=2e-3), (kind, metric)
+    r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(model)])
+    assert r.exit_code == 0 and "step 54 in ONNX Runtime: " in r.output, r.output
+    bare = onnx.load(str(model))
+    props = [p for p in bare.metadata_props if p.key != "shaderball.catalog"]
+    del bare.metadata_props[:]
+    bare.metadata_props.extend(props)
+    onnx.save(bare, str(tmp_path / "bare.onnx"))
+    grid = tmp_path / "bare.png"
+    msg = one_line_error(["eval", "--checkpoint", str(tmp_path / "bare.onnx"), "--grid", str(grid)])
+    assert "bare.onnx: the model names no stores of its run" in msg and not grid.exists()
 
 
 @pytest.mark.filterwarnings("ignore:This DataLoader will create")  # 3 > 2 cores

@@ -88,7 +88,7 @@ def load(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> d
         raise CheckpointError(f"{p}: no such checkpoint")
     if p.suffix.lower() == ".onnx":
         raise CheckpointError(
-            f"{p}: an exported model, which trainer render and trainer viewer take; this "
+            f"{p}: an exported model, which trainer render, viewer and eval take; this "
             "command takes the checkpoint or run it was exported from"
         )
     try:

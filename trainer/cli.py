@@ -40,6 +40,9 @@ def _train_errors(fn, cfg):
         _fail(exc)
 
 
+#: the --checkpoint help of the commands that also run an exported model
+CHECKPOINT_OR_MODEL = "a checkpoint file, a run folder, or an .onnx model trainer export wrote"
+
 device_option = click.option(
     "--device",
     default="auto",
@@ -170,7 +173,7 @@ def launch(
 
 
 @main.command("eval")
-@click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
+@click.option("--checkpoint", "ckpt", required=True, help=CHECKPOINT_OR_MODEL)
 @click.option("--store", "stores", multiple=True, help="the run's stores at another address")
 @click.option("--batch-size", default=8, show_default=True, type=int, help="images per batch")
 @click.option("--grid", type=click.Path(path_type=Path), default=None,
@@ -192,13 +195,17 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
 
     The held-out materials are the run's held-out split, or, with --on, every material of
     stores the run never trained on (e.g. the same sources rendered with another --seed).
+    An .onnx model from trainer export is scored in ONNX Runtime on the same materials (the
+    file names its run's stores and held-out split): what a tool running that file shows.
 
     \b
     Examples:
       trainer eval --checkpoint runs/demo --grid runs/demo/eval.png
       trainer eval --checkpoint runs/a --on out/test.zarr --json
+      trainer eval --checkpoint runs/demo/ball.onnx --grid onnx-eval.png
     """
     from storage.errors import StoreError
+    from storage.extras import MissingExtra
     from trainer.checkpoint import CheckpointError
     from trainer.evaluate import EvalError, evaluate
 
@@ -209,7 +216,7 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
         result = evaluate(
             ckpt, list(stores) or None, batch_size, grid, grid_count, device, list(on) or None
         )
-    except (StoreError, CheckpointError, EvalError) as exc:
+    except (StoreError, CheckpointError, EvalError, MissingExtra) as exc:
         _fail(exc)
     if Path(ckpt).is_dir() and not on:  # beside the run's log, for the dashboard's runs page
         from storage.backend import write_atomic
@@ -220,7 +227,8 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
         click.echo(json.dumps(result, indent=2))
         return
     o = result["overall"]
-    click.echo(f"step {result['checkpoint_step']}: {o['n']} held-out samples")
+    runtime = "" if result["runtime"] == "torch" else f" in {result['runtime']}"
+    click.echo(f"step {result['checkpoint_step']}{runtime}: {o['n']} held-out samples")
     rows = [
         (kind, m["n"], m["psnr"], m["ssim"], m["flip"])
         for kind, m in [("all", o), *result["by_kind"].items()]
@@ -264,8 +272,6 @@ def _light(sun: str | None, turbidity: float | None, default):
 
 #: the light of ``trainer render --material`` when none is given: from the front left, 40°
 DEFAULT_LIGHT = ((-0.5, -0.6, 0.62), 3.0)
-#: the --checkpoint help of the commands that also run an exported model
-CHECKPOINT_OR_MODEL = "a checkpoint file, a run folder, or an .onnx model trainer export wrote"
 
 
 @main.command()

@@ -24,7 +24,7 @@ from storage.errors import StoreError
 from storage.image_files import save_image
 from storage.reader import Store
 from trainer.data import Catalog, SampleReader
-from trainer.infer import Renderer
+from trainer.infer import MapsRenderer, load_renderer
 
 
 class EvalError(ValueError):
@@ -100,11 +100,11 @@ class Tally:
         }
 
 
-def test_split(renderer: Renderer, stores: list[str] | None, on: list[str] | None):
+def test_split(renderer: MapsRenderer, stores: list[str] | None, on: list[str] | None):
     """What a checkpoint is evaluated on: its run's held-out materials (in ``stores``, the
     run's stores at another address, when given), or every sample of the stores ``on``,
     which must not be stores the run trained on."""
-    catalog = Catalog.from_dict(renderer.state["catalog"])
+    catalog = Catalog.from_dict(renderer.catalog)
     if stores:
         if len(stores) != len(catalog.urls):
             raise EvalError(
@@ -167,10 +167,16 @@ def evaluate(
     device: str = "auto",
     on: list[str] | None = None,
 ) -> dict:
-    """Metrics of checkpoint ``ckpt`` on its run's held-out split, or on every sample of the
-    stores ``on`` (:func:`test_split`); writes a ground truth | prediction | error PNG grid
-    of the first ``grid_count`` samples to ``grid`` when given."""
-    renderer = Renderer.from_checkpoint(ckpt, device)
+    """Metrics of checkpoint ``ckpt`` (or a model ``trainer export`` wrote, run in ONNX
+    Runtime: :func:`trainer.infer.load_renderer`) on its run's held-out split, or on every
+    sample of the stores ``on`` (:func:`test_split`); writes a ground truth | prediction |
+    error PNG grid of the first ``grid_count`` samples to ``grid`` when given."""
+    renderer = load_renderer(ckpt, device)
+    if renderer.catalog is None:
+        raise EvalError(
+            f"{ckpt}: the model names no stores of its run, so neither its held-out materials "
+            "nor what it trained on are known; export it again from its checkpoint"
+        )
     split = test_split(renderer, stores, on)
     reader = SampleReader(split)
     kinds = [{m: rec["kind"] for m, rec in s.materials().items()} for s in reader.stores]
@@ -190,7 +196,8 @@ def evaluate(
             if len(shown) < grid_count:
                 shown.append((target[j].cpu().numpy(), pred[j].cpu().numpy()))
     result = {
-        "checkpoint_step": int(renderer.state["step"]),
+        "checkpoint_step": renderer.step,
+        "runtime": renderer.runtime,
         "samples": len(split),
         "on": list(on) if on else None,
         **tally.summary(),

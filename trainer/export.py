@@ -17,7 +17,8 @@ to run it:
 with BatchNorm folded, and :func:`export` checks in ONNX Runtime that the written model gives
 the images of the torch :class:`trainer.infer.Renderer` on CPU before it keeps it. The file's
 metadata (``metadata_props``) carries ``shaderball.*`` keys: the resolution, tonemap, model
-configuration and checkpoint step, and the inputs' meaning.
+configuration and checkpoint step, the run's catalog (its stores and held-out materials,
+which ``trainer eval`` scores the file on), and the inputs' meaning.
 
 The model is ONNX opset 18 by default, from torch's dynamo exporter; an older opset, down to
 11, for importers that read no newer, comes from torch's TorchScript exporter. Both are
@@ -130,6 +131,8 @@ def metadata(renderer: Renderer) -> dict[str, str]:
             "turbidity (N,) float32"
         ),
         "shaderball.output": "image (N, 3, R, R) float32 in [0, 1], display sRGB (tonemap)",
+        # the run's stores and held-out materials: `trainer eval` scores the file on them
+        "shaderball.catalog": json.dumps(renderer.catalog),
     }
 
 

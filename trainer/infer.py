@@ -51,12 +51,14 @@ class MapsRenderer:
     """What ``trainer render``, ``trainer viewer`` and :func:`render_under` use of a renderer:
     :meth:`render_batch` (each kind's own), :meth:`render` over it, and ``config``
     (:class:`ModelConfig`), ``tonemap``, ``device``, ``runtime``, ``step`` (the
-    checkpoint's, or ``None``) and ``screen_uv()``."""
+    checkpoint's, or ``None``), ``catalog`` (the run's stores and held-out split,
+    :meth:`storage.catalog.Catalog.to_dict`, or ``None``) and ``screen_uv()``."""
 
     config: ModelConfig
     tonemap: Tonemap
     device: torch.device
     step: int | None
+    catalog: dict | None
     #: what runs the network, for people to read
     runtime = "torch"
     #: why ``screen_uv()`` gives ``None``
@@ -120,6 +122,11 @@ class Renderer(MapsRenderer):
         """The training step of the checkpoint it was loaded from."""
         step = getattr(self, "state", {}).get("step")
         return None if step is None else int(step)
+
+    @property
+    def catalog(self) -> dict | None:
+        """The run's stores and held-out split, as the checkpoint keeps them."""
+        return getattr(self, "state", {}).get("catalog")
 
     @property
     def config(self) -> ModelConfig:

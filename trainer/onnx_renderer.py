@@ -4,9 +4,10 @@ file a tool or an engine will run is seen as it renders, and on CPU at small siz
 the faster network (``docs/benchmarks.md``, "ONNX Runtime").
 
 :class:`OnnxRenderer` has the surface of :class:`trainer.infer.Renderer` those commands use:
-``render_batch``, ``render``, ``tonemap``, ``config``, ``device``, ``runtime``, ``step``
-and ``screen_uv()``. Everything it needs comes from the file (its ``shaderball.*`` metadata:
-resolution, model configuration, tonemap, checkpoint step) and from the screen UV layout
+``render_batch``, ``render``, ``tonemap``, ``config``, ``device``, ``runtime``, ``step``,
+``catalog`` and ``screen_uv()``, so ``trainer eval`` scores it too. Everything it needs comes
+from the file (its ``shaderball.*`` metadata: resolution, model configuration, tonemap,
+checkpoint step, the run's catalog of stores and held-out materials) and from the screen UV layout
 ``trainer export`` writes beside it (``<name>.screen_uv.npz``), read when asked for.
 """
 
@@ -42,6 +43,8 @@ class OnnxRenderer(MapsRenderer):
         self.tonemap = Tonemap.from_dict(json.loads(meta["shaderball.tonemap"]))
         step = meta.get("shaderball.checkpoint_step", "")
         self.step = int(step) if step.isdigit() else None
+        catalog = meta.get("shaderball.catalog")
+        self.catalog = json.loads(catalog) if catalog else None
         self.device = torch.device("cpu")
 
     @classmethod
