@@ -8,12 +8,14 @@ For each resolution: the screen UV layout rendered by Blender at the farm's sub-
 network (width 64, skips) with fresh weights (speed does not depend on them), and one
 procedural material with ``--texture``² maps, read as the viewer reads a folder material.
 Each **edit** frame changes the roughness scale, so it applies the edit to the looked-up
-sub-samples and filters them again (``trainer.mapping``), runs the network
+sub-samples of that map and filters them again (``trainer.mapping``), runs the network
 (``trainer.infer.Renderer``'s inference path) and encodes a JPEG, exactly as ``trainer
 viewer`` answers the page (``trainer.viewer.engine``); each **tiling edit** frame changes
 the tiling, so it also looks the textures up again; each **drag** frame moves the sun (the
 mapping is cached). Medians over ``--frames``; the share outside the network is (mapping +
-encoding) / frame. Targets: under 20 % of the frame on CPU, under 1 ms on CUDA.
+encoding) / frame. Targets on CPU: under 6 % for an edit of values, under 20 % for a tiling
+edit; on CUDA, under 1 ms outside the network. A second table gives the mapping of each
+kind of value edit (:data:`EDIT_KINDS`): one map's slider at a time, or every map at once.
 
 ``--runtimes torch,onnx`` also times the same network exported (``trainer export``) and run
 by ONNX Runtime on the CPU, as ``trainer viewer --checkpoint ball.onnx`` runs it
@@ -102,6 +104,22 @@ def renderer_for(resolution: int, device: torch.device, runtime: str, tmp: Path)
     return OnnxRenderer.load(export(renderer, tmp / "net.onnx").model)
 
 
+#: value edits by what moves, frame ``i`` of each (-1: the frame before): one map's slider
+#: at a time, as an artist drags it, or every map at once (a preset, an undo)
+EDIT_KINDS = {
+    "roughness scale": lambda i: Edits(roughness_scale=0.6 + 0.01 * i),
+    "diffuse tint": lambda i: Edits(roughness_scale=0.4, diffuse_tint=(1.0, 0.8 - 0.01 * i, 0.6)),
+    "specular scale": lambda i: Edits(roughness_scale=0.4, specular_scale=1.5 + 0.02 * i),
+    "normal strength": lambda i: Edits(roughness_scale=0.4, normal_strength=1.5 + 0.02 * i),
+    "every map": lambda i: Edits(
+        diffuse_scale=0.9 - 0.01 * i,
+        specular_scale=1.5 + 0.02 * i,
+        roughness_scale=0.5 + 0.01 * i,
+        normal_strength=1.5 + 0.02 * i,
+    ),
+}
+
+
 def measure(
     resolution: int, frames: int, texture: int, device: torch.device, tmp: Path, runtime: str
 ):
@@ -131,9 +149,15 @@ def measure(
         f = engine.frame(mid, Edits(roughness_scale=0.4), Light(azimuth=200 + 3 * i))
         assert f.cached
         drag.append(f.mapping_ms + f.network_ms + f.encoding_ms)
+    kinds = {}
+    for kind, edits in EDIT_KINDS.items():
+        engine.frame(mid, edits(-1), Light())  # the last maps an edit of one map starts from
+        ms = [engine.frame(mid, edits(i), Light()).mapping_ms for i in range(frames)]
+        kinds[kind] = statistics.median(ms)
     parts = [statistics.median(x) for x in zip(*edit, strict=True)]
     retile = statistics.median(tiling)
     return {
+        "kinds": kinds,
         "mapping": parts[0],
         "network": parts[1],
         "encoding": parts[2],
@@ -189,11 +213,13 @@ def main() -> None:
         "| drag frame ms |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
+    by_kind = []
     with tempfile.TemporaryDirectory() as tmp:
         for r, runtime in ((int(v), t) for v in args.resolutions.split(",") for t in runtimes):
             sub = Path(tmp) / f"{r}-{runtime}"
             sub.mkdir()
             m = measure(r, args.frames, args.texture, device, sub, runtime)
+            by_kind.append((r, runtime, m))
             print(
                 f"| {r}² | {runtime} | {m['supersample']}² ({m['hits']:,} hits) | "
                 f"{m['mapping']:.1f} | "
@@ -202,6 +228,22 @@ def main() -> None:
                 f"{100 * m['tiling_outside']:.1f} % | {m['drag']:.1f} |",
                 flush=True,
             )
+    print_kinds(by_kind)
+
+
+def print_kinds(rows) -> None:
+    """Each kind of value edit's mapping ms and share outside the network (mapping +
+    encoding, against the network and encoding of the edit frames above)."""
+    print("\nvalue edits by what moves: mapping ms (outside the network)")
+    print("| resolution | runtime | " + " | ".join(EDIT_KINDS) + " |")
+    print("|---|---|" + "---|" * len(EDIT_KINDS))
+    for r, runtime, m in rows:
+        rest = m["network"] + m["encoding"]
+        cells = [
+            f"{ms:.2f} ({100 * (ms + m['encoding']) / (ms + rest):.1f} %)"
+            for ms in m["kinds"].values()
+        ]
+        print(f"| {r}² | {runtime} | " + " | ".join(cells) + " |")
 
 
 if __name__ == "__main__":

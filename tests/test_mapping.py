@@ -85,6 +85,28 @@ def test_mapper_matches_the_numpy_reference_on_a_made_up_layout():
     assert roundtrip.meta() == layout.meta()
 
 
+@pytest.mark.parametrize("s", [2, 3, 4])
+def test_the_pixel_filter_is_the_separable_filter_of_the_hit_sub_samples(s):
+    """:class:`PixelFilter`'s two sparse products against the numpy reference filter of the
+    whole sub-sample grid (misses as 0), on a layout whose hits reach the frame's edges and
+    leave holes, for several channels at once."""
+    from trainer.mapping import PixelFilter
+
+    rng = np.random.default_rng(s)
+    r = 11
+    n = r * s
+    hit = rng.uniform(size=(n, n)) < 0.6
+    hit[0, :] = hit[:, -1] = True
+    layout = ScreenUV(np.zeros((n, n, 2), np.float32), hit, r, s, 1.0, "made-up")
+    index = torch.nonzero(torch.from_numpy(hit.reshape(-1))).squeeze(1)
+    values = rng.uniform(size=(len(index), 4)).astype(np.float32)
+    got = (PixelFilter.of(layout, index) @ torch.from_numpy(values)).numpy()
+    grid = np.zeros((4, n * n))
+    grid[:, index.numpy()] = values.T
+    want = filter_image(grid.reshape(4, n, n), s, filter_taps(s)).reshape(4, r * r)
+    np.testing.assert_allclose(got.T, want, atol=1e-6)
+
+
 def tent_lookup(tex: np.ndarray, st: np.ndarray, tiling: float) -> np.ndarray:
     """Reference bilinear lookup, repeating: each texel's tent weight at each sample,
     summed over the texels around it, in float64. ``tex (C, H, W)`` (file row 0 is v = 1),

@@ -194,6 +194,51 @@ def test_the_engine_reuses_lookups_for_value_edits_and_maps_as_a_fresh_engine(tm
     assert len(first.library._textures) == 0  # held once: as the engine's prepared textures
 
 
+def test_an_edit_of_one_map_maps_that_map_alone_to_the_bytes_of_mapping_all(tmp_path):
+    """Edits one map at a time (as sliders move) map only that map's channels again, from
+    the last maps of the material; each result is, byte for byte, what a fresh engine maps
+    with every channel; an edit of two maps at once maps them all."""
+    from trainer.infer import Renderer
+    from trainer.mapping import CHANNEL_GROUPS
+    from trainer.model import ModelConfig, NeuralRenderer
+    from trainer.targets import Tonemap
+    from trainer.viewer.engine import Engine
+
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    (lib / "m.png").write_bytes(panel(32))
+    renderer = Renderer(NeuralRenderer(ModelConfig(16, width=4)), Tonemap(), torch.device("cpu"))
+
+    def engine():
+        return Engine(renderer, made_up_mapper(), Library([], [str(lib)], tmp_path / "up"), "-")
+
+    sliding = engine()
+    calls = []
+    finish, finish_channels = sliding.mapper.finish, sliding.mapper.finish_channels
+    sliding.mapper.finish = lambda *a: calls.append("all") or finish(*a)
+    sliding.mapper.finish_channels = lambda *a: calls.append(a[1]) or finish_channels(*a)
+    mid = next(iter(sliding.library.entries))
+    steps = [
+        (Edits(roughness_scale=0.5), ["all"]),  # nothing mapped before: every map
+        (Edits(roughness_scale=2.5), [CHANNEL_GROUPS["roughness"]]),  # clamped above 1
+        (Edits(roughness_scale=2.5, diffuse_tint=(1.0, 0.2, 0.7), diffuse_scale=3.0),
+         [CHANNEL_GROUPS["diffuse"]]),
+        (Edits(roughness_scale=2.5, diffuse_tint=(1.0, 0.2, 0.7), diffuse_scale=3.0,
+               specular_scale=0.4), [CHANNEL_GROUPS["specular"]]),
+        (Edits(roughness_scale=2.5, diffuse_tint=(1.0, 0.2, 0.7), diffuse_scale=3.0,
+               specular_scale=0.4, normal_strength=0.0), [CHANNEL_GROUPS["normal"]]),
+        (Edits(roughness_scale=2.5, specular_scale=0.4, normal_strength=0.0),
+         [CHANNEL_GROUPS["diffuse"]]),  # back to its own values
+        (Edits(roughness_scale=1.5, normal_strength=3.0), ["all"]),  # three maps at once
+        (Edits(roughness_scale=1.5), [CHANNEL_GROUPS["normal"]]),
+    ]  # fmt: skip
+    for edits, mapped in steps:
+        calls.clear()
+        got, _, cached = sliding.maps(mid, edits)
+        assert not cached and calls == mapped, edits
+        assert torch.equal(got, engine().maps(mid, edits)[0]), edits
+
+
 def test_an_uploads_textures_are_read_once_and_then_held_by_the_engine_alone(tmp_path):
     from trainer.infer import Renderer
     from trainer.model import ModelConfig, NeuralRenderer

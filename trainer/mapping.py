@@ -36,6 +36,19 @@ TEXTURE_CHANNELS = 10
 COLOUR = slice(0, 6)  # diffuse and specular: sRGB-encoded
 
 
+def _channel_groups() -> dict[str, slice]:
+    out, start = {}, 0
+    for name, count in MAP_CHANNELS.items():
+        out[name] = slice(start, start + count)
+        start += count
+    return out
+
+
+#: each map's channels (diffuse, specular, roughness, normal): what
+#: :meth:`ScreenMapper.finish_channels` maps again alone
+CHANNEL_GROUPS = _channel_groups()
+
+
 def textures_from_maps(maps: MaterialMaps) -> torch.Tensor:
     """A material's maps ``(H, W, C)`` float32 in [0, 1] → ``(10, H, W) uint8``: diffuse,
     specular (sRGB-encoded), roughness, normal, file row 0 first, as the 8-bit values
@@ -87,10 +100,10 @@ class ScreenMapper:
 
     Only the sub-samples that hit the ball are looked up, straight from the 8-bit textures
     (a gather of each one's four texels, in float64 coordinates). A sub-sample
-    weighs on the 3 x 3 pixels around its own, so the pixel filter is a sparse matrix
-    ``(R², hits)`` with 9 entries a column, applied as one CSR product: no super-resolution
-    image is ever made. The layout's constant parts are built once on ``device``; textures
-    of any size may come, one size per call."""
+    weighs on the 3 x 3 pixels around its own through separable taps, so the pixel filter
+    is two sparse products, along x then along y (:class:`PixelFilter`): no
+    super-resolution image is ever made. The layout's constant parts are built once on
+    ``device``; textures of any size may come, one size per call."""
 
     def __init__(self, screen_uv: ScreenUV, device: str | torch.device = "cpu"):
         self.layout = screen_uv
@@ -102,7 +115,7 @@ class ScreenMapper:
         tiling = screen_uv.texture_tiling
         self.st = (uv * torch.tensor([2 * tiling, tiling], dtype=torch.float64)).to(self.device)
         self.hits = len(index)
-        self.filter = _filter_matrix(screen_uv, index).to(self.device)
+        self.filter = PixelFilter.of(screen_uv, index).to(self.device)
         ones = torch.ones(self.hits, 1, dtype=torch.float32, device=self.device)
         coverage = (self.filter @ ones).view(self.r, self.r)
         self.coverage = _levels(coverage).to(torch.uint8)
@@ -197,13 +210,37 @@ class ScreenMapper:
         if adjust is not None:
             looked = looked.clone()
             adjust(looked)
-        maps = (self.filter @ looked.view(hits, b * c)).view(self.r * self.r, b, c)
-        maps[..., COLOUR] = srgb_encode(maps[..., COLOUR])
-        maps = _levels(maps)
         out = torch.empty(b, c + 1, self.r, self.r, dtype=torch.uint8, device=self.device)
-        out[:, :c] = maps.permute(1, 2, 0).view(b, c, self.r, self.r)  # one transposing cast
+        self._filter_to_levels(looked, COLOUR.stop, out[:, :c])
         out[:, c] = self.coverage
         return out
+
+    @torch.inference_mode()
+    def finish_channels(self, looked: torch.Tensor, channels: slice, edit=None) -> torch.Tensor:
+        """The stored maps' ``channels`` alone ``(B, k, R, R) uint8``: the bytes
+        :meth:`finish` gives them when its ``adjust`` writes ``edit(values)`` over these
+        channels, ``edit`` being a function of their ``(hits, B, k)`` values (a view of
+        ``looked``, to be left as it is) that gives the edited values. For an edit of one
+        map (a slider), whose other channels are already mapped: nothing else is copied
+        or filtered, and maps that are not colours skip the sRGB encode."""
+        values = looked[..., channels]
+        part = values.clone() if edit is None else edit(values)
+        part = part.contiguous()
+        b, k = part.shape[1:]
+        colours = max(0, min(COLOUR.stop, channels.stop) - channels.start)  # COLOUR comes first
+        out = torch.empty(b, k, self.r, self.r, dtype=torch.uint8, device=self.device)
+        self._filter_to_levels(part, colours, out)
+        return out
+
+    def _filter_to_levels(self, samples: torch.Tensor, colours: int, out: torch.Tensor) -> None:
+        """Sub-samples ``(hits, B, k)`` → ``out (B, k, R, R) uint8``: the pixel filter,
+        the first ``colours`` channels encoded to sRGB, 8-bit rounding."""
+        hits, b, k = samples.shape
+        maps = (self.filter @ samples.view(hits, b * k)).view(self.r * self.r, b, k)
+        if colours:
+            maps[..., :colours] = srgb_encode(maps[..., :colours])
+        maps = _levels(maps)
+        out.copy_(maps.permute(1, 2, 0).view(b, k, self.r, self.r))  # one transposing cast
 
     def _decode(self, x: torch.Tensor, out: torch.Tensor) -> None:
         """sRGB decode of values in [0, 1] into ``out``, by linear interpolation in a
@@ -233,34 +270,62 @@ def _decode_table() -> torch.Tensor:
     return torch.stack([lut, slope], 1).contiguous()
 
 
-def _filter_matrix(screen_uv: ScreenUV, index: torch.Tensor) -> torch.Tensor:
-    """The pixel filter as a CSR matrix ``(R², hits) float32``: entry (pixel, k) is the weight
-    of hit sub-sample ``index[k]`` in that pixel (the product of the x and y taps)."""
-    s, r = screen_uv.supersample, screen_uv.resolution
-    taps = torch.from_numpy(screen_uv.taps()).to(torch.float32)
-    qy, qx = index // (s * r), index % (s * r)
-    cols = torch.arange(len(index))
-    rows, keep, vals = [], [], []
-    for dy in (-1, 0, 1):
-        py = qy // s + dy
-        wy = taps[qy - s * py + s]
-        for dx in (-1, 0, 1):
-            px = qx // s + dx
-            ok = (py >= 0) & (py < r) & (px >= 0) & (px < r)
-            rows.append((py * r + px)[ok])
-            keep.append(cols[ok])
-            vals.append((wy * taps[qx - s * px + s])[ok])
-    coo = torch.sparse_coo_tensor(
-        torch.stack([torch.cat(rows), torch.cat(keep)]),
-        torch.cat(vals),
-        (r * r, len(index)),
-        check_invariants=False,
-    )
+class PixelFilter:
+    """Cycles' pixel filter over the hit sub-samples, as two CSR products (the filter is
+    separable): ``along_x`` takes each hit sub-sample into the 3 pixel columns its x taps
+    reach, in its own sub-sample row (a row of it for each (sub-sample row, pixel column)
+    that any hit reaches), then ``along_y`` takes those rows into the ``R²`` pixels, 3 x S
+    entries a pixel at most. That is 3 entries a hit and a few a pixel, where one product
+    has 9 a hit: 1.5-2.4x faster on CPU (``docs/benchmarks.md``, "The material viewer").
+    ``filter @ x`` filters ``x (hits, n)`` into ``(R², n)``."""
+
+    def __init__(self, along_x: torch.Tensor, along_y: torch.Tensor):
+        self.along_x, self.along_y = along_x, along_y
+
+    def __matmul__(self, x: torch.Tensor) -> torch.Tensor:
+        return self.along_y @ (self.along_x @ x)
+
+    def to(self, device: torch.device) -> PixelFilter:
+        return PixelFilter(self.along_x.to(device), self.along_y.to(device))
+
+    @classmethod
+    def of(cls, screen_uv: ScreenUV, index: torch.Tensor) -> PixelFilter:
+        """The filter of hit sub-samples ``index`` (flat indices in the sub-sample grid)."""
+        s, r = screen_uv.supersample, screen_uv.resolution
+        taps = torch.from_numpy(screen_uv.taps()).to(torch.float32)
+        qy, qx = index // (s * r), index % (s * r)
+        rows, cols, weights = _spread(qx, s, r, taps)  # sub-sample row y, pixel column x
+        reached, rows = torch.unique(qy[cols] * r + rows, return_inverse=True)
+        along_x = _csr(rows, cols, weights, (len(reached), len(index)))
+        ry, rx = reached // r, reached % r
+        pixel_rows, cols, weights = _spread(ry, s, r, taps)
+        along_y = _csr(pixel_rows * r + rx[cols], cols, weights, (r * r, len(reached)))
+        return cls(along_x, along_y)
+
+
+def _spread(q: torch.Tensor, s: int, r: int, taps: torch.Tensor):
+    """Sub-sample coordinates ``q`` along one axis → ``(pixel, item, weight)`` of the 3
+    pixels each reaches with a tap, inside ``[0, r)``: the pixel's index along that axis,
+    the index into ``q``, the tap."""
+    items = torch.arange(len(q))
+    pixels, keep, weights = [], [], []
+    for d in (-1, 0, 1):
+        p = q // s + d
+        ok = (p >= 0) & (p < r)
+        pixels.append(p[ok])
+        keep.append(items[ok])
+        weights.append(taps[q - s * p + s][ok])
+    return torch.cat(pixels), torch.cat(keep), torch.cat(weights)
+
+
+def _csr(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape) -> torch.Tensor:
+    """A CSR matrix of the entries, with 32-bit indices: the CPU product otherwise converts
+    64-bit ones on every call (1.4x slower)."""
+    coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, shape, check_invariants=False)
     with warnings.catch_warnings():  # "sparse CSR support is in beta"
         warnings.simplefilter("ignore", UserWarning)
         csr = coo.coalesce().to_sparse_csr()
-        # 32-bit indices: the CPU product converts 64-bit ones on every call (1.4x slower)
         return torch.sparse_csr_tensor(
-            csr.crow_indices().int(), csr.col_indices().int(), csr.values(), csr.shape,
+            csr.crow_indices().int(), csr.col_indices().int(), csr.values(), shape,
             check_invariants=False,
         )  # fmt: skip

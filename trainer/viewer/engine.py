@@ -2,10 +2,12 @@
 timed in three parts. Plain code: no web server in it (``benchmarks/viewer.py`` times it).
 
 - **mapping**: the material's texture maps UV-mapped to the network's input, with its edits
-  (:class:`trainer.mapping.ScreenMapper`). Three caches: the prepared textures per material
+  (:class:`trainer.mapping.ScreenMapper`). Four caches: the prepared textures per material
   (the one copy of its textures that the viewer keeps: the library hands them over), the
   looked-up sub-samples per (material, tiling), so that an edit of values (tints,
-  scales, normal strength) costs only the mapper's ``finish``, and the result per
+  scales, normal strength) costs only the mapper's ``finish``, the last result per
+  (material, tiling), so that an edit of one map's values (a slider moving) maps only that
+  map's channels again (``finish_channels``: the same bytes), and the result per
   (material, edits), so that moving the sun costs no mapping;
 - **network**: the trained network (:class:`trainer.infer.Renderer`, its fp32 inference
   path) on the mapped maps and the light;
@@ -19,6 +21,7 @@ import io
 import json
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import torch
@@ -30,6 +33,7 @@ from render_jobs.specs import Sun
 from render_jobs.tonemap import to_uint8
 from trainer.evaluate import psnr
 from trainer.infer import Renderer
+from trainer.mapping import CHANNEL_GROUPS
 from trainer.targets import light_vector
 from trainer.viewer.materials import Edits, Library, direction
 from trainer.viewer.recent import Recent
@@ -100,6 +104,7 @@ class Engine:
         self.checkpoint = checkpoint
         self._maps = Recent(32)  # (material, edits) → mapped maps
         self._looked = Recent(2)  # (material, tiling) → looked-up sub-samples (16 MB at 400²)
+        self._last = Recent(2)  # (material, tiling) → (edits, mapped maps): the last mapped
         self._prepared = Recent(8, PREPARED_BYTES)  # material → prepared textures
 
     def _sync(self) -> None:
@@ -126,11 +131,30 @@ class Engine:
             packed = torch.from_numpy(np.array(self.library.stored_maps(material_id)))[None]
             packed = packed.to(self.renderer.device)
         else:
-            packed = self.mapper.finish(looked, edits.adjust if edits.changes_values else None)
+            packed = self._finish(material_id, looked, edits)
         self._sync()
         seconds = time.perf_counter() - t0
         self._maps.put(key, packed)
         return packed, seconds, False
+
+    def _finish(self, material_id: str, looked: torch.Tensor, edits: Edits) -> torch.Tensor:
+        """The maps of ``looked`` with ``edits``: from the last maps of this material and
+        tiling, with the one map whose values changed mapped again, when only one did; else
+        all of them (one filter over all channels is the cheaper then)."""
+        key = (material_id, edits.tiling)
+        last = self._last.get(key)
+        changed = None if last is None else edits.groups_changed_from(last[0])
+        if changed is not None and len(changed) <= 1:
+            packed = last[1].clone()
+            for group in changed:
+                edited = edits.values_of(group) != Edits().values_of(group)
+                edit = partial(edits.edited, group) if edited else None
+                channels = CHANNEL_GROUPS[group]
+                packed[:, channels] = self.mapper.finish_channels(looked, channels, edit)
+        else:
+            packed = self.mapper.finish(looked, edits.adjust if edits.changes_values else None)
+        self._last.put(key, (edits, packed))
+        return packed
 
     def _prepare(self, material_id: str, edits: Edits) -> torch.Tensor | None:
         """The material's textures, prepared for the mapper and kept for the next edits;

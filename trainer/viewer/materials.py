@@ -25,11 +25,11 @@ import torch
 
 from render_jobs.errors import MaterialError
 from render_jobs.materials.files import read_svbrdf_bytes, scan_svbrdf_dir
+from render_jobs.materials.maps import srgb_to_linear
 from render_jobs.materials.sources import load_map_bytes, one_material
 from render_jobs.specs import MaterialSpec, Sun
 from storage.reader import Store
-from trainer.mapping import textures_from_bytes
-from trainer.targets import srgb_decode
+from trainer.mapping import CHANNEL_GROUPS, textures_from_bytes
 from trainer.viewer import MAX_UPLOAD_MB
 from trainer.viewer.recent import Recent
 
@@ -289,23 +289,43 @@ class Edits:
         """Whether :meth:`adjust` changes anything (the tiling is the mapper's)."""
         return self != Edits(tiling=self.tiling)
 
+    def values_of(self, group: str) -> tuple:
+        """The values that edit map ``group`` (a key of
+        :data:`trainer.mapping.CHANNEL_GROUPS`)."""
+        if group in ("diffuse", "specular"):
+            return getattr(self, f"{group}_tint"), getattr(self, f"{group}_scale")
+        return (self.roughness_scale,) if group == "roughness" else (self.normal_strength,)
+
+    def groups_changed_from(self, other: Edits) -> list[str]:
+        """The maps whose values differ between ``other`` and these edits."""
+        return [g for g in CHANNEL_GROUPS if self.values_of(g) != other.values_of(g)]
+
     def adjust(self, samples: torch.Tensor) -> None:
         """Edit sub-samples ``(..., 10)`` in place: linear diffuse and specular, roughness,
-        normal encoded (n + 1) / 2 (``trainer.mapping.ScreenMapper.finish``'s ``adjust``)."""
-        for sl, tint, scale in (
-            (slice(0, 3), self.diffuse_tint, self.diffuse_scale),
-            (slice(3, 6), self.specular_tint, self.specular_scale),
-        ):
-            if tint != (1.0, 1.0, 1.0) or scale != 1.0:
-                gain = srgb_decode(torch.tensor(tint, dtype=samples.dtype)) * scale
-                samples[..., sl] = (samples[..., sl] * gain.to(samples.device)).clamp_(0.0, 1.0)
-        if self.roughness_scale != 1.0:
-            samples[..., 6] = (samples[..., 6] * self.roughness_scale).clamp_(0.0, 1.0)
-        if self.normal_strength != 1.0:
-            n = samples[..., 7:10] * 2.0 - 1.0
-            n[..., :2] *= self.normal_strength
-            n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-            samples[..., 7:10] = ((n + 1.0) / 2.0).clamp_(0.0, 1.0)
+        normal encoded (n + 1) / 2 (``trainer.mapping.ScreenMapper.finish``'s ``adjust``):
+        :meth:`edited` of each edited map, written over its channels."""
+        for group in self.groups_changed_from(Edits()):
+            part = samples[..., CHANNEL_GROUPS[group]]
+            part.copy_(self.edited(group, part))
+
+    def edited(self, group: str, samples: torch.Tensor) -> torch.Tensor:
+        """Map ``group``'s channels ``samples (..., k)`` with its edits, as a new tensor
+        (``samples`` are left as they are: ``trainer.mapping.ScreenMapper.finish_channels``'s
+        ``edit``). Few torch operations, the gains reckoned in numpy: in the viewer, each
+        operation between two frames of the network costs more than its arithmetic."""
+        if group in ("diffuse", "specular"):
+            tint, scale = self.values_of(group)
+            gain = torch.from_numpy(srgb_to_linear(np.array(tint, np.float32)) * np.float32(scale))
+            return (samples * gain.to(samples.device)).clamp_(0.0, 1.0)
+        if group == "roughness":
+            return (samples * self.roughness_scale).clamp_(0.0, 1.0)
+        n = samples * 2.0 - 1.0
+        n[..., :2] *= self.normal_strength
+        x, y, z = n.unbind(-1)  # the length by components: a reduction over 3 is slower
+        length2 = x * x
+        length2.addcmul_(y, y).addcmul_(z, z)
+        n.mul_(length2.clamp_min_(1e-12).rsqrt_().unsqueeze(-1))
+        return n.add_(1.0).mul_(0.5).clamp_(0.0, 1.0)
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
