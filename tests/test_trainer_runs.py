@@ -337,7 +337,8 @@ def test_an_exported_model_that_cannot_be_run_is_named_in_one_line(tiny_store, t
 def test_eval_scores_an_exported_model_as_its_checkpoint(tiny_store, trained, tmp_path):
     """``trainer eval --checkpoint ball.onnx`` scores the file in ONNX Runtime on its run's
     held-out materials (named in its metadata) and on ``--on`` stores, with the checkpoint's
-    figures; a model without its run's catalog is refused in one line, writing nothing."""
+    figures. A model exported ``--no-catalog`` names no stores: its held-out split is refused
+    in one line, writing nothing, and ``--on`` says it could not check the stores."""
     import onnx
 
     from trainer.export import export
@@ -360,6 +361,7 @@ def test_eval_scores_an_exported_model_as_its_checkpoint(tiny_store, trained, tm
         assert (ours["runtime"], theirs["runtime"]) == ("torch", "ONNX Runtime")
         assert ours["checkpoint_step"] == theirs["checkpoint_step"] == 54
         assert ours["samples"] == theirs["samples"] > 0
+        assert theirs["on_checked_against_run"] is (True if on else None)
         for kind in ("overall", *ours["by_kind"]):
             a = ours if kind == "overall" else ours["by_kind"]
             b = theirs if kind == "overall" else theirs["by_kind"]
@@ -367,14 +369,27 @@ def test_eval_scores_an_exported_model_as_its_checkpoint(tiny_store, trained, tm
                 assert a[kind][metric] == pytest.approx(b[kind][metric], abs=2e-3), (kind, metric)
     r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(model)])
     assert r.exit_code == 0 and "step 54 in ONNX Runtime: " in r.output, r.output
-    bare = onnx.load(str(model))
-    props = [p for p in bare.metadata_props if p.key != "shaderball.catalog"]
-    del bare.metadata_props[:]
-    bare.metadata_props.extend(props)
-    onnx.save(bare, str(tmp_path / "bare.onnx"))
+    bare = tmp_path / "share" / "bare.onnx"
+    r = CliRunner().invoke(
+        trainer_main, ["export", "--checkpoint", str(trained), "--no-catalog", "-o", str(bare)]
+    )
+    assert r.exit_code == 0, r.output
+    keys = {p.key for p in onnx.load(str(bare)).metadata_props}
+    assert "shaderball.model_config" in keys and "shaderball.catalog" not in keys
+    assert tiny_store.url in model.read_bytes().decode("latin-1")
+    assert tiny_store.url not in bare.read_bytes().decode("latin-1")  # no address in the file
     grid = tmp_path / "bare.png"
-    msg = one_line_error(["eval", "--checkpoint", str(tmp_path / "bare.onnx"), "--grid", str(grid)])
-    assert "bare.onnx: the model names no stores of its run" in msg and not grid.exists()
+    msg = one_line_error(["eval", "--checkpoint", str(bare), "--grid", str(grid)])
+    assert "bare.onnx: the model names no stores of its run (exported --no-catalog)" in msg
+    moved = one_line_error(["eval", "--checkpoint", str(bare), "--store", "x", "--on", other.url])
+    assert "bare.onnx: --store: the model names no stores of its run" in moved
+    assert not grid.exists()
+    r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(bare), "--on", other.url,
+                                          "--json"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert "the --on stores were not checked for materials it trained on" in r.output
+    scored = json.loads(r.output[r.output.index("{") :])
+    assert scored["on_checked_against_run"] is False and scored["overall"]["n"] == 4
 
 
 @pytest.mark.filterwarnings("ignore:This DataLoader will create")  # 3 > 2 cores

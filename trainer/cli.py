@@ -223,6 +223,12 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
 
         data = json.dumps(result, indent=1, default=str).encode()
         write_atomic(Path(ckpt) / "eval.json", lambda f: f.write(data))
+    if result["on_checked_against_run"] is False:
+        click.echo(
+            f"warning: {ckpt} names no stores of its run, so the --on stores were not checked "
+            "for materials it trained on",
+            err=True,
+        )
     if as_json:
         click.echo(json.dumps(result, indent=2))
         return
@@ -404,7 +410,10 @@ def _sweep(renderer, packed, sun, n: int):
               help="the .onnx file (its screen UV layout goes beside it)")  # fmt: skip
 @click.option("--opset", type=click.IntRange(11, 18), default=18, show_default=True,
               help="the ONNX opset, for older importers (Unity Sentis 1.x: 15)")  # fmt: skip
-def export(ckpt, output, opset):
+@click.option("--no-catalog", is_flag=True,
+              help="leave out the addresses of the run's stores and its held-out split (a "
+              "file to share): trainer eval then scores it --on other stores only")  # fmt: skip
+def export(ckpt, output, opset, no_catalog):
     """Export the network as an ONNX model, to run it without Python or torch (ONNX Runtime
     in a tool, a game engine or a browser).
 
@@ -412,13 +421,16 @@ def export(ckpt, output, opset):
     turbidity (N,), and gives the display-ready image (N, 3, R, R) in [0, 1]: everything
     `trainer render` does after the maps. It is checked against the checkpoint in ONNX
     Runtime before it is kept. The checkpoint's screen UV layout, which maps new materials
-    to stored maps, is written beside it as NAME.screen_uv.npz. Details: docs/training.md.
+    to stored maps, is written beside it as NAME.screen_uv.npz. Its metadata names the
+    run's stores and held-out materials, so that trainer eval can score the file (leave them
+    out with --no-catalog). Details: docs/training.md.
 
     \b
     Examples:
       trainer export --checkpoint runs/demo -o runs/demo/ball.onnx
       trainer export --checkpoint runs/a/checkpoints/step-00004000.pt -o ball-4000.onnx
       trainer export --checkpoint runs/demo --opset 15 -o ball-15.onnx   # Unity Sentis 1.x
+      trainer export --checkpoint runs/demo --no-catalog -o share/ball.onnx
     """
     from storage.extras import MissingExtra, require
 
@@ -436,7 +448,7 @@ def export(ckpt, output, opset):
     try:
         renderer = Renderer.from_checkpoint(ckpt, "cpu")
         click.echo("exporting, then checking the model in ONNX Runtime ...", err=True)
-        done = export_onnx(renderer, output, opset)
+        done = export_onnx(renderer, output, opset, catalog=not no_catalog)
     except (CheckpointError, ExportError, OSError) as exc:
         _fail(exc)
     click.echo(

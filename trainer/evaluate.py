@@ -103,18 +103,17 @@ class Tally:
 def test_split(renderer: MapsRenderer, stores: list[str] | None, on: list[str] | None):
     """What a checkpoint is evaluated on: its run's held-out materials (in ``stores``, the
     run's stores at another address, when given), or every sample of the stores ``on``,
-    which must not be stores the run trained on."""
-    catalog = Catalog.from_dict(renderer.catalog)
-    if stores:
-        if len(stores) != len(catalog.urls):
-            raise EvalError(
-                f"the checkpoint's run trained on {len(catalog.urls)} store(s) "
-                f"({', '.join(catalog.urls)}), {len(stores)} given"
-            )
-        catalog.urls = list(stores)
-    run_stores = [_run_store(url) for url in catalog.urls]
+    which must not be stores the run trained on (unchecked for a model exported without
+    its run's catalog: :func:`trained_on_is_checked`)."""
+    if renderer.catalog is None and stores:
+        raise EvalError("--store: the model names no stores of its run (exported --no-catalog)")
+    if renderer.catalog is None and not on:
+        raise EvalError(
+            "the model names no stores of its run (exported --no-catalog), so its held-out "
+            "materials are unknown: evaluate it --on a store of other materials"
+        )
     if on:
-        trained = _trained_sources(run_stores, catalog.heldout)
+        trained = _trained_sources(renderer, stores) if trained_on_is_checked(renderer) else set()
         for url in on:
             store = Store(url)
             if store.layout.resolution != renderer.config.resolution:
@@ -129,6 +128,9 @@ def test_split(renderer: MapsRenderer, stores: list[str] | None, on: list[str] |
                     "--on takes stores of other materials"
                 )
         return Catalog.snapshot(list(on), 0, 0.0, None).split("all")
+    catalog = _catalog(renderer, stores)
+    for url in catalog.urls:
+        _run_store(url)  # one not where the run recorded it is named, with what to do
     split = catalog.split("test")
     if len(split) == 0:
         raise EvalError(
@@ -136,6 +138,25 @@ def test_split(renderer: MapsRenderer, stores: list[str] | None, on: list[str] |
             "> 0, or evaluate --on a store of other materials)"
         )
     return split
+
+
+def trained_on_is_checked(renderer: MapsRenderer) -> bool:
+    """Whether ``--on`` stores are checked against the materials the run trained on: not
+    for a model that names no stores of its run."""
+    return renderer.catalog is not None
+
+
+def _catalog(renderer: MapsRenderer, stores: list[str] | None) -> Catalog:
+    """The run's catalog, its stores at ``stores`` when given."""
+    catalog = Catalog.from_dict(renderer.catalog)
+    if stores:
+        if len(stores) != len(catalog.urls):
+            raise EvalError(
+                f"the checkpoint's run trained on {len(catalog.urls)} store(s) "
+                f"({', '.join(catalog.urls)}), {len(stores)} given"
+            )
+        catalog.urls = list(stores)
+    return catalog
 
 
 def _run_store(url: str) -> Store:
@@ -147,11 +168,13 @@ def _run_store(url: str) -> Store:
         raise EvalError(f"{exc}: the run's store is not there; --store says where it is") from None
 
 
-def _trained_sources(stores: list[Store], heldout: list[list[int]]) -> set[str]:
-    """Source ids of the materials a run trained on (its ``stores``' committed materials,
-    less the ``heldout`` ones of each)."""
+def _trained_sources(renderer: MapsRenderer, stores: list[str] | None) -> set[str]:
+    """Source ids of the materials the run trained on (its stores' committed materials, less
+    the held-out ones of each), its stores at ``stores`` when given."""
+    catalog = _catalog(renderer, stores)
+    run_stores = [_run_store(url) for url in catalog.urls]
     out = set()
-    for store, held in zip(stores, heldout, strict=True):
+    for store, held in zip(run_stores, catalog.heldout, strict=True):
         for m, rec in store.materials().items():
             if m not in set(held):
                 out.add(rec["source_id"])
@@ -172,12 +195,10 @@ def evaluate(
     sample of the stores ``on`` (:func:`test_split`); writes a ground truth | prediction |
     error PNG grid of the first ``grid_count`` samples to ``grid`` when given."""
     renderer = load_renderer(ckpt, device)
-    if renderer.catalog is None:
-        raise EvalError(
-            f"{ckpt}: the model names no stores of its run, so neither its held-out materials "
-            "nor what it trained on are known; export it again from its checkpoint"
-        )
-    split = test_split(renderer, stores, on)
+    try:
+        split = test_split(renderer, stores, on)
+    except EvalError as exc:
+        raise EvalError(f"{ckpt}: {exc}" if renderer.catalog is None else str(exc)) from None
     reader = SampleReader(split)
     kinds = [{m: rec["kind"] for m, rec in s.materials().items()} for s in reader.stores]
     tally, shown = Tally(), []
@@ -198,6 +219,8 @@ def evaluate(
     result = {
         "checkpoint_step": renderer.step,
         "runtime": renderer.runtime,
+        # whether the --on stores were checked to hold no material the run trained on
+        "on_checked_against_run": trained_on_is_checked(renderer) if on else None,
         "samples": len(split),
         "on": list(on) if on else None,
         **tally.summary(),

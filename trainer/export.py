@@ -117,10 +117,11 @@ class Exported:
     opset: int
 
 
-def metadata(renderer: Renderer) -> dict[str, str]:
-    """The ``shaderball.*`` metadata the model file carries."""
+def metadata(renderer: Renderer, catalog: bool = True) -> dict[str, str]:
+    """The ``shaderball.*`` metadata the model file carries (without the run's catalog of
+    stores when not ``catalog``)."""
     state = getattr(renderer, "state", {})
-    return {
+    meta = {
         "shaderball.resolution": str(renderer.config.resolution),
         "shaderball.model_config": json.dumps(renderer.config.to_dict()),
         "shaderball.tonemap": json.dumps(renderer.tonemap.to_dict()),
@@ -131,9 +132,11 @@ def metadata(renderer: Renderer) -> dict[str, str]:
             "turbidity (N,) float32"
         ),
         "shaderball.output": "image (N, 3, R, R) float32 in [0, 1], display sRGB (tonemap)",
-        # the run's stores and held-out materials: `trainer eval` scores the file on them
-        "shaderball.catalog": json.dumps(renderer.catalog),
     }
+    if catalog and renderer.catalog is not None:
+        # the run's stores and held-out materials: `trainer eval` scores the file on them
+        meta["shaderball.catalog"] = json.dumps(renderer.catalog)
+    return meta
 
 
 def save_onnx(
@@ -211,11 +214,11 @@ def _restore_unused_inputs(proto, inputs: dict[str, torch.Tensor]) -> None:
     proto.graph.input.extend(declared)
 
 
-def _trace(renderer: Renderer, path: Path, opset: int) -> None:
+def _trace(renderer: Renderer, path: Path, opset: int, catalog: bool) -> None:
     """The ONNX file of :func:`graph_of` at ``path``, with a free batch size and metadata."""
     ex = example_inputs(renderer.config.resolution, 2)
     inputs = {k: torch.from_numpy(ex[k]) for k in INPUTS}
-    save_onnx(graph_of(renderer), inputs, OUTPUT, path, metadata(renderer), opset)
+    save_onnx(graph_of(renderer), inputs, OUTPUT, path, metadata(renderer, catalog), opset)
 
 
 def difference(session, renderer: Renderer, inputs: dict[str, np.ndarray]) -> float:
@@ -226,18 +229,21 @@ def difference(session, renderer: Renderer, inputs: dict[str, np.ndarray]) -> fl
     return float(np.abs(got - want).max())
 
 
-def export(renderer: Renderer, out: str | os.PathLike, opset: int = OPSET) -> Exported:
+def export(
+    renderer: Renderer, out: str | os.PathLike, opset: int = OPSET, catalog: bool = True
+) -> Exported:
     """Write ``renderer``'s network to ``out`` as ONNX of ``opset`` (and its screen UV layout
     beside it), after checking that ONNX Runtime renders it as torch does (:data:`TOLERANCE`,
-    on random inputs at batch 1 and 3). Nothing is left at ``out`` unless the check passed;
-    an old file there is replaced whole."""
+    on random inputs at batch 1 and 3); with the run's catalog of stores in its metadata
+    unless not ``catalog``. Nothing is left at ``out`` unless the check passed; an old file
+    there is replaced whole."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = create_beside(out, ".onnx")
     os.close(fd)
     try:
         try:
-            _trace(renderer, tmp, opset)
+            _trace(renderer, tmp, opset, catalog)
         except Exception as exc:  # noqa: BLE001 - the exporter raises many types
             lines = str(exc).strip().splitlines()
             raise ExportError(
