@@ -38,9 +38,10 @@ def untrainable(resolution: int, nearest: bool = True) -> str | None:
     m = TRAINABLE_MULTIPLE
     if resolution >= m and resolution % m == 0:
         return None
+    positive = "" if resolution > 0 else "positive "
     why = (
-        f"resolution {resolution} is not a multiple of {m}, which the trainer's U-Net needs "
-        "(it halves the image four times)"
+        f"resolution {resolution} is not a {positive}multiple of {m}, which the trainer's "
+        "U-Net needs (it halves the image four times)"
     )
     if not nearest:
         return why

@@ -83,7 +83,7 @@ def test_folded_batchnorm_gives_the_same_image():
 
 @pytest.mark.parametrize("res", [0, 40, 100, 401])
 def test_resolution_not_divisible_by_16(res):
-    with pytest.raises(ValueError, match=f"resolution {res} is not a positive multiple of 16"):
+    with pytest.raises(ValueError, match=f"resolution {res} is not a (positive )?multiple of 16"):
         ModelConfig(resolution=res)
 
 

@@ -26,6 +26,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from storage.schema import untrainable
+
 LIGHT_CHANNELS = 128
 #: the models: the paper's U-Net, and Zsolnai-Fehér et al. 2018's baseline (trainer.zf)
 ARCHS = ("unet", "zf")
@@ -40,11 +42,9 @@ class ModelConfig:
     arch: str = "unet"  # one of ARCHS
 
     def __post_init__(self) -> None:
-        if self.resolution < 16 or self.resolution % 16:
-            raise ValueError(
-                f"resolution {self.resolution} is not a positive multiple of 16 "
-                "(the U-Net halves it four times)"
-            )
+        why = untrainable(self.resolution, nearest=False)
+        if why:
+            raise ValueError(why)
         if self.width < 1:
             raise ValueError(f"width must be positive, not {self.width}")
         if self.arch not in ARCHS:
