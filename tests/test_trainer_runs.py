@@ -151,10 +151,15 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
         ([*args, "-o", str(tmp_path / "x.foo")], f"-o: '{tmp_path / 'x.foo'}' does not name"),
         ([*args, "--sweep", "6", "-o", str(tmp_path / "x.jpg")], "does not name an animation"),
         (["eval", "--checkpoint", str(trained), "--grid", str(tmp_path / "g.bmp")], "--grid"),
+        (["eval", "--checkpoint", str(trained), "--batch-size", "0"], "'--batch-size': 0 is not"),
+        (["eval", "--checkpoint", str(trained), "--grid-count", "-1"], "'--grid-count': -1 is"),
     ]:
         r = CliRunner().invoke(trainer_main, bad)
         assert r.exit_code == 2 and needle in r.output, r.output
     assert not list(tmp_path.glob("x.*")) and not (tmp_path / "g.bmp").exists()
+    no_grid = ["eval", "--checkpoint", str(trained), "--grid-count", "0"]
+    r = CliRunner().invoke(trainer_main, [*no_grid, "--grid", str(tmp_path / "none.png")])
+    assert r.exit_code == 0 and "grid:" not in r.output and not (tmp_path / "none.png").exists()
 
     # the Python API: one material under two suns at once, as the CLI did
     renderer = Renderer.from_checkpoint(trained, "cpu")
@@ -606,6 +611,12 @@ def test_launch_commands():
     assert "nodes need --rdzv-endpoint" in one_line_error(
         ["launch", "--nodes", "2", "--store", "s"]
     )
+    for option, value, says in [
+        ("--master-port", "99999", "99999 is not in the range 1<=x<=65535"),
+        ("--max-restarts", "-1", "-1 is not in the range x>=0"),
+    ]:
+        r = CliRunner().invoke(trainer_main, ["launch", "--dry-run", "--store", "s", option, value])
+        assert r.exit_code == 2 and f"Error: Invalid value for '{option}': {says}" in r.output
 
 
 @pytest.mark.parametrize("flaky", [False, True], ids=["s3", "flaky-s3"])

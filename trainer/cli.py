@@ -114,11 +114,13 @@ def _procs(ctx, param, value):
     envvar="PET_MASTER_ADDR",
     help="host of node 0, for torchrun's static rendezvous (Kubeflow Trainer)",
 )
-@click.option("--master-port", default=29400, type=int, envvar="PET_MASTER_PORT",
+@click.option("--master-port", default=29400, type=click.IntRange(1, 65535),
+              envvar="PET_MASTER_PORT",
               help="port of the static rendezvous on --master-addr")  # fmt: skip
 @click.option("--node-rank", type=int, default=None, envvar="PET_NODE_RANK",
               help="this node's rank (0 hosts rendezvous)")  # fmt: skip
-@click.option("--max-restarts", default=0, type=int, help="torchrun restarts of failed ranks")
+@click.option("--max-restarts", default=0, type=click.IntRange(min=0),
+              help="torchrun restarts of failed ranks")  # fmt: skip
 @click.option("--dry-run", is_flag=True, help="print the torchrun command, do not run it")
 @train_config.options
 def launch(
@@ -175,10 +177,12 @@ def launch(
 @main.command("eval")
 @click.option("--checkpoint", "ckpt", required=True, help=CHECKPOINT_OR_MODEL)
 @click.option("--store", "stores", multiple=True, help="the run's stores at another address")
-@click.option("--batch-size", default=8, show_default=True, type=int, help="images per batch")
+@click.option("--batch-size", default=8, show_default=True, type=click.IntRange(min=1),
+              help="images per batch")  # fmt: skip
 @click.option("--grid", type=click.Path(path_type=Path), default=None,
               help="the grid picture (.png, .jpg, .webp) [RUN/eval.png]")  # fmt: skip
-@click.option("--grid-count", default=4, show_default=True, type=int, help="samples in the grid")
+@click.option("--grid-count", default=4, show_default=True, type=click.IntRange(min=0),
+              help="samples in the grid (0: no grid)")  # fmt: skip
 @click.option(
     "--on",
     "on",

@@ -225,7 +225,7 @@ def evaluate(
         "on": list(on) if on else None,
         **tally.summary(),
     }
-    if grid is not None:
+    if grid is not None and shown:
         write_grid(grid, shown)
         result["grid"] = str(grid)
     return result
