@@ -514,6 +514,10 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
     for shard in range(2):
         write_shard(odd, shard, synthetic_payload(odd_layout, shard))
     assert "resolution 40 is not a multiple of 16" in one_line_error([*base, "--store", odd.url])
+    for option, value in [("--width", "0"), ("--seed", "-1"), ("--roughness-channels", "2"),
+                          ("--perceptual-weight", "-1"), ("--epochs", "0")]:  # fmt: skip
+        msg = one_line_error([*base, "--store", tiny_store.url, option, value])
+        assert msg.startswith(f"Error: invalid {option[2:].replace('-', '_')}: {value}"), msg
 
     env = {"TORCH_HOME": str(tmp_path / "torch-home")}
     msg = one_line_error(["train", "--out", str(run), "--store", tiny_store.url], env=env)
