@@ -52,9 +52,10 @@ def test_edits_change_what_they_name_and_nothing_else():
     samples[..., 9] = 0.55 + 0.45 * samples[..., 9]  # normals point out of the surface
 
     def edited(**kw):
-        s = samples.clone()
-        Edits(**kw).adjust(s)
-        return s
+        kept = samples.clone()
+        out = Edits(**kw).adjust(samples)
+        assert torch.equal(samples, kept)  # a new tensor: the looked-up values are kept
+        return out
 
     assert torch.equal(edited(), samples) and torch.equal(edited(tiling=3.0), samples)
     rough = edited(roughness_scale=0.5)

@@ -202,14 +202,13 @@ class ScreenMapper:
     @torch.inference_mode()
     def finish(self, looked: torch.Tensor, adjust=None) -> torch.Tensor:
         """:meth:`lookup`'s sub-samples ``(hits, B, 10)`` → stored maps ``(B, 11, R, R)
-        uint8``: ``adjust(samples)`` when given, on a copy (it may change the ``(hits, B,
-        10)`` values in place: linear colours, roughness, normal encoded (n + 1) / 2), the
-        pixel filter, colours encoded, the coverage appended, 8-bit rounding. ``looked`` is
-        left as it is."""
+        uint8``: ``adjust(samples)`` when given (a function of the ``(hits, B, 10)`` values,
+        linear colours, roughness, normal encoded (n + 1) / 2, that gives the edited values
+        and leaves its input as it is), the pixel filter, colours encoded, the coverage
+        appended, 8-bit rounding."""
         hits, b, c = looked.shape
         if adjust is not None:
-            looked = looked.clone()
-            adjust(looked)
+            looked = adjust(looked)
         out = torch.empty(b, c + 1, self.r, self.r, dtype=torch.uint8, device=self.device)
         self._filter_to_levels(looked, COLOUR.stop, out[:, :c])
         out[:, c] = self.coverage
@@ -218,7 +217,7 @@ class ScreenMapper:
     @torch.inference_mode()
     def finish_channels(self, looked: torch.Tensor, channels: slice, edit=None) -> torch.Tensor:
         """The stored maps' ``channels`` alone ``(B, k, R, R) uint8``: the bytes
-        :meth:`finish` gives them when its ``adjust`` writes ``edit(values)`` over these
+        :meth:`finish` gives them when its ``adjust`` gives ``edit(values)`` for these
         channels, ``edit`` being a function of their ``(hits, B, k)`` values (a view of
         ``looked``, to be left as it is) that gives the edited values. For an edit of one
         map (a slider), whose other channels are already mapped: nothing else is copied

@@ -300,32 +300,41 @@ class Edits:
         """The maps whose values differ between ``other`` and these edits."""
         return [g for g in CHANNEL_GROUPS if self.values_of(g) != other.values_of(g)]
 
-    def adjust(self, samples: torch.Tensor) -> None:
-        """Edit sub-samples ``(..., 10)`` in place: linear diffuse and specular, roughness,
-        normal encoded (n + 1) / 2 (``trainer.mapping.ScreenMapper.finish``'s ``adjust``):
-        :meth:`edited` of each edited map, written over its channels."""
-        for group in self.groups_changed_from(Edits()):
-            part = samples[..., CHANNEL_GROUPS[group]]
-            part.copy_(self.edited(group, part))
+    def adjust(self, samples: torch.Tensor) -> torch.Tensor:
+        """Sub-samples ``(..., 10)`` with these edits, as a new tensor (``samples`` are left
+        as they are): linear diffuse and specular, roughness, normal encoded (n + 1) / 2
+        (``trainer.mapping.ScreenMapper.finish``'s ``adjust``). Each map's channels are
+        written once: :meth:`edited` for an edited map, a copy for the others."""
+        out = torch.empty(samples.shape, dtype=samples.dtype, device=samples.device)
+        changed = self.groups_changed_from(Edits())
+        for group, channels in CHANNEL_GROUPS.items():
+            if group in changed:
+                self.edited(group, samples[..., channels], out=out[..., channels])
+            else:
+                out[..., channels] = samples[..., channels]
+        return out
 
-    def edited(self, group: str, samples: torch.Tensor) -> torch.Tensor:
-        """Map ``group``'s channels ``samples (..., k)`` with its edits, as a new tensor
-        (``samples`` are left as they are: ``trainer.mapping.ScreenMapper.finish_channels``'s
-        ``edit``). Few torch operations, the gains reckoned in numpy: in the viewer, each
-        operation between two frames of the network costs more than its arithmetic."""
+    def edited(
+        self, group: str, samples: torch.Tensor, out: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Map ``group``'s channels ``samples (..., k)`` with its edits, in ``out`` or a new
+        tensor (``samples`` are left as they are: ``trainer.mapping.ScreenMapper.
+        finish_channels``'s ``edit``). Few torch operations, the gains reckoned in numpy:
+        in the viewer, each operation between two frames of the network costs more than
+        its arithmetic."""
         if group in ("diffuse", "specular"):
             tint, scale = self.values_of(group)
             gain = torch.from_numpy(srgb_to_linear(np.array(tint, np.float32)) * np.float32(scale))
-            return (samples * gain.to(samples.device)).clamp_(0.0, 1.0)
+            return torch.mul(samples, gain.to(samples.device), out=out).clamp_(0.0, 1.0)
         if group == "roughness":
-            return (samples * self.roughness_scale).clamp_(0.0, 1.0)
+            return torch.mul(samples, self.roughness_scale, out=out).clamp_(0.0, 1.0)
         n = samples * 2.0 - 1.0
         n[..., :2] *= self.normal_strength
         x, y, z = n.unbind(-1)  # the length by components: a reduction over 3 is slower
         length2 = x * x
         length2.addcmul_(y, y).addcmul_(z, z)
         n.mul_(length2.clamp_min_(1e-12).rsqrt_().unsqueeze(-1))
-        return n.add_(1.0).mul_(0.5).clamp_(0.0, 1.0)
+        return torch.clamp(n.add_(1.0).mul_(0.5), 0.0, 1.0, out=out)
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
