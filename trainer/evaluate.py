@@ -31,6 +31,10 @@ class EvalError(ValueError):
     """Nothing to evaluate, or stores that do not match the checkpoint."""
 
 
+class NoCatalog(EvalError):
+    """The model names no stores of its run (``trainer export --no-catalog``)."""
+
+
 def psnr(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Per image PSNR in dB of ``(N, C, H, W)`` images in [0, 1] → ``(N,)``."""
     mse = ((pred - target) ** 2).flatten(1).mean(1).clamp_min(1e-12)
@@ -106,9 +110,9 @@ def test_split(renderer: MapsRenderer, stores: list[str] | None, on: list[str] |
     which must not be stores the run trained on (unchecked for a model exported without
     its run's catalog: :func:`trained_on_is_checked`)."""
     if renderer.catalog is None and stores:
-        raise EvalError("--store: the model names no stores of its run (exported --no-catalog)")
+        raise NoCatalog("--store: the model names no stores of its run (exported --no-catalog)")
     if renderer.catalog is None and not on:
-        raise EvalError(
+        raise NoCatalog(
             "the model names no stores of its run (exported --no-catalog), so its held-out "
             "materials are unknown: evaluate it --on a store of other materials"
         )
@@ -197,8 +201,8 @@ def evaluate(
     renderer = load_renderer(ckpt, device)
     try:
         split = test_split(renderer, stores, on)
-    except EvalError as exc:
-        raise EvalError(f"{ckpt}: {exc}" if renderer.catalog is None else str(exc)) from None
+    except NoCatalog as exc:
+        raise NoCatalog(f"{ckpt}: {exc}") from None
     reader = SampleReader(split)
     kinds = [{m: rec["kind"] for m, rec in s.materials().items()} for s in reader.stores]
     tally, shown = Tally(), []
