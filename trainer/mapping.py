@@ -208,7 +208,7 @@ class ScreenMapper:
         appended, 8-bit rounding."""
         hits, b, c = looked.shape
         if adjust is not None:
-            looked = adjust(looked)
+            looked = adjust(looked).contiguous()
         out = torch.empty(b, c + 1, self.r, self.r, dtype=torch.uint8, device=self.device)
         self._filter_to_levels(looked, COLOUR.stop, out[:, :c])
         out[:, c] = self.coverage
