@@ -183,9 +183,13 @@ def _parse_range(text: str, total: int) -> range:
         else:
             r = range(int(text), int(text) + 1)
     except ValueError:
-        raise click.BadParameter(f"{text!r} is not START:STOP or an index") from None
+        raise click.BadParameter(
+            f"{text!r} is not START:STOP or an index", param_hint="--samples"
+        ) from None
     if r.start < 0 or r.stop > total or r.start >= r.stop:
-        raise click.BadParameter(f"{text!r} is outside the store's 0:{total}")
+        raise click.BadParameter(
+            f"{text!r} is outside the store's 0:{total}", param_hint="--samples"
+        )
     return r
 
 

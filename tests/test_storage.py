@@ -374,7 +374,9 @@ def test_cli_bad_input_is_one_line(tmp_path):
         assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr, args
     assert not (tmp_path / "e").exists() or not list((tmp_path / "e").iterdir())
     r = shards("export", path, tmp_path / "e", "--samples", "9:2")
-    assert r.returncode == 2 and "outside" in r.stderr
+    assert r.returncode == 2 and "Invalid value for --samples: '9:2' is outside" in r.stderr
+    r = shards("export", path, tmp_path / "e", "--samples", "1:2:3")
+    assert r.returncode == 2 and "for --samples: '1:2:3' is not START:STOP" in r.stderr
     r = shards("show", path, "--sample", "5", "-o", tmp_path / "s5.txt")
     assert r.returncode == 2 and "'s5.txt' does not name a picture" in r.stderr.replace(
         str(tmp_path) + "/", ""
