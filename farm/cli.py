@@ -414,7 +414,11 @@ def dashboard(roots, run_dirs, host, port, token):
     from farm.web import serve, token_for
 
     token = token_for(host, token, echo=click.echo)
-    app = make_app(Dashboard(list(roots) or ["out"], list(run_dirs)), token)
+    roots = list(roots) or ["out"]
+    for where in [*roots, *run_dirs]:  # a typo, or a folder the farm or trainer makes later
+        if "://" not in where and not Path(where).exists():
+            click.echo(f"warning: {where} does not exist (yet): shown once it is written", err=True)
+    app = make_app(Dashboard(roots, list(run_dirs)), token)
     serve(app, host, port, lambda line: click.echo(line, err=True), "dashboard")
 
 

@@ -145,6 +145,18 @@ def test_a_taken_port_or_an_unknown_host_is_one_line(tmp_path):
     r = subprocess.run(bad_host, capture_output=True, text=True)
     assert r.returncode == 1 and len(r.stderr.splitlines()) == 1
     assert r.stderr.startswith("Error: cannot listen on --host no-such-host.invalid: ")
+    missing = [*dashboard[:2], str(tmp_path / "typo"), "--runs", str(tmp_path / "runs")]
+    with socket.socket() as taken:  # a root and a runs folder not there: said, not refused
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = subprocess.run([*missing, "--port", str(port)], capture_output=True, text=True)
+    assert r.stderr.splitlines() == [
+        f"warning: {tmp_path / 'typo'} does not exist (yet): shown once it is written",
+        f"warning: {tmp_path / 'runs'} does not exist (yet): shown once it is written",
+        f"Error: cannot listen on 127.0.0.1:{port}: Address already in use "
+        "(another --port, or 0 for any free one)",
+    ]
 
 
 def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
