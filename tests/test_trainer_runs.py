@@ -598,6 +598,13 @@ def test_eval_on_other_materials_refuses_the_runs_own(tiny_store, trained, tmp_p
     assert "of its materials were trained on" in own and own.startswith(f"Error: {tiny_store.url}")
     moved = ["eval", "--checkpoint", str(trained), "--store", str(tmp_path / "moved.zarr")]
     assert "the run's store is not there" in one_line_error([*moved, "--on", other.url])
+    small = create_store(str(tmp_path / "small.zarr"), Layout(2, 2, 32, 4), {})
+    wrong = ["eval", "--checkpoint", str(trained), "--store"]
+    for store, says in [
+        (small.url, "small.zarr: 32², the run's stores are 64²: not the run's store"),
+        (other.url, "other.zarr: 3 shard(s) the run read are not committed there (e.g. shard 1)"),
+    ]:  # another store at --store is named, not read into a traceback
+        assert says in one_line_error([*wrong, store]), store
 
 
 def test_launch_commands():

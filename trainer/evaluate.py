@@ -133,8 +133,7 @@ def test_split(renderer: MapsRenderer, stores: list[str] | None, on: list[str] |
                 )
         return Catalog.snapshot(list(on), 0, 0.0, None).split("all")
     catalog = _catalog(renderer, stores)
-    for url in catalog.urls:
-        _run_store(url)  # one not where the run recorded it is named, with what to do
+    _run_stores(catalog)  # one not where the run recorded it is named, with what to do
     split = catalog.split("test")
     if len(split) == 0:
         raise EvalError(
@@ -163,20 +162,38 @@ def _catalog(renderer: MapsRenderer, stores: list[str] | None) -> Catalog:
     return catalog
 
 
-def _run_store(url: str) -> Store:
-    """A store the run trained on; an :class:`EvalError` that says how to point at it when it
-    is not where the run recorded it."""
-    try:
-        return Store(url)
-    except StoreError as exc:
-        raise EvalError(f"{exc}: the run's store is not there; --store says where it is") from None
+def _run_stores(catalog: Catalog) -> list[Store]:
+    """The stores the run trained on; an :class:`EvalError` that says how to point at one
+    that is not where the run recorded it, or that is not the run's (another resolution,
+    or without the shards the run read)."""
+    out = []
+    for url, shards in zip(catalog.urls, catalog.shards, strict=True):
+        try:
+            store = Store(url)
+        except StoreError as exc:
+            raise EvalError(
+                f"{exc}: the run's store is not there; --store says where it is"
+            ) from None
+        if store.layout.resolution != catalog.resolution:
+            raise EvalError(
+                f"{url}: {store.layout.resolution}², the run's stores are "
+                f"{catalog.resolution}²: not the run's store (--store names where it is)"
+            )
+        gone = sorted(set(shards) - set(store.committed_shards()))
+        if gone:
+            raise EvalError(
+                f"{url}: {len(gone)} shard(s) the run read are not committed there (e.g. "
+                f"shard {gone[0]}): not the run's store (--store names where it is)"
+            )
+        out.append(store)
+    return out
 
 
 def _trained_sources(renderer: MapsRenderer, stores: list[str] | None) -> set[str]:
     """Source ids of the materials the run trained on (its stores' committed materials, less
     the held-out ones of each), its stores at ``stores`` when given."""
     catalog = _catalog(renderer, stores)
-    run_stores = [_run_store(url) for url in catalog.urls]
+    run_stores = _run_stores(catalog)
     out = set()
     for store, held in zip(run_stores, catalog.heldout, strict=True):
         for m, rec in store.materials().items():
