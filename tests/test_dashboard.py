@@ -113,6 +113,15 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets):
         assert s.get("/", {"Host": f"localhost:{s.port}"})[0] == 200
 
 
+def test_an_empty_jobs_page_says_where_it_looked_and_what_it_filtered(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with Server(tmp_path / "empty", tmp_path / "later") as s:
+        code, page = s.get("/")
+        roots = f"{tmp_path / 'empty'}, {tmp_path / 'later'}"
+        assert code == 200 and f"No stores found under\n{roots}." in page.decode()
+        assert b"No failed jobs." in s.get("/?status=failed")[1]
+
+
 def test_a_non_loopback_host_needs_a_token(sets):
     with Server(sets, host="0.0.0.0") as s:
         deadline = time.time() + 10

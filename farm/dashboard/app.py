@@ -156,8 +156,9 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         want = request.query.get("status")
         if want:
             rows = [r for r in rows if r.get("status") == want]
+        roots = [root.url for root in dash.roots]
         return html(text=pages.render("jobs", rows=rows, statuses=jobs.STATUSES, secret=secret,
-                                      title="jobs"))  # fmt: skip
+                                      title="jobs", want=want, roots=roots))  # fmt: skip
 
     async def job(request):
         ctx = await _blocking(dash.job_context, request.match_info["name"])
