@@ -119,7 +119,7 @@ def test_an_empty_jobs_page_says_where_it_looked_and_what_it_filtered(tmp_path):
         code, page = s.get("/")
         roots = f"{tmp_path / 'empty'}, {tmp_path / 'later'}"
         assert code == 200 and f"No stores found under\n{roots}." in page.decode()
-        assert b"No failed jobs." in s.get("/?status=failed")[1]
+        assert b"No jobs match the filter: failed." in s.get("/?status=failed")[1]
 
 
 def test_a_non_loopback_host_needs_a_token(sets):
