@@ -66,7 +66,8 @@ frames/s</th><th class="num">ETA</th><th class="num">failed materials</th><th cl
 <td class="num">{{ "%.2f"|format(r.frames_per_s) }}</td><td class="num">{{ r.eta_s|dur }}</td>
 <td class="num">{{ r.failed }}</td><td class="num">{{ r.workers }}</td>
 <td class="num">{{ r.age_s|dur }}</td>{% endif %}</tr>{% endfor %}</table>
-{% if not rows and want %}<p>No jobs match the filter: {{ want }}.</p>{% elif not rows %}<p>No stores found under
+{% if not rows and want %}<p>No jobs match the filter: {{ want }}.</p>
+{% elif not rows %}<p>No stores found under
 {{ roots|join(", ") }}.</p>{% endif %}{% endblock %}"""
 
 JOB = """{% extends "base" %}{% block main %}{% include "job_live" %}{% endblock %}"""
