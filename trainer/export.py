@@ -120,12 +120,11 @@ class Exported:
 def metadata(renderer: Renderer, catalog: bool = True) -> dict[str, str]:
     """The ``shaderball.*`` metadata the model file carries (without the run's catalog of
     stores when not ``catalog``)."""
-    state = getattr(renderer, "state", {})
     meta = {
         "shaderball.resolution": str(renderer.config.resolution),
         "shaderball.model_config": json.dumps(renderer.config.to_dict()),
         "shaderball.tonemap": json.dumps(renderer.tonemap.to_dict()),
-        "shaderball.checkpoint_step": str(state.get("step", "")),
+        "shaderball.checkpoint_step": "" if renderer.step is None else str(renderer.step),
         "shaderball.inputs": (
             "maps (N, 11, R, R) uint8 stored maps: diffuse, specular (sRGB), roughness, "
             "normal ((n + 1) / 2), coverage (not read); sun (N, 3) float32 direction, z up; "

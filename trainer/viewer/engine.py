@@ -146,9 +146,9 @@ class Engine:
         changed = None if last is None else edits.groups_changed_from(last[0])
         if changed is not None and len(changed) <= 1:
             packed = last[1].clone()
+            edited = edits.groups_changed_from(Edits())
             for group in changed:
-                edited = edits.values_of(group) != Edits().values_of(group)
-                edit = partial(edits.edited, group) if edited else None
+                edit = partial(edits.edited, group) if group in edited else None
                 channels = CHANNEL_GROUPS[group]
                 packed[:, channels] = self.mapper.finish_channels(looked, channels, edit)
         else:
