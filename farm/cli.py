@@ -257,27 +257,7 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
     help="Denoise each render with Cycles' OpenImageDenoise (albedo + normal): a baseline "
     "store; with the same sources and --seed its samples pair with the ground truth's.",
 )
-def submit(
-    sources,
-    out,
-    suns,
-    resolution,
-    samples,
-    seed,
-    shard_size,
-    workers,
-    cpus_per_worker,
-    gpus_per_worker,
-    address,
-    ray_dashboard,
-    max_attempts,
-    task_timeout,
-    recycle_after,
-    rss_limit_mb,
-    fixed_sun,
-    fixed_turbidity,
-    denoise,
-):
+def submit(out, **options):
     """Render a dataset on Ray workers into a shard store; resumes an interrupted job.
 
     Plans every material x --suns suns (seeded by --seed), validates every material first,
@@ -294,35 +274,9 @@ def submit(
     _require("farm submit", "ray")
     from farm.driver import FarmError, terminated
     from farm.driver import submit as run
-    from farm.plan import JobConfig
 
     try:
-        cfg = _job_config(
-            JobConfig,
-            sources=tuple(sources),
-            out=out,
-            suns=suns,
-            resolution=resolution,
-            samples=samples,
-            seed=seed,
-            shard_size=shard_size,
-            workers=workers,
-            cpus_per_worker=cpus_per_worker,
-            gpus_per_worker=gpus_per_worker,
-            address=address,
-            ray_dashboard=ray_dashboard,
-            max_attempts=max_attempts,
-            task_timeout_s=task_timeout,
-            recycle_after=recycle_after,
-            rss_limit_mb=rss_limit_mb,
-            denoise=denoise,
-            fixed_sun=_fixed_sun(fixed_sun, fixed_turbidity),
-        )
-        if cfg.shard_size % suns:
-            raise FarmError(f"--shard-size {shard_size} must be a multiple of --suns {suns}")
-        if why := untrainable(resolution):
-            raise FarmError(f"--{why}")
-        summary = run(cfg, echo=click.echo)
+        summary = run(_submit_config(out, **options), echo=click.echo)
     except (FarmError, MaterialError) as exc:
         raise click.ClickException(str(exc)) from None
     except KeyboardInterrupt:
@@ -333,6 +287,33 @@ def submit(
             err=True,
         )
         sys.exit(128 + sig)
+    _echo_summary(summary)
+
+
+def _submit_config(out, sources, task_timeout, fixed_sun, fixed_turbidity, **options):
+    """``farm submit``'s options → its ``JobConfig``; a refused setting ends in one line."""
+    from farm.driver import FarmError
+    from farm.plan import JobConfig
+
+    cfg = _job_config(
+        JobConfig,
+        sources=tuple(sources),
+        out=out,
+        task_timeout_s=task_timeout,
+        fixed_sun=_fixed_sun(fixed_sun, fixed_turbidity),
+        **options,
+    )
+    if cfg.shard_size % cfg.suns:
+        raise FarmError(
+            f"--shard-size {options['shard_size']} must be a multiple of --suns {cfg.suns}"
+        )
+    if why := untrainable(cfg.resolution):
+        raise FarmError(f"--{why}")
+    return cfg
+
+
+def _echo_summary(summary) -> None:
+    """What a finished, cancelled or failed job did; a failed one exits 1."""
     rate = summary.frames_rendered / summary.wall_s if summary.wall_s else 0.0
     click.echo(
         f"frames    {summary.frames_rendered} rendered, {summary.frames_skipped} already "

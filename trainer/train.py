@@ -183,27 +183,8 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         total = steps_left(len(split), rk.world, cfg.batch_size, t.position)
         bar = tqdm(total=total, desc=f"epoch {t.epoch + 1}/{cfg.epochs}", disable=not rk.master)
         log.new_window()
-        join = t.net.join() if rk.distributed else contextlib.nullcontext()
-        with join, contextlib.closing(bar):  # the bar ends its line even on errors
-            for batch, waited in _timed(itertools.islice(batches, mine)):
-                if batch["epoch"] != t.epoch:
-                    raise RuntimeError(
-                        f"the loader is out of step: epoch {batch['epoch']} in {t.epoch}"
-                    )
-                loss = train_step(cfg, rk, t, batch)
-                t.step += 1
-                t.position = min(t.position + rk.world * cfg.batch_size, len(split))
-                images += len(batch["id"])
-                log.record(t, batch, loss, waited, bar)
-                if t.step % cfg.log_every == 0:
-                    check_finite(t, out)
-                    log.flush(t, bar)
-                if t.step % cfg.checkpoint_every == 0:
-                    save(cfg, rk, t, out, log)
-                if _at_max_steps(cfg, t):
-                    break
-            if log.window["n"]:  # the steps since the last log line: every step is logged
-                log.flush(t, bar)
+        with contextlib.closing(bar):  # the bar ends its line even on errors
+            images += _epoch(cfg, rk, t, itertools.islice(batches, mine), len(split), log, bar)
         if not _at_max_steps(cfg, t):
             t.epoch, t.position = t.epoch + 1, 0
         save(cfg, rk, t, out, log)
@@ -217,6 +198,35 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         "images_per_second": round(images * rk.world / seconds, 2) if seconds > 0 else None,
         "checkpoint": str(log.last_checkpoint or checkpoint.latest(out) or ""),
     }
+
+
+def _epoch(cfg: TrainConfig, rk: Rank, t: Trainee, batches, split_size: int, log, bar) -> int:
+    """Train on ``batches`` (the rest of ``t.epoch``, or up to ``cfg.max_steps``) of a
+    training split of ``split_size`` samples, logging every step and checkpointing on
+    schedule; the number of images this rank trained on."""
+    out, images = Path(cfg.out), 0
+    join = t.net.join() if rk.distributed else contextlib.nullcontext()
+    with join:
+        for batch, waited in _timed(batches):
+            if batch["epoch"] != t.epoch:
+                raise RuntimeError(
+                    f"the loader is out of step: epoch {batch['epoch']} in {t.epoch}"
+                )
+            loss = train_step(cfg, rk, t, batch)
+            t.step += 1
+            t.position = min(t.position + rk.world * cfg.batch_size, split_size)
+            images += len(batch["id"])
+            log.record(t, batch, loss, waited, bar)
+            if t.step % cfg.log_every == 0:
+                check_finite(t, out)
+                log.flush(t, bar)
+            if t.step % cfg.checkpoint_every == 0:
+                save(cfg, rk, t, out, log)
+            if _at_max_steps(cfg, t):
+                break
+        if log.window["n"]:  # the steps since the last log line: every step is logged
+            log.flush(t, bar)
+    return images
 
 
 def _at_max_steps(cfg: TrainConfig, t: Trainee) -> bool:
