@@ -177,6 +177,9 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
         for s in (10, 20)
     ]  # fmt: skip
     (runs / "log.jsonl").write_text("\n".join(json.dumps(x) for x in lines))
+    scores = [{"step": s, "epoch": 0, "samples": 4, "psnr": p, "ssim": 0.5} for s, p in
+              ((10, 21.5), (20, 23.25), (30, 22.0))]  # fmt: skip
+    (runs / "val.jsonl").write_text("\n".join(json.dumps(x) for x in scores) + "\n{torn")
     with Server(sets, "--runs", tmp_path / "runs") as s:
         code, body = s.get("/metrics")
         families = {f.name: f for f in text_string_to_metric_families(body.decode())}
@@ -198,6 +201,10 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     run = (("run", f"{tmp_path / 'runs'}/r1"),)
     assert value[("shaderball_train_step", run)] == 20
     assert value[("shaderball_train_loss", run)] == pytest.approx(0.05)
+    assert value[("shaderball_train_val_psnr_db", run)] == 22.0  # the last score, not the best
+    assert value[("shaderball_train_val_ssim", run)] == 0.5
+    assert "held-out PSNR<b>22.00 dB</b>" in runs_page  # a torn last line is skipped
+    assert "best 23.25 dB at step 20" in runs_page and "steps 10 to 30" in runs_page
     assert not any("material=" in str(k) for k in value)  # never a material label
     assert f"{tmp_path / 'runs'}/r1 <small>" in runs_page and "<svg" in runs_page
 

@@ -28,11 +28,12 @@ from tests.test_trainer import vgg_weights_file
 from trainer import checkpoint
 from trainer.cli import main as trainer_main
 from trainer.config import TrainConfig
-from trainer.data import Catalog, ShardStream, loader
+from trainer.data import Catalog, ShardStream, loader, steps_left
 from trainer.infer import Renderer
 from trainer.model import ModelConfig, NeuralRenderer
 from trainer.targets import Tonemap, model_inputs
 from trainer.train import TrainingDiverged, train
+from trainer.validation import Validator
 
 pytestmark = pytest.mark.slow
 
@@ -121,6 +122,15 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     assert Image.open(tmp_path / "g.png").size == (3 * 256, 24 + rows * 256)  # under a header
     kept = json.loads((trained / "eval.json").read_text())  # for the dashboard's runs page
     assert kept["overall"] == result["overall"]
+    # the held-out scores the run kept at each epoch's end: the last, of the final weights,
+    # is what eval says of them (every held-out sample: fewer than --val-samples)
+    val = [json.loads(line) for line in (trained / "val.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in val] == [9 * e for e in range(1, 7)]
+    assert [r["epoch"] for r in val] == list(range(6))
+    assert all(r["samples"] == result["samples"] for r in val)
+    assert val[-1]["psnr"] == pytest.approx(result["overall"]["psnr"], abs=2e-3)
+    assert val[-1]["ssim"] == pytest.approx(result["overall"]["ssim"], abs=2e-4)
+    assert val[-1]["psnr"] > val[0]["psnr"]
 
     out = tmp_path / "a.png"
     args = ["render", "--checkpoint", str(trained), "--store", tiny_store.url, "--sample", "4"]
@@ -411,15 +421,37 @@ def test_one_iteration_reads_across_epochs_in_the_planned_order(tiny_store, work
     assert got == want and len(want) == 2 + 4
 
 
+def test_held_out_scores_are_evenly_spaced_and_change_nothing_trained(tiny_store, tmp_path):
+    split = Catalog.snapshot([tiny_store.url], 0, 0.5, None).split("test")
+    n = len(split)
+    assert list(Validator(split, 3).ids) == [0, round((n - 1) / 2), n - 1]
+    assert list(Validator(split, 99).ids) == list(range(n)) and not len(Validator(split, 0))
+    # scoring every step (eval mode, then back) leaves the training where it was
+    params = []
+    for name, every, count in (("scored", 1, 64), ("unscored", 0, 0)):
+        train(config(tiny_store, tmp_path / name, max_steps=4, val_every=every, val_samples=count))
+        params.append(Renderer.from_checkpoint(tmp_path / name).model.state_dict())
+    assert len((tmp_path / "scored" / "val.jsonl").read_text().splitlines()) == 4
+    assert not (tmp_path / "unscored" / "val.jsonl").exists()
+    assert all(torch.equal(params[0][k], params[1][k]) for k in params[0])
+
+
 def test_torchrun_two_ranks_stay_identical_and_read_disjoint_samples(tiny_store, tmp_path):
     out = tmp_path / "ddp"
     cmd = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
     cmd += argv(tiny_store, out, epochs=2, batch_size=4, workers=2, log_samples=True)
+    cmd += ["--val-every", "2", "--val-samples", "4"]
     r = run_group(cmd, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "--standalone" in r.stderr and "done: " in r.stdout
     catalog = Catalog.from_dict(checkpoint.load(out)["catalog"])
     split = catalog.split("train")
+    # rank 0 alone scored, every 2 steps and at each epoch's end (3 steps an epoch here)
+    per_epoch = steps_left(len(split), 2, 4)
+    val = [json.loads(line) for line in (out / "val.jsonl").read_text().splitlines()]
+    ends = {per_epoch * e for e in (1, 2)}
+    assert [x["step"] for x in val] == sorted(set(range(2, 2 * per_epoch + 1, 2)) | ends)
+    assert {x["samples"] for x in val} == {4} and "held-out PSNR" in r.stdout
     lines = [sample_lines(out, rank) for rank in range(2)]
     assert lines[0][-1].startswith("params ") and lines[0][-1] == lines[1][-1]
     for epoch in range(2):
@@ -515,7 +547,8 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
         write_shard(odd, shard, synthetic_payload(odd_layout, shard))
     assert "resolution 40 is not a multiple of 16" in one_line_error([*base, "--store", odd.url])
     for option, value in [("--width", "0"), ("--seed", "-1"), ("--roughness-channels", "2"),
-                          ("--perceptual-weight", "-1"), ("--epochs", "0")]:  # fmt: skip
+                          ("--perceptual-weight", "-1"), ("--epochs", "0"),
+                          ("--val-every", "-1"), ("--val-samples", "-2")]:  # fmt: skip
         msg = one_line_error([*base, "--store", tiny_store.url, option, value])
         assert msg.startswith(f"Error: invalid {option[2:].replace('-', '_')}: {value}"), msg
 
@@ -553,6 +586,7 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
 def test_existing_run_needs_resume_and_eval_needs_a_holdout(tiny_store, tmp_path):
     out = tmp_path / "r"
     train(config(tiny_store, out, max_steps=1, holdout_fraction=0.0))
+    assert not (out / "val.jsonl").exists()  # nothing held out, nothing scored
     msg = one_line_error(["train", "--loss", "l1", "--store", tiny_store.url, "--out", str(out)])
     assert "already holds checkpoints: pass --resume" in msg
     resume = ["train", "--loss", "l1", "--store", tiny_store.url, "--out", str(out), "--resume"]

@@ -86,9 +86,11 @@ def train(**kwargs) -> None:
         cfg.resume = True  # torchrun restarted the ranks: continue from the last checkpoint
     summary = _train_errors(train, cfg)
     if int(os.environ.get("RANK", "0")) == 0:
+        val = summary["val"]
+        held = f"; held-out PSNR {val['psnr']:.2f} dB at step {val['step']}" if val else ""
         click.echo(
             f"done: {summary['steps']} steps, {summary['images_per_second']} images/s, "
-            f"{summary['seconds']:.1f} s; checkpoint {summary['checkpoint']}\n"
+            f"{summary['seconds']:.1f} s{held}; checkpoint {summary['checkpoint']}\n"
             f"evaluate: trainer eval --checkpoint {shlex.quote(cfg.out)}"
         )
 

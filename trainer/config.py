@@ -61,6 +61,14 @@ class TrainConfig:
     checkpoint_every: int = _opt(500, "steps between checkpoints (and at each epoch's end)")
     keep: int = _opt(3, "checkpoints kept")
     log_every: int = _opt(10, "steps between log lines and TensorBoard points")
+    val_every: int = _opt(
+        0,
+        "steps between held-out PSNR / SSIM scores (val.jsonl, TensorBoard val/), besides the "
+        "one at each epoch's end (0: at each epoch's end only)",
+    )
+    val_samples: int = _opt(
+        64, "held-out samples scored, evenly spaced over the held-out split (0: no scores)"
+    )
     max_steps: int | None = _opt(None, "stop (with a checkpoint) after this many steps in all")
     resume: bool = _opt(False, "continue from the run folder's latest checkpoint")
     device: str = _opt(
@@ -81,6 +89,8 @@ class TrainConfig:
             "workers": self.workers >= 0,
             "checkpoint_every": self.checkpoint_every >= 1,
             "log_every": self.log_every >= 1,
+            "val_every": self.val_every >= 0,
+            "val_samples": self.val_samples >= 0,
             "keep": self.keep >= 1,
             "shuffle_buffer": self.shuffle_buffer >= 1,
             "holdout_fraction": 0 <= self.holdout_fraction < 1,

@@ -44,6 +44,7 @@ from trainer.data import Catalog, ShardStream, loader, steps_left
 from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
 from trainer.targets import Tonemap, model_inputs
+from trainer.validation import Validator
 
 
 class TrainingDiverged(RuntimeError):
@@ -162,11 +163,14 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     )  # fmt: skip
     reader = loader(stream, cfg.workers, pin_memory=rk.cuda)
     log = RunLog(cfg, rk, out)
+    if rk.master and cfg.val_samples:
+        log.validator = Validator(catalog.split("test"), cfg.val_samples)
     if t.screen_uv is None:
         log.start(
             f"{catalog.urls[0]} has no screen UV layout: the checkpoints will render stored "
             "materials only (farm screen-uv STORE adds it; resume to carry it)"
         )
+    log.start(log.validation_plan())
     log.start(
         f"training on {len(split)} samples (held-out materials: "
         f"{sum(map(len, catalog.heldout))}), {rk.world} rank(s) x batch {cfg.batch_size} "
@@ -185,6 +189,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         log.new_window()
         with contextlib.closing(bar):  # the bar ends its line even on errors
             images += _epoch(cfg, rk, t, itertools.islice(batches, mine), len(split), log, bar)
+        log.validate(t, bar)  # the epoch's weights, unless the last step just scored them
         if not _at_max_steps(cfg, t):
             t.epoch, t.position = t.epoch + 1, 0
         save(cfg, rk, t, out, log)
@@ -197,6 +202,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         "seconds": round(seconds, 3),
         "images_per_second": round(images * rk.world / seconds, 2) if seconds > 0 else None,
         "checkpoint": str(log.last_checkpoint or checkpoint.latest(out) or ""),
+        "val": log.last_val,
     }
 
 
@@ -220,6 +226,8 @@ def _epoch(cfg: TrainConfig, rk: Rank, t: Trainee, batches, split_size: int, log
             if t.step % cfg.log_every == 0:
                 check_finite(t, out)
                 log.flush(t, bar)
+            if cfg.val_every and t.step % cfg.val_every == 0:
+                log.validate(t, bar)
             if t.step % cfg.checkpoint_every == 0:
                 save(cfg, rk, t, out, log)
             if _at_max_steps(cfg, t):
@@ -385,9 +393,10 @@ class RunLog:
     """What a run records as it goes. Rank 0: ``config.json``, ``log.jsonl`` (one line every
     ``log_every`` steps and at the end of each epoch, for the steps since the line before:
     their count, rank 0's mean loss, images and images/s over all ranks, data-wait share),
-    TensorBoard under ``tb/`` and the progress bar's postfix. Every rank, with
-    ``--log-samples``: ``samples/rank-R.txt``, the sample ids of each step and, at the end, a
-    hash of the final parameters (identical on every rank of a DDP run)."""
+    TensorBoard under ``tb/`` and the progress bar's postfix; with a :attr:`validator`,
+    ``val.jsonl`` (:meth:`validate`). Every rank, with ``--log-samples``:
+    ``samples/rank-R.txt``, the sample ids of each step and, at the end, a hash of the final
+    parameters (identical on every rank of a DDP run)."""
 
     def __init__(self, cfg: TrainConfig, rk: Rank, out: Path):
         self.out, self.world, self.master = out, rk.world, rk.master
@@ -395,6 +404,9 @@ class RunLog:
         self.samples = None
         self.last_checkpoint: Path | None = None
         self.window = _new_window()
+        self.validator: Validator | None = None  # rank 0's, unless --val-samples 0
+        self.val_every, self.fmt = cfg.val_every, rk.fmt
+        self.last_val: dict | None = None
         if rk.master:
             out.mkdir(parents=True, exist_ok=True)
             from torch.utils.tensorboard import SummaryWriter
@@ -411,6 +423,39 @@ class RunLog:
 
     def new_window(self) -> None:
         self.window = _new_window()
+
+    def validation_plan(self) -> str:
+        """What :meth:`validate` will score, in a line."""
+        v = self.validator
+        if v is None:
+            return "held-out scores: off (--val-samples 0)"
+        if not len(v):
+            return "held-out scores: none (the run holds out no materials)"
+        every = f" and every {self.val_every} steps" if self.val_every else ""
+        return (
+            f"held-out scores: PSNR and SSIM of {len(v)} of the {v.of} held-out samples at "
+            f"each epoch's end{every} ({self.out / 'val.jsonl'})"
+        )
+
+    def validate(self, t: Trainee, bar) -> None:
+        """Score the network on the held-out samples (:mod:`trainer.validation`), once a
+        step: a line in ``val.jsonl``, TensorBoard's ``val/psnr`` and ``val/ssim``, a line
+        above the bar. Its time is left out of the window's images/s. Rank 0 only."""
+        v = self.validator
+        if v is None or not len(v) or (self.last_val or {}).get("step") == t.step:
+            return
+        scores = v.score(t.model, t.model_cfg.roughness_channels, t.tonemap, self.fmt)
+        self.window["t"] += scores["seconds"]
+        rec = {"step": t.step, "epoch": t.epoch, **scores, "time": round(time.time(), 3)}
+        with open(self.out / "val.jsonl", "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        self.writer.add_scalar("val/psnr", rec["psnr"], t.step)
+        self.writer.add_scalar("val/ssim", rec["ssim"], t.step)
+        bar.write(
+            f"step {t.step}: held-out PSNR {rec['psnr']:.2f} dB, SSIM {rec['ssim']:.4f} "
+            f"({rec['samples']} samples, {rec['seconds']:.1f} s)"
+        )
+        self.last_val = rec
 
     def record(self, t: Trainee, batch: dict, loss: torch.Tensor, waited: float, bar) -> None:
         """One step done: add it to the window, note its samples, move the bar."""

@@ -191,11 +191,7 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
     async def runs_page(request):
         rows = await _blocking(dash.run_rows)
         for r in rows:
-            r["curves"] = [
-                (label, pages.line_chart([(x["step"], x[k]) for x in r["log"] if k in x]))
-                for k, label in (("loss", "loss"), ("images_per_second", "images/s"),
-                                 ("data_wait", "data wait (share of the time)"))
-            ]  # fmt: skip
+            r["curves"] = _run_curves(r)
         return html(text=pages.render("runs", runs=rows, secret=secret, title="runs"))
 
     async def run_file(request):
@@ -222,3 +218,22 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
     app.router.add_get("/runfile/{name:.+}", run_file)
     app.router.add_get("/metrics", metrics)
     return app
+
+
+#: the runs page's curves: (the run's rows, the value, its title)
+RUN_CURVES = (
+    ("log", "loss", "loss"),
+    ("val", "psnr", "held-out PSNR (dB)"),
+    ("log", "images_per_second", "images/s"),
+    ("log", "data_wait", "data wait (share of the time)"),
+)
+
+
+def _run_curves(run: dict) -> list[tuple]:
+    """``(title, SVG)`` of each of :data:`RUN_CURVES` over the run's steps (held-out scores
+    only when the run has some)."""
+    return [
+        (title, pages.line_chart([(x["step"], x[k]) for x in run[rows] if k in x], steps=True))
+        for rows, k, title in RUN_CURVES
+        if rows == "log" or run[rows]
+    ]

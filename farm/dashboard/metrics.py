@@ -19,6 +19,8 @@ persist (:mod:`farm.dashboard.jobs`, :mod:`farm.dashboard.runs`).
 ``shaderball_train_loss``                      its loss
 ``shaderball_train_images_per_second``         its throughput
 ``shaderball_train_data_wait_ratio``           its share of time waiting for data
+``shaderball_train_val_psnr_db``               its held-out PSNR at the last score (``val.jsonl``)
+``shaderball_train_val_ssim``                  its held-out SSIM at the last score
 =============================================  ====================================================
 """
 
@@ -91,11 +93,18 @@ class Collector:
         ips = GaugeMetricFamily(t + "images_per_second", "Training throughput", labels=["run"])
         wait = GaugeMetricFamily(t + "data_wait_ratio", "Share of time waiting for data",
                                  labels=["run"])  # fmt: skip
+        vpsnr = GaugeMetricFamily(t + "val_psnr_db", "Held-out PSNR at the last score",
+                                  labels=["run"])  # fmt: skip
+        vssim = GaugeMetricFamily(t + "val_ssim", "Held-out SSIM at the last score",
+                                  labels=["run"])  # fmt: skip
         for run in self.runs():
+            if run["val_last"] is not None:
+                vpsnr.add_metric([run["label"]], run["val_last"]["psnr"])
+                vssim.add_metric([run["label"]], run["val_last"]["ssim"])
             if run["step"] is None:
                 continue
             step.add_metric([run["label"]], run["step"])
             loss.add_metric([run["label"]], run["loss"])
             ips.add_metric([run["label"]], run["images_per_second"])
             wait.add_metric([run["label"]], run["data_wait"])
-        yield from (step, loss, ips, wait)
+        yield from (step, loss, ips, wait, vpsnr, vssim)

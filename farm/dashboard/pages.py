@@ -121,7 +121,11 @@ RUNS = """{% extends "base" %}{% block main %}
 <div class="cards"><div class="card">step<b>{{ r.step|setting }}</b></div><div class="card">
 epoch<b>{{ (r.epoch + 1) if r.epoch is not none else "-" }}</b></div><div class="card">loss<b>
 {{ r.loss|num("%.4f") }}</b></div><div class="card">images/s<b>{{ r.images_per_second|num("%.1f")
-}}</b></div><div class="card">data wait<b>{{ r.data_wait|num("%.1f %%", 100) }}</b></div></div>
+}}</b></div><div class="card">data wait<b>{{ r.data_wait|num("%.1f %%", 100) }}</b></div>
+{% if r.val_last %}<div class="card" title="step {{ r.val_last.step }}, {{ r.val_last.samples
+}} held-out samples; best {{ "%.2f"|format(r.val_best.psnr) }} dB at step {{ r.val_best.step
+}}">held-out PSNR<b>{{ r.val_last.psnr|num("%.2f dB") }}</b></div><div class="card">held-out
+SSIM<b>{{ r.val_last.ssim|num("%.4f") }}</b></div>{% endif %}</div>
 <div class="grid curves">{% for name, svg in r.curves %}<div><b>{{ name }}</b><br>{{ svg }}</div>
 {% endfor %}</div>
 <p>checkpoints: {% for c in r.checkpoints %}{{ c.name }} ({{ (c.bytes / 1e6)|round(1) }} MB) {%
@@ -178,8 +182,11 @@ def render(name: str, **ctx) -> str:
     return ENV.get_template(name).render(css=Markup(CSS), js=Markup(JS), **ctx)
 
 
-def line_chart(points: list[tuple[float, float]], w: int = 640, h: int = 160) -> Markup:
-    """An SVG line of ``(x, y)`` points with its y range and x span labelled."""
+def line_chart(
+    points: list[tuple[float, float]], w: int = 640, h: int = 160, steps: bool = False
+) -> Markup:
+    """An SVG line of ``(x, y)`` points with its y range and x span labelled: x in seconds,
+    or with ``steps`` in training steps."""
     if len(points) < 2:
         return Markup("<p>not enough progress points yet</p>")
     xs = [p[0] for p in points]
@@ -192,13 +199,13 @@ def line_chart(points: list[tuple[float, float]], w: int = 640, h: int = 160) ->
         f"{h - 15 - y / y1 * (h - 25):.1f}"
         for x, y in points
     )
-    span = _dur(x1 - x0)
+    span = f"steps {x0:.0f} to {x1:.0f}" if steps else f"{_dur(x1 - x0)} shown"
     return Markup(
         f'<svg class="chart" width="{w}" height="{h}" viewBox="0 0 {w} {h}" '
         f'style="background:#fff;border:1px solid #e3e6eb">'
         f'<polyline fill="none" stroke="#0b6bcb" stroke-width="1.5" points="{coords}"/>'
         f'<text x="2" y="12">{y1:.3g}</text><text x="2" y="{h - 15}">0</text>'
-        f'<text x="{pad}" y="{h - 2}">{span} shown</text></svg>'
+        f'<text x="{pad}" y="{h - 2}">{span}</text></svg>'
     )
 
 

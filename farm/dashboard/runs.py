@@ -1,8 +1,9 @@
 """What the dashboard knows of trainer runs: each run folder's ``log.jsonl`` (loss, images/s,
-data wait), ``checkpoints/``, and ``eval.json`` / ``eval.png`` where ``trainer eval`` wrote
-them. A ``--runs`` folder is a run (it holds ``log.jsonl`` or ``config.json``) or a folder of
-runs. Runs are named ``<runs index>/<path below it>`` in URLs and labelled with the folder as
-given plus that path on the page and in the metrics."""
+data wait), ``val.jsonl`` (held-out PSNR and SSIM while it trains), ``checkpoints/``, and
+``eval.json`` / ``eval.png`` where ``trainer eval`` wrote them. A ``--runs`` folder is a run
+(it holds ``log.jsonl`` or ``config.json``) or a folder of runs. Runs are named ``<runs
+index>/<path below it>`` in URLs and labelled with the folder as given plus that path on the
+page and in the metrics."""
 
 from __future__ import annotations
 
@@ -25,9 +26,10 @@ def find_runs(base: Path) -> list[str]:
     return [c.name for c in sorted(base.iterdir()) if c.is_dir() and is_run(c)]
 
 
-def read_log(run: Path) -> list[dict]:
-    """The run's log lines (a torn last line, while it is written, is skipped)."""
-    path = run / "log.jsonl"
+def read_log(run: Path, name: str = "log.jsonl") -> list[dict]:
+    """The run's log lines, or those of its ``name`` (a torn last line, while it is written,
+    is skipped)."""
+    path = run / name
     if not path.exists():
         return []
     out = []
@@ -51,6 +53,7 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
     ``label`` its name on the page and in the metrics (``name`` when not given)."""
     log = read_log(run)
     last = log[-1] if log else {}
+    val = read_log(run, "val.jsonl")
     ckpts = sorted((run / "checkpoints").glob("*.pt")) if (run / "checkpoints").is_dir() else []
     ev = None
     if (run / "eval.json").exists():
@@ -69,6 +72,9 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
         "data_wait": last.get("data_wait"),
         "updated": last.get("time"),
         "log": thin(log),
+        "val": thin(val),
+        "val_last": val[-1] if val else None,
+        "val_best": max(val, key=lambda r: r.get("psnr", float("-inf"))) if val else None,
         "checkpoints": [
             {"name": c.name, "bytes": c.stat().st_size, "mtime": c.stat().st_mtime} for c in ckpts
         ],
