@@ -205,6 +205,7 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert value[("shaderball_train_val_ssim", run)] == 0.5
     assert "held-out PSNR<b>22.00 dB</b>" in runs_page  # a torn last line is skipped
     assert "best 23.25 dB at step 20" in runs_page and "steps 10 to 30" in runs_page
+    assert '">21.5</text>' in runs_page  # the PSNR curve spans its own range, not from 0
     assert not any("material=" in str(k) for k in value)  # never a material label
     assert f"{tmp_path / 'runs'}/r1 <small>" in runs_page and "<svg" in runs_page
 

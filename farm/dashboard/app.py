@@ -220,12 +220,12 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
     return app
 
 
-#: the runs page's curves: (the run's rows, the value, its title)
+#: the runs page's curves: (the run's rows, the value, its title, whether y starts at 0)
 RUN_CURVES = (
-    ("log", "loss", "loss"),
-    ("val", "psnr", "held-out PSNR (dB)"),
-    ("log", "images_per_second", "images/s"),
-    ("log", "data_wait", "data wait (share of the time)"),
+    ("log", "loss", "loss", True),
+    ("val", "psnr", "held-out PSNR (dB)", False),
+    ("log", "images_per_second", "images/s", True),
+    ("log", "data_wait", "data wait (share of the time)", True),
 )
 
 
@@ -233,7 +233,8 @@ def _run_curves(run: dict) -> list[tuple]:
     """``(title, SVG)`` of each of :data:`RUN_CURVES` over the run's steps (held-out scores
     only when the run has some)."""
     return [
-        (title, pages.line_chart([(x["step"], x[k]) for x in run[rows] if k in x], steps=True))
-        for rows, k, title in RUN_CURVES
+        (title, pages.line_chart([(x["step"], x[k]) for x in run[rows] if k in x], steps=True,
+                                 from_zero=zero))
+        for rows, k, title, zero in RUN_CURVES
         if rows == "log" or run[rows]
-    ]
+    ]  # fmt: skip

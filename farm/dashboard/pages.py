@@ -183,20 +183,26 @@ def render(name: str, **ctx) -> str:
 
 
 def line_chart(
-    points: list[tuple[float, float]], w: int = 640, h: int = 160, steps: bool = False
+    points: list[tuple[float, float]],
+    w: int = 640,
+    h: int = 160,
+    steps: bool = False,
+    from_zero: bool = True,
 ) -> Markup:
     """An SVG line of ``(x, y)`` points with its y range and x span labelled: x in seconds,
-    or with ``steps`` in training steps."""
+    or with ``steps`` in training steps; y from 0, or without ``from_zero`` over the range
+    of the points (a score in dB, whose changes a line from 0 would flatten)."""
     if len(points) < 2:
         return Markup("<p>not enough progress points yet</p>")
     xs = [p[0] for p in points]
     ys = [p[1] for p in points]
     x0, x1 = min(xs), max(xs)
-    y1 = max(max(ys), 1e-9)
+    y0 = 0.0 if from_zero else min(ys)
+    y1 = max(max(ys), y0 + 1e-9)
     pad = 30
     coords = " ".join(
         f"{pad + (x - x0) / max(x1 - x0, 1e-9) * (w - pad - 5):.1f},"
-        f"{h - 15 - y / y1 * (h - 25):.1f}"
+        f"{h - 15 - (y - y0) / (y1 - y0) * (h - 25):.1f}"
         for x, y in points
     )
     span = f"steps {x0:.0f} to {x1:.0f}" if steps else f"{_dur(x1 - x0)} shown"
@@ -204,7 +210,7 @@ def line_chart(
         f'<svg class="chart" width="{w}" height="{h}" viewBox="0 0 {w} {h}" '
         f'style="background:#fff;border:1px solid #e3e6eb">'
         f'<polyline fill="none" stroke="#0b6bcb" stroke-width="1.5" points="{coords}"/>'
-        f'<text x="2" y="12">{y1:.3g}</text><text x="2" y="{h - 15}">0</text>'
+        f'<text x="2" y="12">{y1:.3g}</text><text x="2" y="{h - 15}">{y0:.3g}</text>'
         f'<text x="{pad}" y="{h - 2}">{span}</text></svg>'
     )
 
