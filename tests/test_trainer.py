@@ -331,3 +331,21 @@ def test_inference_network_on_cpu_is_the_rewrite_from_its_size_up_and_elsewhere_
             cpu(x.contiguous(memory_format=torch.channels_last), light), want
         )
         torch.testing.assert_close(gpu(x, light), want)
+
+
+def test_the_best_checkpoint_outlives_the_rotation_and_is_replaced_whole(tmp_path):
+    from trainer import checkpoint
+
+    def state(step):
+        return {"model": {"w": torch.full((4,), float(step))}, "step": step}
+
+    first = checkpoint.save(tmp_path, state(1), keep=1)
+    best = checkpoint.keep_best(first)
+    checkpoint.save(tmp_path, state(2), keep=1)  # drops step 1's file
+    assert not first.exists() and [p.name for p in checkpoint.listing(tmp_path)] == [
+        "step-00000002.pt"
+    ]
+    assert torch.load(best, weights_only=True)["step"] == 1
+    checkpoint.keep_best(checkpoint.latest(tmp_path))
+    assert torch.load(best, weights_only=True)["step"] == 2
+    assert sorted(p.name for p in best.parent.iterdir()) == ["best.pt", "step-00000002.pt"]

@@ -131,6 +131,11 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     assert val[-1]["psnr"] == pytest.approx(result["overall"]["psnr"], abs=2e-3)
     assert val[-1]["ssim"] == pytest.approx(result["overall"]["ssim"], abs=2e-4)
     assert val[-1]["psnr"] > val[0]["psnr"]
+    # checkpoints/best.pt: the checkpoint of the best score, whatever the rotation dropped
+    best = max(val, key=lambda x: x["psnr"])
+    state = checkpoint.load(trained / "checkpoints" / "best.pt")
+    assert state["step"] == best["step"] and state["best"] == {k: best[k] for k in ("step", "psnr")}
+    assert checkpoint.load(trained)["best"] == state["best"]
 
     out = tmp_path / "a.png"
     args = ["render", "--checkpoint", str(trained), "--store", tiny_store.url, "--sample", "4"]

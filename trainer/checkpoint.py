@@ -6,14 +6,18 @@ state: the next global position in that epoch's order, see ``trainer.data``), ``
 run's :class:`trainer.config.TrainConfig`), ``model_config``, ``tonemap`` and ``catalog`` (the
 stores, shards and held-out materials the run trains on), and ``screen_uv`` when the stores
 have one (the bytes of ``render_jobs.screen_uv.FILE``: the checkpoint alone then maps any
-material to the network's input, ``trainer.mapping``). Written to a temporary file in the
-same folder, fsynced, then renamed into place; the newest ``keep`` are kept.
+material to the network's input, ``trainer.mapping``), and ``best`` (``{"step", "psnr"}``:
+the best held-out score at a checkpoint so far, or none). Written to a temporary file in the
+same folder, fsynced, then renamed into place; the newest ``keep`` are kept, and
+``checkpoints/best.pt`` is a second name of the one with the best held-out PSNR
+(:func:`keep_best`), kept when the rotation drops its step file.
 """
 
 from __future__ import annotations
 
 import os
 import re
+import shutil
 from pathlib import Path
 
 import torch
@@ -21,6 +25,8 @@ import torch
 from storage.backend import write_atomic
 
 PATTERN = re.compile(r"^step-(\d{8})\.pt$")
+#: the checkpoint with the best held-out PSNR, beside the step files (``trainer.train``)
+BEST = "best.pt"
 
 
 class CheckpointError(RuntimeError):
@@ -53,6 +59,20 @@ def save(run_dir: str | os.PathLike, state: dict, keep: int = 3) -> Path:
     for old in listing(run_dir)[:-keep] if keep > 0 else []:
         old.unlink(missing_ok=True)
     return path
+
+
+def keep_best(path: Path) -> Path:
+    """Name the checkpoint ``path`` :data:`BEST` too, replacing the one named so before in one
+    rename: a hard link (a copy where the file system has none)."""
+    best = path.parent / BEST
+    tmp = path.parent / f".{BEST}.{os.getpid()}.tmp"
+    tmp.unlink(missing_ok=True)
+    try:
+        os.link(path, tmp)
+    except OSError:
+        shutil.copyfile(path, tmp)
+    os.replace(tmp, best)
+    return best
 
 
 REQUIRED = ("model", "step", "epoch", "position", "config", "model_config", "tonemap", "catalog")

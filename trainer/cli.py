@@ -86,13 +86,16 @@ def train(**kwargs) -> None:
         cfg.resume = True  # torchrun restarted the ranks: continue from the last checkpoint
     summary = _train_errors(train, cfg)
     if int(os.environ.get("RANK", "0")) == 0:
-        val = summary["val"]
+        val, best = summary["val"], summary["best"]
         held = f"; held-out PSNR {val['psnr']:.2f} dB at step {val['step']}" if val else ""
         click.echo(
             f"done: {summary['steps']} steps, {summary['images_per_second']} images/s, "
-            f"{summary['seconds']:.1f} s{held}; checkpoint {summary['checkpoint']}\n"
-            f"evaluate: trainer eval --checkpoint {shlex.quote(cfg.out)}"
+            f"{summary['seconds']:.1f} s{held}; checkpoint {summary['checkpoint']}"
         )
+        if best:
+            path = Path(cfg.out) / "checkpoints" / "best.pt"
+            click.echo(f"best:  {path} (step {best['step']}, held-out {best['psnr']:.2f} dB)")
+        click.echo(f"evaluate: trainer eval --checkpoint {shlex.quote(cfg.out)}")
 
 
 def _procs(ctx, param, value):

@@ -133,6 +133,7 @@ class Trainee:
     catalog: Catalog
     bad: torch.Tensor  # () bool: a non-finite gradient norm was seen (checked lazily)
     screen_uv: bytes | None = None  # the stores' layout, so checkpoints map new materials
+    best: dict | None = None  # the best held-out score at a checkpoint: {"step", "psnr"}
     step: int = 0
     epoch: int = 0
     position: int = 0
@@ -203,6 +204,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         "images_per_second": round(images * rk.world / seconds, 2) if seconds > 0 else None,
         "checkpoint": str(log.last_checkpoint or checkpoint.latest(out) or ""),
         "val": log.last_val,
+        "best": t.best,
     }
 
 
@@ -309,6 +311,7 @@ def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg
         for group in opt.param_groups:  # a resume may lower the rate (e.g. after divergence)
             group["lr"] = cfg.lr
         t.step, t.epoch, t.position = state["step"], state["epoch"], state["position"]
+        t.best = state.get("best")
     if rk.distributed:
         t.net = DDP(model, device_ids=[rk.device.index] if rk.cuda else None)
     return t
@@ -367,10 +370,20 @@ def check_finite(t: Trainee, out: Path, weights: bool = False) -> None:
 
 
 def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None:
-    """Rank 0 writes a checkpoint, after every rank has checked the weights are finite."""
+    """Rank 0 writes a checkpoint, after every rank has checked the weights are finite; it is
+    also ``checkpoints/best.pt`` when the network was just scored, better than at any
+    checkpoint before."""
     check_finite(t, out, weights=True)
     if not rk.master:
         return
+    val = log.last_val
+    better = (
+        val is not None
+        and val["step"] == t.step
+        and (t.best is None or val["psnr"] > t.best["psnr"])
+    )
+    if better:
+        t.best = {"step": t.step, "psnr": val["psnr"]}
     log.last_checkpoint = checkpoint.save(
         out,
         {
@@ -384,9 +397,12 @@ def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None
             "tonemap": t.tonemap.to_dict(),
             "catalog": t.catalog.to_dict(),
             **({"screen_uv": t.screen_uv} if t.screen_uv is not None else {}),
+            "best": t.best,
         },
         keep=cfg.keep,
     )
+    if better:
+        checkpoint.keep_best(log.last_checkpoint)
 
 
 class RunLog:
