@@ -496,6 +496,8 @@ def test_killed_run_resumes_with_exactly_the_remaining_order(tiny_store, tmp_pat
     assert resumed == full[step:]  # same steps, same epochs, same samples, same order
     a, b = checkpoint.load(ref), checkpoint.load(run)
     assert a["step"] == b["step"] and a["epoch"] == b["epoch"]
+    assert a["best"] is not None and b["best"] == a["best"]  # the best score survives a resume
+    assert checkpoint.load(run / "checkpoints" / "best.pt")["step"] == a["best"]["step"]
 
 
 def test_perceptual_loss_and_divergence(tiny_store, tmp_path):
