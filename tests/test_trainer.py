@@ -349,3 +349,22 @@ def test_the_best_checkpoint_outlives_the_rotation_and_is_replaced_whole(tmp_pat
     checkpoint.keep_best(checkpoint.latest(tmp_path))
     assert torch.load(best, weights_only=True)["step"] == 2
     assert sorted(p.name for p in best.parent.iterdir()) == ["best.pt", "step-00000002.pt"]
+
+
+def test_learning_rate_schedules_are_functions_of_the_step():
+    from trainer.schedule import lr_at, run_steps
+
+    assert [lr_at(s, 1e-3, "constant", 10) for s in (0, 5, 9)] == [1e-3] * 3
+    assert [lr_at(s, 1e-3, "constant", 10, warmup=4) for s in range(5)] == pytest.approx(
+        [2.5e-4, 5e-4, 7.5e-4, 1e-3, 1e-3]
+    )
+    cosine = [lr_at(s, 1.0, "cosine", 12, warmup=2) for s in range(12)]
+    assert cosine[:3] == pytest.approx([0.5, 1.0, 1.0])  # warm-up, then the top of the cosine
+    assert cosine[7] == pytest.approx(0.5)  # half way down at half the 10 steps after warm-up
+    assert (
+        all(a > b for a, b in zip(cosine[2:-1], cosine[3:], strict=True)) and 0 < cosine[-1] < 0.03
+    )
+    assert lr_at(50, 1.0, "cosine", 12) == 0.0  # past the end (a longer resumed run): 0
+    with pytest.raises(ValueError, match="unknown learning-rate schedule 'step'"):
+        lr_at(3, 1.0, "step", 10)
+    assert run_steps(3, None, 7) == 21 and run_steps(3, 5, 7) == 5 and run_steps(1, 50, 7) == 7

@@ -104,6 +104,7 @@ def test_training_lowers_the_loss(tiny_store, trained):
     assert sum(r["steps"] for r in log) == 54  # every step in one line, epoch tails included
     assert [r["step"] for r in log[:6]] == [2, 4, 6, 8, 9, 10]  # 9 steps an epoch, log_every 2
     assert list((trained / "tb").glob("events.out.tfevents.*"))
+    assert {r["lr"] for r in log} == {1e-3}  # the constant schedule
 
 
 def test_eval_and_render(tiny_store, trained, tmp_path):
@@ -473,12 +474,13 @@ def test_torchrun_two_ranks_stay_identical_and_read_disjoint_samples(tiny_store,
 
 def test_killed_run_resumes_with_exactly_the_remaining_order(tiny_store, tmp_path):
     ref = tmp_path / "ref"
-    train(config(tiny_store, ref, epochs=3, log_samples=True, checkpoint_every=3))
+    kw = {"epochs": 3, "log_samples": True, "checkpoint_every": 3, "lr_schedule": "cosine",
+          "warmup_steps": 2}  # fmt: skip
+    train(config(tiny_store, ref, **kw))
     full = sample_lines(ref)[:-1]
 
     run = tmp_path / "killed"
-    cmd = [sys.executable, "-m", "trainer.cli", "train"]
-    cmd += argv(tiny_store, run, epochs=3, log_samples=True, checkpoint_every=3)
+    cmd = [sys.executable, "-m", "trainer.cli", "train", *argv(tiny_store, run, **kw)]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     target = checkpoint.folder(run) / "step-00000006.pt"
     deadline = time.monotonic() + 120
@@ -491,11 +493,12 @@ def test_killed_run_resumes_with_exactly_the_remaining_order(tiny_store, tmp_pat
     assert 6 <= step < len(full)
     seen = len(sample_lines(run))
 
-    train(config(tiny_store, run, epochs=3, log_samples=True, checkpoint_every=3, resume=True))
+    train(config(tiny_store, run, **kw, resume=True))
     resumed = sample_lines(run)[seen:-1]
     assert resumed == full[step:]  # same steps, same epochs, same samples, same order
     a, b = checkpoint.load(ref), checkpoint.load(run)
     assert a["step"] == b["step"] and a["epoch"] == b["epoch"]
+    assert sample_lines(ref)[-1] == sample_lines(run)[-1]  # the same weights (same rates)
     assert a["best"] is not None and b["best"] == a["best"]  # the best score survives a resume
     assert checkpoint.load(run / "checkpoints" / "best.pt")["step"] == a["best"]["step"]
 
@@ -555,7 +558,8 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
     assert "resolution 40 is not a multiple of 16" in one_line_error([*base, "--store", odd.url])
     for option, value in [("--width", "0"), ("--seed", "-1"), ("--roughness-channels", "2"),
                           ("--perceptual-weight", "-1"), ("--epochs", "0"),
-                          ("--val-every", "-1"), ("--val-samples", "-2")]:  # fmt: skip
+                          ("--val-every", "-1"), ("--val-samples", "-2"),
+                          ("--warmup-steps", "-1")]:  # fmt: skip
         msg = one_line_error([*base, "--store", tiny_store.url, option, value])
         assert msg.startswith(f"Error: invalid {option[2:].replace('-', '_')}: {value}"), msg
 

@@ -13,6 +13,8 @@ from dataclasses import MISSING, asdict, dataclass, field, fields
 
 import click
 
+from trainer.schedule import SCHEDULES
+
 LOSSES = ("l1+vgg", "l1")
 
 
@@ -34,6 +36,12 @@ class TrainConfig:
     epochs: int = _opt(30, "epochs over the training split")
     batch_size: int = _opt(6, "images per step on each rank (the paper: 6)")
     lr: float = _opt(1e-3, "Adam learning rate (the authors' code: 1e-3)")
+    lr_schedule: str = _opt(
+        "constant",
+        "constant (the paper) or cosine: half a cosine from --lr to 0 over the run",
+        choices=SCHEDULES,
+    )
+    warmup_steps: int = _opt(0, "steps of linear warm-up to --lr at the start")
     beta1: float = _opt(0.9, "Adam β1")
     beta2: float = _opt(0.999, "Adam β2")
     clip: float = _opt(1.0, "clip the gradient norm to this (0: no clipping)")
@@ -82,6 +90,8 @@ class TrainConfig:
             "epochs": self.epochs >= 1,
             "batch_size": self.batch_size >= 1,
             "lr": self.lr > 0,
+            "lr_schedule": self.lr_schedule in SCHEDULES,
+            "warmup_steps": self.warmup_steps >= 0,
             "width": self.width >= 1,
             "roughness_channels": self.roughness_channels in (1, 3),
             "seed": self.seed >= 0,

@@ -43,6 +43,7 @@ from trainer.config import TrainConfig, absolute_store
 from trainer.data import Catalog, ShardStream, loader, steps_left
 from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
+from trainer.schedule import lr_at, run_steps
 from trainer.targets import Tonemap, model_inputs
 from trainer.validation import Validator
 
@@ -133,6 +134,7 @@ class Trainee:
     catalog: Catalog
     bad: torch.Tensor  # () bool: a non-finite gradient norm was seen (checked lazily)
     screen_uv: bytes | None = None  # the stores' layout, so checkpoints map new materials
+    run_steps: int = 0  # the run's length in global steps, for the learning-rate schedule
     best: dict | None = None  # the best held-out score at a checkpoint: {"step", "psnr"}
     step: int = 0
     epoch: int = 0
@@ -158,6 +160,8 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     t = _build(cfg, rk, catalog, state, vgg)
     faults.install(t.opt, t.step, rk.master)
     split = catalog.split("train")
+    per_epoch = steps_left(len(split), rk.world, cfg.batch_size)
+    t.run_steps = run_steps(cfg.epochs, cfg.max_steps, per_epoch)
     stream = ShardStream(
         split, batch=cfg.batch_size, seed=cfg.seed, buffer=cfg.shuffle_buffer, world=rk.world,
         rank=rk.rank, epochs=cfg.epochs,
@@ -307,9 +311,7 @@ def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg
         t.screen_uv = _screen_uv(catalog, state)
     if state is not None:
         model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        for group in opt.param_groups:  # a resume may lower the rate (e.g. after divergence)
-            group["lr"] = cfg.lr
+        opt.load_state_dict(state["optimizer"])  # train_step sets the rate: --lr may change
         t.step, t.epoch, t.position = state["step"], state["epoch"], state["position"]
         t.best = state.get("best")
     if rk.distributed:
@@ -345,6 +347,9 @@ def train_step(cfg: TrainConfig, rk: Rank, t: Trainee, batch: dict) -> torch.Ten
         loss = t.criterion(t.net(x, light), target)
     t.opt.zero_grad(set_to_none=True)
     loss.backward()
+    rate = lr_at(t.step, cfg.lr, cfg.lr_schedule, t.run_steps, cfg.warmup_steps)
+    for group in t.opt.param_groups:
+        group["lr"] = rate
     params = t.model.parameters()
     if cfg.clip > 0:
         norm = torch.nn.utils.clip_grad_norm_(params, cfg.clip)
@@ -479,6 +484,7 @@ class RunLog:
         self.window["wait"] += waited
         self.window["images"] += n
         self.window["loss"] += loss
+        self.window["lr"] = float(f"{t.opt.param_groups[0]['lr']:.6g}")
         self.window["n"] += 1
         if self.samples is not None:
             ids = ",".join(str(int(i)) for i in batch["id"])
@@ -516,11 +522,12 @@ def _log(out: Path, writer, bar, step: int, epoch: int, window: dict, world: int
         "loss": round(float(window["loss"]) / max(window["n"], 1), 6),
         "images_per_second": round(window["images"] * world / dt, 2),
         "data_wait": round(window["wait"] / dt, 4),
+        "lr": window.get("lr"),  # the last step's
         "time": round(time.time(), 3),
     }
     with open(out / "log.jsonl", "a") as f:
         f.write(json.dumps(rec) + "\n")
-    for k in ("loss", "images_per_second", "data_wait"):
+    for k in ("loss", "images_per_second", "data_wait", "lr"):
         writer.add_scalar(f"train/{k}", rec[k], step)
     bar.set_postfix(
         loss=rec["loss"], img_s=rec["images_per_second"], wait=f"{rec['data_wait']:.0%}"
