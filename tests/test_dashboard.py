@@ -180,6 +180,12 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     scores = [{"step": s, "epoch": 0, "samples": 4, "psnr": p, "ssim": 0.5} for s, p in
               ((10, 21.5), (20, 23.25), (30, 22.0))]  # fmt: skip
     (runs / "val.jsonl").write_text("\n".join(json.dumps(x) for x in scores) + "\n{torn")
+    other = tmp_path / "runs" / "r2"  # a second scored run: the page compares the two
+    other.mkdir()
+    (other / "config.json").write_text("{}")
+    (other / "val.jsonl").write_text(
+        "\n".join(json.dumps({**x, "psnr": x["psnr"] - 1}) for x in scores)
+    )
     with Server(sets, "--runs", tmp_path / "runs") as s:
         code, body = s.get("/metrics")
         families = {f.name: f for f in text_string_to_metric_families(body.decode())}
@@ -206,6 +212,9 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert "held-out PSNR<b>22.00 dB</b>" in runs_page  # a torn last line is skipped
     assert "best 23.25 dB at step 20" in runs_page and "steps 10 to 30" in runs_page
     assert '">21.5</text>' in runs_page  # the PSNR curve spans its own range, not from 0
+    compare = runs_page[runs_page.index("Held-out PSNR of every run") :]
+    assert compare.index(f"{tmp_path / 'runs'}/r1") < compare.index(f"{tmp_path / 'runs'}/r2")
+    assert '">20.5</text>' in compare and compare.count("<polyline") >= 2
     assert not any("material=" in str(k) for k in value)  # never a material label
     assert f"{tmp_path / 'runs'}/r1 <small>" in runs_page and "<svg" in runs_page
 

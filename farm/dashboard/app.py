@@ -192,7 +192,11 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         rows = await _blocking(dash.run_rows)
         for r in rows:
             r["curves"] = _run_curves(r)
-        return html(text=pages.render("runs", runs=rows, secret=secret, title="runs"))
+        scored = [(r["label"], [(x["step"], x["psnr"]) for x in r["val"]]) for r in rows]
+        compare = pages.lines_chart(scored) if sum(len(p) > 1 for _, p in scored) > 1 else None
+        return html(
+            text=pages.render("runs", runs=rows, compare=compare, secret=secret, title="runs")
+        )
 
     async def run_file(request):
         if request.query.get("file") not in ("eval.png",):

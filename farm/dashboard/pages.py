@@ -25,7 +25,7 @@ border:1px solid #e3e6eb;border-radius:6px} .card b{display:block;font-size:20px
 .thumbs img{width:128px;height:128px;margin:0 6px 6px 0;border:1px solid #ccd;image-rendering:auto}
 button{background:#c62828;color:#fff;border:0;padding:6px 14px;border-radius:4px;cursor:pointer}
 .grid{display:flex;gap:24px;flex-wrap:wrap} svg text{font-size:11px;fill:#555}
-.curves{margin-top:12px}
+.curves{margin-top:12px} .legend{font-size:12px;margin-top:4px}
 """
 
 JS = """
@@ -117,6 +117,7 @@ class="num">recycles</th><th class="num">recalled</th><th>last seen</th></tr>
 </b><br>{{ svg }}</div>{% endfor %}</div></div>{% endif %}</div>"""
 
 RUNS = """{% extends "base" %}{% block main %}
+{% if compare %}<h2>Held-out PSNR of every run (dB)</h2>{{ compare }}{% endif %}
 {% for r in runs %}<h2>{{ r.label }} <small>{{ r.path }}</small></h2>
 <div class="cards"><div class="card">step<b>{{ r.step|setting }}</b></div><div class="card">
 epoch<b>{{ (r.epoch + 1) if r.epoch is not none else "-" }}</b></div><div class="card">loss<b>
@@ -194,25 +195,55 @@ def line_chart(
     of the points (a score in dB, whose changes a line from 0 would flatten)."""
     if len(points) < 2:
         return Markup("<p>not enough progress points yet</p>")
-    xs = [p[0] for p in points]
-    ys = [p[1] for p in points]
+    return _chart([(None, points)], w, h, steps, from_zero)
+
+
+#: the colours of a chart's lines, in turn
+LINE_COLOURS = ("#0b6bcb", "#c62828", "#1a7f37", "#e0a800", "#7b3fb0", "#00838f", "#6d4c41")
+
+
+def lines_chart(
+    series: list[tuple[str, list[tuple[float, float]]]], w: int = 640, h: int = 200
+) -> Markup:
+    """Labelled lines of ``(step, y)`` points on shared axes, y over the points' range, each
+    in its colour, with a legend of the labels under the chart."""
+    drawn = [(label, points) for label, points in series if len(points) >= 2]
+    if not drawn:
+        return Markup("<p>not enough points yet</p>")
+    return _chart(drawn, w, h, steps=True, from_zero=False)
+
+
+def _chart(series: list, w: int, h: int, steps: bool, from_zero: bool) -> Markup:
+    """The SVG of :func:`line_chart` and :func:`lines_chart`; a legend when lines are named."""
+    xs = [x for _, points in series for x, _ in points]
+    ys = [y for _, points in series for _, y in points]
     x0, x1 = min(xs), max(xs)
     y0 = 0.0 if from_zero else min(ys)
     y1 = max(max(ys), y0 + 1e-9)
     pad = 30
-    coords = " ".join(
-        f"{pad + (x - x0) / max(x1 - x0, 1e-9) * (w - pad - 5):.1f},"
-        f"{h - 15 - (y - y0) / (y1 - y0) * (h - 25):.1f}"
-        for x, y in points
-    )
+    lines, legend = [], []
+    for i, (label, points) in enumerate(series):
+        colour = LINE_COLOURS[i % len(LINE_COLOURS)]
+        coords = " ".join(
+            f"{pad + (x - x0) / max(x1 - x0, 1e-9) * (w - pad - 5):.1f},"
+            f"{h - 15 - (y - y0) / (y1 - y0) * (h - 25):.1f}"
+            for x, y in points
+        )
+        lines.append(
+            f'<polyline fill="none" stroke="{colour}" stroke-width="1.5" points="{coords}"/>'
+        )
+        if label is not None:
+            legend.append(Markup('<span style="color:{}">&#9632;</span> {}').format(colour, label))
     span = f"steps {x0:.0f} to {x1:.0f}" if steps else f"{_dur(x1 - x0)} shown"
-    return Markup(
+    svg = Markup(
         f'<svg class="chart" width="{w}" height="{h}" viewBox="0 0 {w} {h}" '
-        f'style="background:#fff;border:1px solid #e3e6eb">'
-        f'<polyline fill="none" stroke="#0b6bcb" stroke-width="1.5" points="{coords}"/>'
+        f'style="background:#fff;border:1px solid #e3e6eb">{"".join(lines)}'
         f'<text x="2" y="12">{y1:.3g}</text><text x="2" y="{h - 15}">{y0:.3g}</text>'
         f'<text x="{pad}" y="{h - 2}">{span}</text></svg>'
     )
+    if not legend:
+        return svg
+    return svg + Markup('<div class="legend">') + Markup("<br>").join(legend) + Markup("</div>")
 
 
 COLOURS = {
