@@ -458,6 +458,8 @@ def test_torchrun_two_ranks_stay_identical_and_read_disjoint_samples(tiny_store,
     ends = {per_epoch * e for e in (1, 2)}
     assert [x["step"] for x in val] == sorted(set(range(2, 2 * per_epoch + 1, 2)) | ends)
     assert {x["samples"] for x in val} == {4} and "held-out PSNR" in r.stdout
+    best = max(val, key=lambda x: x["psnr"])  # a mid-epoch best writes its own checkpoint
+    assert checkpoint.load(out / "checkpoints" / "best.pt")["step"] == best["step"]
     lines = [sample_lines(out, rank) for rank in range(2)]
     assert lines[0][-1].startswith("params ") and lines[0][-1] == lines[1][-1]
     for epoch in range(2):

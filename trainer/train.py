@@ -234,7 +234,7 @@ def _epoch(cfg: TrainConfig, rk: Rank, t: Trainee, batches, split_size: int, log
                 log.flush(t, bar)
             if cfg.val_every and t.step % cfg.val_every == 0:
                 log.validate(t, bar)
-            if t.step % cfg.checkpoint_every == 0:
+            if t.step % cfg.checkpoint_every == 0 or _new_best(t, log):
                 save(cfg, rk, t, out, log)
             if _at_max_steps(cfg, t):
                 break
@@ -374,21 +374,26 @@ def check_finite(t: Trainee, out: Path, weights: bool = False) -> None:
         )
 
 
-def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None:
-    """Rank 0 writes a checkpoint, after every rank has checked the weights are finite; it is
-    also ``checkpoints/best.pt`` when the network was just scored, better than at any
-    checkpoint before."""
-    check_finite(t, out, weights=True)
-    if not rk.master:
-        return
+def _new_best(t: Trainee, log: RunLog) -> bool:
+    """Whether the network was just scored (rank 0), better than ever before."""
     val = log.last_val
-    better = (
+    return (
         val is not None
         and val["step"] == t.step
         and (t.best is None or val["psnr"] > t.best["psnr"])
     )
+
+
+def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None:
+    """Rank 0 writes a checkpoint, after every rank has checked the weights are finite; it is
+    also ``checkpoints/best.pt`` when the network was just scored, better than ever before
+    (a mid-epoch score that is writes a checkpoint of its own: :func:`_epoch`)."""
+    check_finite(t, out, weights=True)
+    if not rk.master:
+        return
+    better = _new_best(t, log)
     if better:
-        t.best = {"step": t.step, "psnr": val["psnr"]}
+        t.best = {"step": t.step, "psnr": log.last_val["psnr"]}
     log.last_checkpoint = checkpoint.save(
         out,
         {
