@@ -1,4 +1,5 @@
-"""The per-rank training loop (``trainer train``), top to bottom in one file.
+"""The per-rank training loop (``trainer train``), top to bottom in one file; what it records
+is :class:`trainer.runlog.RunLog`'s.
 
 ``_train`` reads in order: set-up (the checkpoint to resume, the catalog, the model as a
 :class:`Trainee`, the stream and the :class:`RunLog`), then each epoch's batches through
@@ -24,9 +25,7 @@ before any checkpoint is written from the diverged weights.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import itertools
-import json
 import os
 import time
 from dataclasses import dataclass
@@ -43,6 +42,7 @@ from trainer.config import TrainConfig, absolute_store
 from trainer.data import Catalog, ShardStream, loader, steps_left
 from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
+from trainer.runlog import RunLog
 from trainer.schedule import lr_at, run_steps
 from trainer.targets import Tonemap, model_inputs
 from trainer.validation import Validator
@@ -413,127 +413,3 @@ def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None
     )
     if better:
         checkpoint.keep_best(log.last_checkpoint)
-
-
-class RunLog:
-    """What a run records as it goes. Rank 0: ``config.json``, ``log.jsonl`` (one line every
-    ``log_every`` steps and at the end of each epoch, for the steps since the line before:
-    their count, rank 0's mean loss, images and images/s over all ranks, data-wait share),
-    TensorBoard under ``tb/`` and the progress bar's postfix; with a :attr:`validator`,
-    ``val.jsonl`` (:meth:`validate`). Every rank, with ``--log-samples``:
-    ``samples/rank-R.txt``, the sample ids of each step and, at the end, a hash of the final
-    parameters (identical on every rank of a DDP run)."""
-
-    def __init__(self, cfg: TrainConfig, rk: Rank, out: Path):
-        self.out, self.world, self.master = out, rk.world, rk.master
-        self.writer = None
-        self.samples = None
-        self.last_checkpoint: Path | None = None
-        self.window = _new_window()
-        self.validator: Validator | None = None  # rank 0's, unless --val-samples 0
-        self.val_every, self.fmt = cfg.val_every, rk.fmt
-        self.last_val: dict | None = None
-        if rk.master:
-            out.mkdir(parents=True, exist_ok=True)
-            from torch.utils.tensorboard import SummaryWriter
-
-            self.writer = SummaryWriter(str(out / "tb"))
-            (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
-        if cfg.log_samples:
-            (out / "samples").mkdir(parents=True, exist_ok=True)
-            self.samples = open(out / "samples" / f"rank-{rk.rank}.txt", "a")  # noqa: SIM115
-
-    def start(self, line: str) -> None:
-        if self.master:
-            print(line, flush=True)
-
-    def new_window(self) -> None:
-        self.window = _new_window()
-
-    def validation_plan(self) -> str:
-        """What :meth:`validate` will score, in a line."""
-        v = self.validator
-        if v is None:
-            return "held-out scores: off (--val-samples 0)"
-        if not len(v):
-            return "held-out scores: none (the run holds out no materials)"
-        every = f" and every {self.val_every} steps" if self.val_every else ""
-        return (
-            f"held-out scores: PSNR and SSIM of {len(v)} of the {v.of} held-out samples at "
-            f"each epoch's end{every} ({self.out / 'val.jsonl'})"
-        )
-
-    def validate(self, t: Trainee, bar) -> None:
-        """Score the network on the held-out samples (:mod:`trainer.validation`), once a
-        step: a line in ``val.jsonl``, TensorBoard's ``val/psnr`` and ``val/ssim``, a line
-        above the bar. Its time is left out of the window's images/s. Rank 0 only."""
-        v = self.validator
-        if v is None or not len(v) or (self.last_val or {}).get("step") == t.step:
-            return
-        scores = v.score(t.model, t.model_cfg.roughness_channels, t.tonemap, self.fmt)
-        self.window["t"] += scores["seconds"]
-        rec = {"step": t.step, "epoch": t.epoch, **scores, "time": round(time.time(), 3)}
-        with open(self.out / "val.jsonl", "a") as f:
-            f.write(json.dumps(rec) + "\n")
-        self.writer.add_scalar("val/psnr", rec["psnr"], t.step)
-        self.writer.add_scalar("val/ssim", rec["ssim"], t.step)
-        bar.write(
-            f"step {t.step}: held-out PSNR {rec['psnr']:.2f} dB, SSIM {rec['ssim']:.4f} "
-            f"({rec['samples']} samples, {rec['seconds']:.1f} s)"
-        )
-        self.last_val = rec
-
-    def record(self, t: Trainee, batch: dict, loss: torch.Tensor, waited: float, bar) -> None:
-        """One step done: add it to the window, note its samples, move the bar."""
-        n = len(batch["id"])
-        self.window["wait"] += waited
-        self.window["images"] += n
-        self.window["loss"] += loss
-        self.window["lr"] = float(f"{t.opt.param_groups[0]['lr']:.6g}")
-        self.window["n"] += 1
-        if self.samples is not None:
-            ids = ",".join(str(int(i)) for i in batch["id"])
-            self.samples.write(f"{t.epoch} {t.step} {ids}\n")
-        bar.update(1)
-
-    def flush(self, t: Trainee, bar) -> None:
-        """Write the window's log line (rank 0) and start a new window."""
-        if self.master:
-            _log(self.out, self.writer, bar, t.step, t.epoch, self.window, self.world)
-        self.new_window()
-
-    def close(self, model: torch.nn.Module) -> None:
-        if self.samples is not None:
-            blob = b"".join(p.detach().cpu().numpy().tobytes() for p in model.parameters())
-            self.samples.write(f"params {hashlib.sha256(blob).hexdigest()}\n")
-            self.samples.close()
-        if self.writer is not None:
-            self.writer.close()
-
-
-def _new_window() -> dict:
-    """Running totals between two log lines."""
-    return {"t": time.perf_counter(), "wait": 0.0, "images": 0, "loss": 0.0, "n": 0}
-
-
-def _log(out: Path, writer, bar, step: int, epoch: int, window: dict, world: int) -> None:
-    """One log line (rank 0's loss; throughput over all ranks), TensorBoard and the bar."""
-    dt = max(time.perf_counter() - window["t"], 1e-9)
-    rec = {
-        "step": step,
-        "epoch": epoch,
-        "steps": window["n"],
-        "images": window["images"] * world,
-        "loss": round(float(window["loss"]) / max(window["n"], 1), 6),
-        "images_per_second": round(window["images"] * world / dt, 2),
-        "data_wait": round(window["wait"] / dt, 4),
-        "lr": window.get("lr"),  # the last step's
-        "time": round(time.time(), 3),
-    }
-    with open(out / "log.jsonl", "a") as f:
-        f.write(json.dumps(rec) + "\n")
-    for k in ("loss", "images_per_second", "data_wait", "lr"):
-        writer.add_scalar(f"train/{k}", rec[k], step)
-    bar.set_postfix(
-        loss=rec["loss"], img_s=rec["images_per_second"], wait=f"{rec['data_wait']:.0%}"
-    )
