@@ -14,6 +14,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 
 from farm.state import JobState, WorkerStats, add_point
@@ -180,6 +181,7 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     scores = [{"step": s, "epoch": 0, "samples": 4, "psnr": p, "ssim": 0.5} for s, p in
               ((10, 21.5), (20, 23.25), (30, 22.0))]  # fmt: skip
     (runs / "val.jsonl").write_text("\n".join(json.dumps(x) for x in scores) + "\n{torn")
+    Image.new("RGB", (8, 8), (200, 30, 30)).save(runs / "val.png")
     other = tmp_path / "runs" / "r2"  # a second scored run: the page compares the two
     other.mkdir()
     (other / "config.json").write_text("{}")
@@ -190,6 +192,8 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
         code, body = s.get("/metrics")
         families = {f.name: f for f in text_string_to_metric_families(body.decode())}
         runs_page = s.get("/runs")[1].decode()
+        grid = s.get("/runfile/0/r1?file=val.png")
+        nothing = s.get("/runfile/0/r1?file=config.json")
     assert code == 200
     value = {
         (x.name, tuple(sorted(x.labels.items()))): x.value
@@ -212,6 +216,8 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert "held-out PSNR<b>22.00 dB</b>" in runs_page  # a torn last line is skipped
     assert "best 23.25 dB at step 20" in runs_page and "steps 10 to 30" in runs_page
     assert '">21.5</text>' in runs_page  # the PSNR curve spans its own range, not from 0
+    assert "held-out samples at step 30" in runs_page and "file=val.png" in runs_page
+    assert grid[0] == 200 and grid[1][:4] == b"\x89PNG" and nothing[0] == 404
     compare = runs_page[runs_page.index("Held-out PSNR of every run") :]
     assert compare.index(f"{tmp_path / 'runs'}/r1") < compare.index(f"{tmp_path / 'runs'}/r2")
     assert '">20.5</text>' in compare and compare.count("<polyline") >= 2

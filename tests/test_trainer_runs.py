@@ -132,6 +132,8 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     assert val[-1]["psnr"] == pytest.approx(result["overall"]["psnr"], abs=2e-3)
     assert val[-1]["ssim"] == pytest.approx(result["overall"]["ssim"], abs=2e-4)
     assert val[-1]["psnr"] > val[0]["psnr"]
+    # val.png: the last score's first 3 samples, drawn as eval's grid (64² enlarged to 256²)
+    assert Image.open(trained / "val.png").size == (3 * 256, 24 + 3 * 256)
     # checkpoints/best.pt: the checkpoint of the best score, whatever the rotation dropped
     best = max(val, key=lambda x: x["psnr"])
     state = checkpoint.load(trained / "checkpoints" / "best.pt")

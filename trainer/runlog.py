@@ -13,10 +13,15 @@ from typing import TYPE_CHECKING
 import torch
 
 from trainer.config import TrainConfig
+from trainer.evaluate import write_grid
 from trainer.validation import Validator
 
 if TYPE_CHECKING:
     from trainer.train import Rank, Trainee
+
+
+#: rows of ``val.png``: ground truth | network | error of the first held-out samples scored
+VAL_GRID_ROWS = 3
 
 
 class RunLog:
@@ -70,12 +75,18 @@ class RunLog:
     def validate(self, t: Trainee, bar) -> None:
         """Score the network on the held-out samples (:mod:`trainer.validation`), once a
         step: a line in ``val.jsonl``, TensorBoard's ``val/psnr`` and ``val/ssim``, a line
-        above the bar. Its time is left out of the window's images/s. Rank 0 only."""
+        above the bar, and ``val.png``, the grid ``trainer eval`` draws of the first
+        :data:`VAL_GRID_ROWS` samples (replaced whole). Its time is left out of the window's
+        images/s. Rank 0 only."""
         v = self.validator
         if v is None or not len(v) or (self.last_val or {}).get("step") == t.step:
             return
-        scores = v.score(t.model, t.model_cfg.roughness_channels, t.tonemap, self.fmt)
-        self.window["t"] += scores["seconds"]
+        t0 = time.perf_counter()
+        scores, shown = v.score(
+            t.model, t.model_cfg.roughness_channels, t.tonemap, self.fmt, shown=VAL_GRID_ROWS
+        )
+        write_grid(self.out / "val.png", shown)
+        self.window["t"] += time.perf_counter() - t0
         rec = {"step": t.step, "epoch": t.epoch, **scores, "time": round(time.time(), 3)}
         with open(self.out / "val.jsonl", "a") as f:
             f.write(json.dumps(rec) + "\n")

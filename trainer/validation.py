@@ -44,14 +44,17 @@ class Validator:
         roughness_channels: int,
         tonemap: Tonemap,
         fmt: torch.memory_format = torch.contiguous_format,
-    ) -> dict:
+        shown: int = 0,
+    ) -> tuple[dict, list[tuple[np.ndarray, np.ndarray]]]:
         """``{"samples", "psnr", "ssim", "seconds"}``: the means over the samples of ``model``
-        (put in eval mode for the scores, then back in the mode it was in) on its device."""
+        (put in eval mode for the scores, then back in the mode it was in) on its device;
+        and the ``(ground truth, prediction)`` display images of the first ``shown`` samples
+        (for :func:`trainer.evaluate.write_grid`)."""
         t0 = time.perf_counter()
         device = next(model.parameters()).device
         training = model.training
         model.eval()
-        scores = []
+        scores, pictures = [], []
         try:
             for lo in range(0, len(self.ids), self.batch_size):
                 batch = self.reader.batch(self.ids[lo : lo + self.batch_size])
@@ -60,6 +63,8 @@ class Validator:
                 pred = model(x.contiguous(memory_format=fmt), light).float()
                 target = tonemap(batch["render"].to(device))
                 scores.append(torch.stack([psnr(pred, target), ssim(pred, target)], 1).cpu())
+                for j in range(min(shown - len(pictures), len(pred))):
+                    pictures.append((target[j].cpu().numpy(), pred[j].cpu().numpy()))
         finally:
             model.train(training)
         mean = torch.cat(scores).double().mean(0) if scores else torch.full((2,), float("nan"))
@@ -68,4 +73,4 @@ class Validator:
             "psnr": round(float(mean[0]), 4),
             "ssim": round(float(mean[1]), 5),
             "seconds": round(time.perf_counter() - t0, 3),
-        }
+        }, pictures

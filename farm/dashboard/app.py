@@ -3,7 +3,7 @@
 Routes: ``/`` (jobs, ``?status=`` filters), ``/job/<name>`` (``?fragment=1``: the part that
 refreshes), ``/thumb/<name>?sample=i`` (a tonemapped render, as ``shards show``),
 ``/sheet/<name>?sample=i`` (its contact sheet), ``POST /cancel/<name>``, ``/runs``,
-``/runfile/<name>?file=eval.png``, ``/metrics``, ``/api/job/<name>`` (JSON). A store's or a
+``/runfile/<name>?file=eval.png|val.png``, ``/metrics``, ``/api/job/<name>`` (JSON). A store's or a
 run's ``<name>`` is ``<root index>[/<path below the root>]``; pages and metrics show it as the
 root as given on the command line plus that path (its ``label``). Reads are blocking (zarr,
 fsspec) and run in a thread pool so one slow store does not hold the others.
@@ -199,9 +199,10 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         )
 
     async def run_file(request):
-        if request.query.get("file") not in ("eval.png",):
+        name = request.query.get("file")
+        if name not in ("eval.png", "val.png"):
             return web.Response(status=404, text="404\n")
-        path = dash.run_path(request.match_info["name"]) / "eval.png"
+        path = dash.run_path(request.match_info["name"]) / name
         if not path.is_file():
             return web.Response(status=404, text="404\n")
         return web.FileResponse(path)

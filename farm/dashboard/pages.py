@@ -128,7 +128,10 @@ epoch<b>{{ (r.epoch + 1) if r.epoch is not none else "-" }}</b></div><div class=
 }}">held-out PSNR<b>{{ r.val_last.psnr|num("%.2f dB") }}</b></div><div class="card">held-out
 SSIM<b>{{ r.val_last.ssim|num("%.4f") }}</b></div>{% endif %}</div>
 <div class="grid curves">{% for name, svg in r.curves %}<div><b>{{ name }}</b><br>{{ svg }}</div>
-{% endfor %}</div>
+{% endfor %}</div>{% if r.val_grid and r.val_last %}
+<p>held-out samples at step {{ r.val_last.step }}, the last score:</p><img
+alt="held-out grid" style="max-width:100%"
+src="/runfile/{{ r.name }}?file=val.png&amp;step={{ r.val_last.step }}">{% endif %}
 <p>checkpoints: {% for c in r.checkpoints %}{{ c.name }} ({{ (c.bytes / 1e6)|round(1) }} MB) {%
 else %}none{% endfor %}</p>{% if r.eval %}<p>eval at step {{ r.eval.checkpoint_step }}: PSNR
 {{ "%.2f"|format(r.eval.overall.psnr) }} dB, SSIM {{ "%.4f"|format(r.eval.overall.ssim) }} on

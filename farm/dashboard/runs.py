@@ -1,9 +1,9 @@
 """What the dashboard knows of trainer runs: each run folder's ``log.jsonl`` (loss, images/s,
-data wait), ``val.jsonl`` (held-out PSNR and SSIM while it trains), ``checkpoints/``, and
-``eval.json`` / ``eval.png`` where ``trainer eval`` wrote them. A ``--runs`` folder is a run
-(it holds ``log.jsonl`` or ``config.json``) or a folder of runs. Runs are named ``<runs
-index>/<path below it>`` in URLs and labelled with the folder as given plus that path on the
-page and in the metrics."""
+data wait), ``val.jsonl`` and ``val.png`` (held-out scores and pictures while it trains),
+``checkpoints/``, and ``eval.json`` / ``eval.png`` where ``trainer eval`` wrote them. A
+``--runs`` folder is a run (it holds ``log.jsonl`` or ``config.json``) or a folder of runs.
+Runs are named ``<runs index>/<path below it>`` in URLs and labelled with the folder as given
+plus that path on the page and in the metrics."""
 
 from __future__ import annotations
 
@@ -80,4 +80,5 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
         ],
         "eval": ev,
         "eval_grid": (run / "eval.png").exists(),
+        "val_grid": (run / "val.png").exists(),
     }
