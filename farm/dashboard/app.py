@@ -3,10 +3,10 @@
 Routes: ``/`` (jobs, ``?status=`` filters), ``/job/<name>`` (``?fragment=1``: the part that
 refreshes), ``/thumb/<name>?sample=i`` (a tonemapped render, as ``shards show``),
 ``/sheet/<name>?sample=i`` (its contact sheet), ``POST /cancel/<name>``, ``/runs``,
-``/runfile/<name>?file=eval.png|val.png``, ``/metrics``, ``/api/job/<name>`` (JSON). A store's or a
-run's ``<name>`` is ``<root index>[/<path below the root>]``; pages and metrics show it as the
-root as given on the command line plus that path (its ``label``). Reads are blocking (zarr,
-fsspec) and run in a thread pool so one slow store does not hold the others.
+``/runfile/<name>?file=eval.png|val.png``, ``/metrics``, ``/api/job/<name>`` (JSON). A
+store's or a run's ``<name>`` is ``<root index>[/<path below the root>]``; pages and metrics
+show it as the root as given on the command line plus that path (its ``label``). Reads are
+blocking (zarr, fsspec) and run in a thread pool so one slow store does not hold the others.
 """
 
 from __future__ import annotations
@@ -192,7 +192,8 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         rows = await _blocking(dash.run_rows)
         for r in rows:
             r["curves"] = _run_curves(r)
-        scored = [(r["label"], [(x["step"], x["psnr"]) for x in r["val"]]) for r in rows]
+        scored = [(r["label"], [(x["step"], x["psnr"]) for x in r["val"] if "psnr" in x])
+                  for r in rows]  # fmt: skip
         compare = pages.lines_chart(scored) if sum(len(p) > 1 for _, p in scored) > 1 else None
         return html(
             text=pages.render("runs", runs=rows, compare=compare, secret=secret, title="runs")
