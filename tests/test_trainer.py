@@ -340,6 +340,7 @@ def test_the_best_checkpoint_outlives_the_rotation_and_is_replaced_whole(tmp_pat
         return {"model": {"w": torch.full((4,), float(step))}, "step": step}
 
     first = checkpoint.save(tmp_path, state(1), keep=1)
+    (tmp_path / "checkpoints" / ".best.pt.tmp").write_text("left by a killed run")
     best = checkpoint.keep_best(first)
     checkpoint.save(tmp_path, state(2), keep=1)  # drops step 1's file
     assert not first.exists() and [p.name for p in checkpoint.listing(tmp_path)] == [

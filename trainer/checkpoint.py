@@ -63,9 +63,11 @@ def save(run_dir: str | os.PathLike, state: dict, keep: int = 3) -> Path:
 
 def keep_best(path: Path) -> Path:
     """Name the checkpoint ``path`` :data:`BEST` too, replacing the one named so before in one
-    rename: a hard link (a copy where the file system has none)."""
+    rename: a hard link (a copy where the file system has none). The link is made under one
+    fixed temporary name (one process writes a run's checkpoints), so one a kill left
+    behind is removed by the next call."""
     best = path.parent / BEST
-    tmp = path.parent / f".{BEST}.{os.getpid()}.tmp"
+    tmp = path.parent / f".{BEST}.tmp"
     tmp.unlink(missing_ok=True)
     try:
         os.link(path, tmp)

@@ -104,7 +104,7 @@ class RunLog:
         self.window["wait"] += waited
         self.window["images"] += n
         self.window["loss"] += loss
-        self.window["lr"] = float(f"{t.opt.param_groups[0]['lr']:.6g}")
+        self.window["lr"] = t.opt.param_groups[0]["lr"]
         self.window["n"] += 1
         if self.samples is not None:
             ids = ",".join(str(int(i)) for i in batch["id"])
@@ -142,7 +142,7 @@ def _log(out: Path, writer, bar, step: int, epoch: int, window: dict, world: int
         "loss": round(float(window["loss"]) / max(window["n"], 1), 6),
         "images_per_second": round(window["images"] * world / dt, 2),
         "data_wait": round(window["wait"] / dt, 4),
-        "lr": window.get("lr"),  # the last step's
+        "lr": float(f"{window['lr']:.6g}"),  # the last step's
         "time": round(time.time(), 3),
     }
     with open(out / "log.jsonl", "a") as f:
