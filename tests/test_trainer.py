@@ -369,3 +369,47 @@ def test_learning_rate_schedules_are_functions_of_the_step():
     with pytest.raises(ValueError, match="unknown learning-rate schedule 'step'"):
         lr_at(3, 1.0, "step", 10)
     assert run_steps(3, None, 7) == 21 and run_steps(3, 5, 7) == 5 and run_steps(1, 50, 7) == 7
+
+
+def test_the_weight_average_warms_up_then_keeps_its_decay():
+    from trainer.ema import WeightAverage, decay_at
+
+    assert [decay_at(n, 0.999) for n in (0, 1, 8)] == pytest.approx([0.1, 2 / 11, 0.5])
+    assert decay_at(10**6, 0.999) == 0.999 and decay_at(10**6, 0.5) == 0.5
+    torch.manual_seed(0)
+    model = torch.nn.Sequential(torch.nn.Conv2d(2, 3, 1), torch.nn.BatchNorm2d(3))
+    avg = WeightAverage(model, 0.9)
+    assert not avg.model.training and not any(p.requires_grad for p in avg.model.parameters())
+    start = {k: v.clone() for k, v in avg.model.state_dict().items()}
+    model.train()(torch.randn(4, 2, 5, 5))  # BatchNorm's running statistics and counter move
+    with torch.no_grad():
+        model[0].weight.add_(1.0)
+    avg.update(model)
+    now, trained = avg.model.state_dict(), model.state_dict()
+    d = decay_at(0, 0.9)  # 0.1: the first update is mostly the trained weights
+    for key in ("0.weight", "0.bias", "1.running_mean", "1.running_var"):
+        torch.testing.assert_close(now[key], d * start[key] + (1 - d) * trained[key])
+    assert now["1.num_batches_tracked"] == trained["1.num_batches_tracked"] == 1  # copied
+    assert avg.updates == 1 and not torch.equal(now["0.weight"], trained["0.weight"])
+    again = WeightAverage(model, 0.9)  # a resumed run: the kept average and its count
+    again.load_state_dict(avg.state_dict())
+    assert again.updates == 1 and all(torch.equal(again.model.state_dict()[k], now[k]) for k in now)
+    with pytest.raises(ValueError, match="decay must be in"):
+        WeightAverage(model, 1.0)
+
+
+def test_a_checkpoint_renders_with_its_average_unless_told_otherwise():
+    from trainer.checkpoint import CheckpointError, weights
+
+    plain = {"model": {"w": 1}, "step": 3}
+    kept = {**plain, "ema": {"weights": {"w": 2}, "decay": 0.9, "updates": 3}}
+    assert [weights(kept, w) for w in ("auto", "average", "trained")] == [
+        {"w": 2},
+        {"w": 2},
+        {"w": 1},
+    ]
+    assert [weights(plain, w) for w in ("auto", "trained")] == [{"w": 1}, {"w": 1}]
+    with pytest.raises(CheckpointError, match="kept no average of its weights at step 3"):
+        weights(plain, "average")
+    with pytest.raises(ValueError, match="weights must be one of"):
+        weights(kept, "best")

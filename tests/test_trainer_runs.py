@@ -29,7 +29,8 @@ from trainer import checkpoint
 from trainer.cli import main as trainer_main
 from trainer.config import TrainConfig
 from trainer.data import Catalog, ShardStream, loader, steps_left
-from trainer.infer import Renderer
+from trainer.evaluate import evaluate
+from trainer.infer import Renderer, load_renderer
 from trainer.model import ModelConfig, NeuralRenderer
 from trainer.targets import Tonemap, model_inputs
 from trainer.train import TrainingDiverged, train
@@ -210,7 +211,9 @@ def test_export_onnx_renders_as_the_checkpoint_and_a_failed_check_writes_nothing
     ]  # fmt: skip
     assert isinstance(session.get_inputs()[0].shape[0], str)  # any batch size
     meta = session.get_modelmeta().custom_metadata_map
-    assert meta["shaderball.resolution"] == "64"
+    assert meta["shaderball.resolution"] == "64" and meta["shaderball.weights"] == "trained"
+    with pytest.raises(checkpoint.CheckpointError, match="holds the one set of weights"):
+        load_renderer(out, weights="trained")
     assert json.loads(meta["shaderball.tonemap"]) == checkpoint.load(trained)["tonemap"]
     samples = [0, 4, 7, 9, 13]  # five materials' stored maps, under their own suns
     maps = np.stack(
@@ -434,14 +437,30 @@ def test_held_out_scores_are_evenly_spaced_and_change_nothing_trained(tiny_store
     n = len(split)
     assert list(Validator(split, 3).ids) == [0, round((n - 1) / 2), n - 1]
     assert list(Validator(split, 99).ids) == list(range(n)) and not len(Validator(split, 0))
-    # scoring every step (eval mode, then back) leaves the training where it was
+    # scoring every step (eval mode, then back), or averaging the weights, leaves the
+    # training where it was
     params = []
-    for name, every, count in (("scored", 1, 64), ("unscored", 0, 0)):
-        train(config(tiny_store, tmp_path / name, max_steps=4, val_every=every, val_samples=count))
-        params.append(Renderer.from_checkpoint(tmp_path / name).model.state_dict())
+    for name, every, count, ema in (("scored", 1, 64, 0), ("unscored", 0, 0, 0),
+                                    ("averaged", 1, 64, 0.9)):  # fmt: skip
+        cfg = config(tiny_store, tmp_path / name, max_steps=4, val_every=every, val_samples=count,
+                     ema_decay=ema)  # fmt: skip
+        train(cfg)
+        trained = Renderer.from_checkpoint(tmp_path / name, weights="trained")
+        params.append(trained.model.state_dict())
     assert len((tmp_path / "scored" / "val.jsonl").read_text().splitlines()) == 4
     assert not (tmp_path / "unscored" / "val.jsonl").exists()
-    assert all(torch.equal(params[0][k], params[1][k]) for k in params[0])
+    assert all(torch.equal(params[0][k], p[k]) for p in params[1:] for k in params[0])
+    # the averaged run's checkpoints render, and its scores measure, the average
+    run = tmp_path / "averaged"
+    val = [json.loads(line) for line in (run / "val.jsonl").read_text().splitlines()]
+    scores = {w: evaluate(run, weights=w, device="cpu") for w in ("auto", "trained")}
+    assert scores["auto"]["weights"] == "average" and scores["trained"]["weights"] == "trained"
+    assert val[-1]["psnr"] == pytest.approx(scores["auto"]["overall"]["psnr"], abs=2e-3)
+    assert scores["auto"]["overall"]["psnr"] != scores["trained"]["overall"]["psnr"]
+    assert checkpoint.load(run)["ema"]["updates"] == 4
+    assert evaluate(tmp_path / "scored", device="cpu")["weights"] == "trained"
+    with pytest.raises(checkpoint.CheckpointError, match="scored.*kept no average"):
+        evaluate(tmp_path / "scored", weights="average", device="cpu")
 
 
 def test_torchrun_two_ranks_stay_identical_and_read_disjoint_samples(tiny_store, tmp_path):
@@ -479,7 +498,7 @@ def test_torchrun_two_ranks_stay_identical_and_read_disjoint_samples(tiny_store,
 def test_killed_run_resumes_with_exactly_the_remaining_order(tiny_store, tmp_path):
     ref = tmp_path / "ref"
     kw = {"epochs": 3, "log_samples": True, "checkpoint_every": 3, "lr_schedule": "cosine",
-          "warmup_steps": 2}  # fmt: skip
+          "warmup_steps": 2, "ema_decay": 0.95}  # fmt: skip
     train(config(tiny_store, ref, **kw))
     full = sample_lines(ref)[:-1]
 
@@ -504,6 +523,8 @@ def test_killed_run_resumes_with_exactly_the_remaining_order(tiny_store, tmp_pat
     assert a["step"] == b["step"] and a["epoch"] == b["epoch"]
     assert sample_lines(ref)[-1] == sample_lines(run)[-1]  # the same weights (same rates)
     assert a["best"] is not None and b["best"] == a["best"]  # the best score survives a resume
+    assert a["ema"]["updates"] == b["ema"]["updates"] == a["step"]  # and the average, exactly
+    assert all(torch.equal(a["ema"]["weights"][k], b["ema"]["weights"][k]) for k in a["model"])
     assert checkpoint.load(run / "checkpoints" / "best.pt")["step"] == a["best"]["step"]
 
 
@@ -563,7 +584,7 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
     for option, value in [("--width", "0"), ("--seed", "-1"), ("--roughness-channels", "2"),
                           ("--perceptual-weight", "-1"), ("--epochs", "0"),
                           ("--val-every", "-1"), ("--val-samples", "-2"),
-                          ("--warmup-steps", "-1")]:  # fmt: skip
+                          ("--warmup-steps", "-1"), ("--ema-decay", "1.0")]:  # fmt: skip
         msg = one_line_error([*base, "--store", tiny_store.url, option, value])
         assert msg.startswith(f"Error: invalid {option[2:].replace('-', '_')}: {value}"), msg
 

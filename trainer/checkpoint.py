@@ -7,7 +7,9 @@ run's :class:`trainer.config.TrainConfig`), ``model_config``, ``tonemap`` and ``
 stores, shards and held-out materials the run trains on), and ``screen_uv`` when the stores
 have one (the bytes of ``render_jobs.screen_uv.FILE``: the checkpoint alone then maps any
 material to the network's input, ``trainer.mapping``), and ``best`` (``{"step", "psnr"}``:
-the best held-out score at a checkpoint so far, or none). Written to a temporary file in the
+the best held-out score at a checkpoint so far, or none), and ``ema`` when the run averages
+its weights (:meth:`trainer.ema.WeightAverage.state_dict`: the weights the checkpoint renders
+with, :func:`weights`). Written to a temporary file in the
 same folder, fsynced, then renamed into place; the newest ``keep`` are kept, and
 ``checkpoints/best.pt`` is a second name of the one with the best held-out PSNR
 (:func:`keep_best`), kept when the rotation drops its step file.
@@ -29,8 +31,27 @@ PATTERN = re.compile(r"^step-(\d{8})\.pt$")
 BEST = "best.pt"
 
 
+#: which of a checkpoint's weights :func:`weights` gives
+WEIGHTS = ("auto", "average", "trained")
+
+
 class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable or not one of ours."""
+
+
+def weights(state: dict, which: str = "auto") -> dict:
+    """A checkpoint's model state dict: ``trained`` (the optimizer's), ``average`` (the
+    moving average of a run with ``--ema-decay``) or ``auto`` (the average when there is
+    one: what render, eval, the viewer and export use)."""
+    if which not in WEIGHTS:
+        raise ValueError(f"weights must be one of {', '.join(WEIGHTS)}, not {which!r}")
+    ema = state.get("ema")
+    if which == "average" and ema is None:
+        raise CheckpointError(
+            f"the run kept no average of its weights at step {state.get('step')} "
+            "(train with --ema-decay)"
+        )
+    return ema["weights"] if ema is not None and which != "trained" else state["model"]
 
 
 def folder(run_dir: str | os.PathLike) -> Path:

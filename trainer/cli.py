@@ -51,6 +51,15 @@ device_option = click.option(
     help="where the network runs",
 )
 
+weights_option = click.option(
+    "--weights",
+    default="auto",
+    show_default=True,
+    type=click.Choice(["auto", "average", "trained"]),
+    help="a run trained with --ema-decay keeps two sets: the moving average of its weights "
+    "(auto picks it) and the optimizer's own (trained)",
+)
+
 
 @click.group(cls=Commands, context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
@@ -197,8 +206,9 @@ def launch(
     "the run's held-out split",
 )
 @device_option
+@weights_option
 @click.option("--json", "as_json", is_flag=True, help="print the metrics as JSON")
-def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
+def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, weights, as_json):
     """PSNR, SSIM and FLIP on held-out materials, overall and per kind, and a PNG grid
     (ground truth | prediction | error x4) of a few samples.
 
@@ -212,22 +222,25 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
       trainer eval --checkpoint runs/demo --grid runs/demo/eval.png
       trainer eval --checkpoint runs/a --on out/test.zarr --json
       trainer eval --checkpoint runs/demo/ball.onnx --grid onnx-eval.png
+      trainer eval --checkpoint runs/ema --weights trained    # without the run's average
     """
     from storage.errors import StoreError
     from storage.extras import MissingExtra
     from trainer.checkpoint import CheckpointError
     from trainer.evaluate import EvalError, evaluate
 
-    if grid is None and Path(ckpt).is_dir() and not on:
+    run_scores = Path(ckpt).is_dir() and not on and weights == "auto"  # what the run renders
+    if grid is None and run_scores:
         grid = Path(ckpt) / "eval.png"
     check_picture_name(grid, "--grid")
     try:
         result = evaluate(
-            ckpt, list(stores) or None, batch_size, grid, grid_count, device, list(on) or None
-        )
+            ckpt, list(stores) or None, batch_size, grid, grid_count, device,
+            list(on) or None, weights,
+        )  # fmt: skip
     except (StoreError, CheckpointError, EvalError, MissingExtra) as exc:
         _fail(exc)
-    if Path(ckpt).is_dir() and not on:  # beside the run's log, for the dashboard's runs page
+    if run_scores:  # beside the run's log, for the dashboard's runs page
         from storage.backend import write_atomic
 
         data = json.dumps(result, indent=1, default=str).encode()
@@ -243,7 +256,8 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, as_json):
         return
     o = result["overall"]
     runtime = "" if result["runtime"] == "torch" else f" in {result['runtime']}"
-    click.echo(f"step {result['checkpoint_step']}{runtime}: {o['n']} held-out samples")
+    kept = " (the run's moving average)" if result["weights"] == "average" else ""
+    click.echo(f"step {result['checkpoint_step']}{runtime}{kept}: {o['n']} held-out samples")
     rows = [
         (kind, m["n"], m["psnr"], m["ssim"], m["flip"])
         for kind, m in [("all", o), *result["by_kind"].items()]
@@ -422,7 +436,8 @@ def _sweep(renderer, packed, sun, n: int):
 @click.option("--no-catalog", is_flag=True,
               help="leave out the addresses of the run's stores and its held-out split (a "
               "file to share): trainer eval then scores it --on other stores only")  # fmt: skip
-def export(ckpt, output, opset, no_catalog):
+@weights_option
+def export(ckpt, output, opset, no_catalog, weights):
     """Export the network as an ONNX model, to run it without Python or torch (ONNX Runtime
     in a tool, a game engine or a browser).
 
@@ -455,7 +470,7 @@ def export(ckpt, output, opset, no_catalog):
     if output.suffix != ".onnx":
         raise click.BadParameter(f"{str(output)!r} does not end in .onnx", param_hint="-o")
     try:
-        renderer = Renderer.from_checkpoint(ckpt, "cpu")
+        renderer = Renderer.from_checkpoint(ckpt, "cpu", weights)
         click.echo("exporting, then checking the model in ONNX Runtime ...", err=True)
         done = export_onnx(renderer, output, opset, catalog=not no_catalog)
     except (CheckpointError, ExportError, OSError) as exc:

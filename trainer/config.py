@@ -42,6 +42,11 @@ class TrainConfig:
         choices=SCHEDULES,
     )
     warmup_steps: int = _opt(0, "steps of linear warm-up to --lr at the start")
+    ema_decay: float = _opt(
+        0.0,
+        "keep a moving average of the weights with this decay (e.g. 0.999; 0: none): what "
+        "the checkpoints render with and the held-out scores measure (trainer.ema)",
+    )
     beta1: float = _opt(0.9, "Adam β1")
     beta2: float = _opt(0.999, "Adam β2")
     clip: float = _opt(1.0, "clip the gradient norm to this (0: no clipping)")
@@ -92,6 +97,7 @@ class TrainConfig:
             "lr": self.lr > 0,
             "lr_schedule": self.lr_schedule in SCHEDULES,
             "warmup_steps": self.warmup_steps >= 0,
+            "ema_decay": 0 <= self.ema_decay < 1,
             "width": self.width >= 1,
             "roughness_channels": self.roughness_channels in (1, 3),
             "seed": self.seed >= 0,

@@ -210,12 +210,14 @@ def evaluate(
     grid_count: int = 4,
     device: str = "auto",
     on: list[str] | None = None,
+    weights: str = "auto",
 ) -> dict:
     """Metrics of checkpoint ``ckpt`` (or a model ``trainer export`` wrote, run in ONNX
     Runtime: :func:`trainer.infer.load_renderer`) on its run's held-out split, or on every
     sample of the stores ``on`` (:func:`test_split`); writes a ground truth | prediction |
-    error PNG grid of the first ``grid_count`` samples to ``grid`` when given."""
-    renderer = load_renderer(ckpt, device)
+    error PNG grid of the first ``grid_count`` samples to ``grid`` when given. ``weights``:
+    which of a checkpoint's (:func:`trainer.checkpoint.weights`)."""
+    renderer = load_renderer(ckpt, device, weights)
     try:
         split = test_split(renderer, stores, on)
     except NoCatalog as exc:
@@ -240,6 +242,7 @@ def evaluate(
     result = {
         "checkpoint_step": renderer.step,
         "runtime": renderer.runtime,
+        "weights": renderer.weights,
         # whether the --on stores were checked to hold no material the run trained on
         "on_checked_against_run": trained_on_is_checked(renderer) if on else None,
         "samples": len(split),

@@ -125,6 +125,7 @@ def metadata(renderer: Renderer, catalog: bool = True) -> dict[str, str]:
         "shaderball.model_config": json.dumps(renderer.config.to_dict()),
         "shaderball.tonemap": json.dumps(renderer.tonemap.to_dict()),
         "shaderball.checkpoint_step": "" if renderer.step is None else str(renderer.step),
+        "shaderball.weights": renderer.weights,  # the run's average or its trained weights
         "shaderball.inputs": (
             "maps (N, 11, R, R) uint8 stored maps: diffuse, specular (sRGB), roughness, "
             "normal ((n + 1) / 2), coverage (not read); sun (N, 3) float32 direction, z up; "

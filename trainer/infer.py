@@ -51,7 +51,8 @@ class MapsRenderer:
     """What ``trainer render``, ``trainer viewer`` and :func:`render_under` use of a renderer:
     :meth:`render_batch` (each kind's own), :meth:`render` over it, and ``config``
     (:class:`ModelConfig`), ``tonemap``, ``device``, ``runtime``, ``step`` (the
-    checkpoint's, or ``None``), ``catalog`` (the run's stores and held-out split,
+    checkpoint's, or ``None``), ``weights`` (``average`` or ``trained``: which of the run's,
+    :func:`trainer.checkpoint.weights`), ``catalog`` (the run's stores and held-out split,
     :meth:`storage.catalog.Catalog.to_dict`, or ``None``) and ``screen_uv()``."""
 
     config: ModelConfig
@@ -59,6 +60,7 @@ class MapsRenderer:
     device: torch.device
     step: int | None
     catalog: dict | None
+    weights: str = "trained"
     #: what runs the network, for people to read
     runtime = "torch"
     #: why ``screen_uv()`` gives ``None``
@@ -84,15 +86,21 @@ class MapsRenderer:
         return out[0] if single else out
 
 
-def load_renderer(path, device: str = "auto") -> MapsRenderer:
+def load_renderer(path, device: str = "auto", weights: str = "auto") -> MapsRenderer:
     """The renderer of ``path``: a checkpoint or a run folder (:class:`Renderer`, torch on
-    ``device``), or a model ``trainer export`` wrote (``.onnx``:
-    :class:`trainer.onnx_renderer.OnnxRenderer`, ONNX Runtime on the CPU)."""
+    ``device``, with the checkpoint's ``weights``: :func:`trainer.checkpoint.weights`), or a
+    model ``trainer export`` wrote (``.onnx``: :class:`trainer.onnx_renderer.OnnxRenderer`,
+    ONNX Runtime on the CPU, with the weights it was exported with)."""
     if str(path).lower().endswith(".onnx"):
         from trainer.onnx_renderer import OnnxRenderer
 
+        if weights != "auto":
+            raise checkpoint.CheckpointError(
+                f"{path}: an exported model holds the one set of weights it was exported "
+                "with (trainer export --weights chooses them)"
+            )
         return OnnxRenderer.load(path, device)
-    return Renderer.from_checkpoint(path, device)
+    return Renderer.from_checkpoint(path, device, weights)
 
 
 class Renderer(MapsRenderer):
@@ -109,12 +117,18 @@ class Renderer(MapsRenderer):
         self.device = device
 
     @classmethod
-    def from_checkpoint(cls, path, device: str = "auto") -> Renderer:
+    def from_checkpoint(cls, path, device: str = "auto", weights: str = "auto") -> Renderer:
+        """The checkpoint (or run folder's latest) at ``path`` with its ``weights``
+        (:func:`trainer.checkpoint.weights`: by default the run's average when it kept one)."""
         state = checkpoint.load(path)
         model = build_model(ModelConfig(**state["model_config"]))
-        model.load_state_dict(state["model"])
+        try:
+            model.load_state_dict(checkpoint.weights(state, weights))
+        except checkpoint.CheckpointError as exc:
+            raise checkpoint.CheckpointError(f"{path}: {exc}") from None
         r = cls(model, Tonemap.from_dict(state["tonemap"]), pick_device(device))
         r.state = state
+        r.weights = "trained" if weights == "trained" or "ema" not in state else "average"
         return r
 
     @property

@@ -43,6 +43,7 @@ class OnnxRenderer(MapsRenderer):
         self.tonemap = Tonemap.from_dict(json.loads(meta["shaderball.tonemap"]))
         step = meta.get("shaderball.checkpoint_step", "")
         self.step = int(step) if step.isdigit() else None
+        self.weights = meta.get("shaderball.weights", "trained")
         catalog = meta.get("shaderball.catalog")
         self.catalog = json.loads(catalog) if catalog else None
         self.device = torch.device("cpu")

@@ -83,7 +83,7 @@ class RunLog:
             return
         t0 = time.perf_counter()
         scores, shown = v.score(
-            t.model, t.model_cfg.roughness_channels, t.tonemap, self.fmt, shown=VAL_GRID_ROWS
+            t.rendering, t.model_cfg.roughness_channels, t.tonemap, self.fmt, shown=VAL_GRID_ROWS
         )
         write_grid(self.out / "val.png", shown)
         self.window["t"] += time.perf_counter() - t0

@@ -17,9 +17,10 @@ On CUDA: bf16 autocast and channels_last (the U-Net and VGG16), cudnn.benchmark.
 reads its own disjoint part of every epoch (``trainer.data``); ranks that end an epoch one
 batch short are handled by DDP's ``join``.
 Rank 0 writes the progress bar, ``RUNDIR/log.jsonl``, TensorBoard events under ``RUNDIR/tb``
-and the checkpoints (``trainer.checkpoint``). A NaN or infinite gradient norm (identical on
-every rank, since gradients are all-reduced) stops the run with :class:`TrainingDiverged`
-before any checkpoint is written from the diverged weights.
+and the checkpoints (``trainer.checkpoint``); with ``--ema-decay`` it also keeps the moving
+average of the weights (``trainer.ema``), updated after every step. A NaN or infinite
+gradient norm (identical on every rank, since gradients are all-reduced) stops the run with
+:class:`TrainingDiverged` before any checkpoint is written from the diverged weights.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from storage.schema import untrainable
 from trainer import checkpoint, faults
 from trainer.config import TrainConfig, absolute_store
 from trainer.data import Catalog, ShardStream, loader, steps_left
+from trainer.ema import WeightAverage
 from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
 from trainer.runlog import RunLog
@@ -136,9 +138,15 @@ class Trainee:
     screen_uv: bytes | None = None  # the stores' layout, so checkpoints map new materials
     run_steps: int = 0  # the run's length in global steps, for the learning-rate schedule
     best: dict | None = None  # the best held-out score at a checkpoint: {"step", "psnr"}
+    ema: WeightAverage | None = None  # rank 0's moving average of the weights (--ema-decay)
     step: int = 0
     epoch: int = 0
     position: int = 0
+
+    @property
+    def rendering(self) -> torch.nn.Module:
+        """The network the checkpoints render with: the moving average, else the model."""
+        return self.model if self.ema is None else self.ema.model
 
 
 def preflight(cfg: TrainConfig) -> None:
@@ -176,6 +184,11 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
             "materials only (farm screen-uv STORE adds it; resume to carry it)"
         )
     log.start(log.validation_plan())
+    if t.ema is not None:
+        log.start(
+            f"weights averaged (decay {cfg.ema_decay}): the checkpoints render with the "
+            "average, and the held-out scores measure it"
+        )
     log.start(
         f"training on {len(split)} samples (held-out materials: "
         f"{sum(map(len, catalog.heldout))}), {rk.world} rank(s) x batch {cfg.batch_size} "
@@ -225,6 +238,8 @@ def _epoch(cfg: TrainConfig, rk: Rank, t: Trainee, batches, split_size: int, log
                     f"the loader is out of step: epoch {batch['epoch']} in {t.epoch}"
                 )
             loss = train_step(cfg, rk, t, batch)
+            if t.ema is not None:
+                t.ema.update(t.model)
             t.step += 1
             t.position = min(t.position + rk.world * cfg.batch_size, split_size)
             images += len(batch["id"])
@@ -314,6 +329,10 @@ def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg
         opt.load_state_dict(state["optimizer"])  # train_step sets the rate: --lr may change
         t.step, t.epoch, t.position = state["step"], state["epoch"], state["position"]
         t.best = state.get("best")
+    if rk.master and cfg.ema_decay > 0:  # from the weights as they are, or as it was kept
+        t.ema = WeightAverage(model, cfg.ema_decay)
+        if state is not None and state.get("ema") is not None:
+            t.ema.load_state_dict(state["ema"])
     if rk.distributed:
         t.net = DDP(model, device_ids=[rk.device.index] if rk.cuda else None)
     return t
@@ -407,6 +426,7 @@ def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None
             "tonemap": t.tonemap.to_dict(),
             "catalog": t.catalog.to_dict(),
             **({"screen_uv": t.screen_uv} if t.screen_uv is not None else {}),
+            **({"ema": t.ema.state_dict()} if t.ema is not None else {}),
             "best": t.best,
         },
         keep=cfg.keep,

@@ -6,8 +6,9 @@ shows when the network stops improving on materials it never trains on. FLIP is 
 
 The samples are ``count`` evenly spaced ones of the held-out split (every one when it has
 fewer), the same at every score of a run, read from the stores each time (nothing is kept in
-memory between scores). Only rank 0 scores (``trainer.train``), with the bare model: no
-collective runs, so the other ranks wait at their next gradient all-reduce.
+memory between scores). Only rank 0 scores (``trainer.train``), with the bare network the
+checkpoints render with (the moving average of a run with ``--ema-decay``): no collective
+runs, so the other ranks wait at their next gradient all-reduce.
 """
 
 from __future__ import annotations
