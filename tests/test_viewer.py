@@ -443,12 +443,13 @@ class Viewer(ServerProcess):
 
 @pytest.fixture(scope="module")
 def run(tiny_store, tmp_path_factory) -> Path:
-    """A checkpoint trained briefly on the tiny real store (it carries the store's layout)."""
+    """A checkpoint trained briefly on the tiny real store (it carries the store's layout),
+    with a moving average of its weights, which it renders with."""
     out = tmp_path_factory.mktemp("viewer") / "run"
     r = subprocess.run(
         [str(BIN / "trainer"), "train", "--store", tiny_store.url, "--out", str(out), "--loss",
          "l1", "--epochs", "1", "--batch-size", "4", "--workers", "0", "--max-steps", "6",
-         "--width", "16"],
+         "--width", "16", "--ema-decay", "0.9"],
         capture_output=True, text=True,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr[-2000:]
@@ -489,6 +490,7 @@ def test_the_server_answers_bad_requests_in_one_line_and_goes_on(run, tiny_store
     before = snapshot(run, Path(tiny_store.url))
     with Viewer("--checkpoint", run, "--store", tiny_store.url, "--max-upload-mb", "64",
                 tmp=tmp_path) as v:  # fmt: skip
+        assert "step 6 · averaged weights ·" in v.get("/")[1].decode()  # the run's average
         secret = v.secret()
         status, body, _ = v.upload([("panel.png", panel())], secret=None)
         assert status == 403  # a POST without the page's secret

@@ -83,10 +83,11 @@ def main() -> None:
 def train(**kwargs) -> None:
     """Train on one process: the per-rank entry that `trainer launch` runs under torchrun.
 
-    Run it directly for a single CPU/GPU process. Example:
+    Run it directly for a single CPU/GPU process. Examples:
 
     \b
       trainer train --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
+      trainer train --store out/set.zarr --ema-decay 0.999 --out runs/ema  # averaged weights
     """
     from trainer.train import train
 

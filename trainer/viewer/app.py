@@ -246,6 +246,7 @@ def build(
     info = {
         "checkpoint": checkpoint,
         "step": renderer.step,
+        "weights": renderer.weights,  # "average": the run's moving average (--ema-decay)
         "resolution": renderer.config.resolution,
         "model": renderer.config.arch,
         "device": f"{renderer.device} · {renderer.runtime}",

@@ -279,7 +279,7 @@ else pick({id: uniformId(), label: 'uniform', kind: 'uniform', suns: []});
 PAGE = """<!doctype html><html><head><meta charset="utf-8"><title>shaderball viewer</title>
 <meta name="secret" content="{{ secret }}"><style>{{ css }}</style></head><body>
 <header><h1>shaderball viewer</h1><span>{{ info.checkpoint }} ·{% if info.step is not none %}
-step {{ info.step }} ·{% endif %}
+step {{ info.step }} ·{% endif %}{% if info.weights == "average" %} averaged weights ·{% endif %}
 {{ info.model }} {{ info.resolution }}² · {{ info.device }}{% if not info.mapping %} · stored
 materials only (no screen UV layout){% endif %}</span></header>
 <main>
