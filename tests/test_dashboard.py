@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 import subprocess
 import time
@@ -184,7 +185,12 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     Image.new("RGB", (8, 8), (200, 30, 30)).save(runs / "val.png")
     other = tmp_path / "runs" / "r2"  # a second scored run: the page compares the two
     other.mkdir()
-    (other / "config.json").write_text("{}")
+    config = {"store": ["/data/set.zarr"], "loss": "l1", "lr": 0.001, "lr_schedule": "constant",
+              "ema_decay": 0.0, "max_steps": None}  # fmt: skip
+    (runs / "config.json").write_text(json.dumps(config))
+    (other / "config.json").write_text(
+        json.dumps({**config, "lr_schedule": "cosine", "ema_decay": 0.999})
+    )
     (other / "val.jsonl").write_text(
         "\n".join(json.dumps({**x, "psnr": x["psnr"] - 1}) for x in scores)
     )
@@ -223,6 +229,16 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert '">20.5</text>' in compare and compare.count("<polyline") >= 2
     assert not any("material=" in str(k) for k in value)  # never a material label
     assert f"{tmp_path / 'runs'}/r1 <small>" in runs_page and "<svg" in runs_page
+    # each run's settings, and a table of those that differ between the runs
+    assert "stores <b>set.zarr</b> · loss <b>l1</b> · lr <b>0.001</b>" in runs_page
+    assert "weight average <b>-</b> · max steps <b>-</b>" in runs_page  # none, as the run says
+    start = compare.index("Settings that differ")
+    differ = compare[start : compare.index("<h2>", start)]
+    heads = re.findall(r"<th>([^<]*)</th>", differ)
+    assert heads == ["run", "schedule", "weight average"]
+    assert re.findall(r"<td>([^<]*)</td>", differ) == [
+        f"{tmp_path / 'runs'}/r1", "constant", "-", f"{tmp_path / 'runs'}/r2", "cosine", "0.999",
+    ]  # fmt: skip
 
 
 @pytest.mark.slow

@@ -195,8 +195,11 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         scored = [(r["label"], [(x["step"], x["psnr"]) for x in r["val"] if "psnr" in x])
                   for r in rows]  # fmt: skip
         compare = pages.lines_chart(scored) if sum(len(p) > 1 for _, p in scored) > 1 else None
+        differ = runs.differing([r for r in rows if r["settings"]])
         return html(
-            text=pages.render("runs", runs=rows, compare=compare, secret=secret, title="runs")
+            text=pages.render(
+                "runs", runs=rows, compare=compare, differ=differ, secret=secret, title="runs"
+            )
         )
 
     async def run_file(request):

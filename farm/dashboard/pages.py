@@ -118,7 +118,13 @@ class="num">recycles</th><th class="num">recalled</th><th>last seen</th></tr>
 
 RUNS = """{% extends "base" %}{% block main %}
 {% if compare %}<h2>Held-out PSNR of every run (dB)</h2>{{ compare }}{% endif %}
+{% if differ %}<h2>Settings that differ</h2><table><tr><th>run</th>{% for k in differ
+%}<th>{{ k }}</th>{% endfor %}</tr>{% for r in runs %}<tr><td>{{
+r.label }}</td>{% for k in differ %}<td>{{ r.settings.get(k)|setting }}</td>{% endfor %}</tr>{%
+endfor %}</table>{% endif %}
 {% for r in runs %}<h2>{{ r.label }} <small>{{ r.path }}</small></h2>
+{% if r.settings %}<p class="settings">{% for k, v in r.settings.items() %}{{ k }} <b>{{ v|setting
+}}</b>{% if not loop.last %} · {% endif %}{% endfor %}</p>{% endif %}
 <div class="cards"><div class="card">step<b>{{ r.step|setting }}</b></div><div class="card">
 epoch<b>{{ (r.epoch + 1) if r.epoch is not none else "-" }}</b></div><div class="card">loss<b>
 {{ r.loss|num("%.4f") }}</b></div><div class="card">images/s<b>{{ r.images_per_second|num("%.1f")

@@ -1,9 +1,10 @@
-"""What the dashboard knows of trainer runs: each run folder's ``log.jsonl`` (loss, images/s,
-data wait), ``val.jsonl`` and ``val.png`` (held-out scores and pictures while it trains),
-``checkpoints/``, and ``eval.json`` / ``eval.png`` where ``trainer eval`` wrote them. A
-``--runs`` folder is a run (it holds ``log.jsonl`` or ``config.json``) or a folder of runs.
-Runs are named ``<runs index>/<path below it>`` in URLs and labelled with the folder as given
-plus that path on the page and in the metrics."""
+"""What the dashboard knows of trainer runs: each run folder's ``config.json`` (the settings
+it trains with), ``log.jsonl`` (loss, images/s, data wait), ``val.jsonl`` and ``val.png``
+(held-out scores and pictures while it trains), ``checkpoints/``, and ``eval.json`` /
+``eval.png`` where ``trainer eval`` wrote them. A ``--runs`` folder is a run (it holds
+``log.jsonl`` or ``config.json``) or a folder of runs. Runs are named ``<runs index>/<path
+below it>`` in URLs and labelled with the folder as given plus that path on the page and in
+the metrics."""
 
 from __future__ import annotations
 
@@ -12,6 +13,26 @@ from pathlib import Path
 
 #: log lines kept for a curve (evenly thinned): a long run's log has one a few seconds
 CURVE_POINTS = 600
+
+#: the settings of a run that the runs page shows, in order: (``config.json`` key, label)
+SETTINGS = (
+    ("store", "stores"),
+    ("model", "model"),
+    ("width", "width"),
+    ("skips", "skips"),
+    ("roughness_channels", "roughness channels"),
+    ("loss", "loss"),
+    ("batch_size", "batch a rank"),
+    ("lr", "lr"),
+    ("lr_schedule", "schedule"),
+    ("warmup_steps", "warm-up steps"),
+    ("ema_decay", "weight average"),
+    ("epochs", "epochs"),
+    ("max_steps", "max steps"),
+    ("holdout_fraction", "held out"),
+    ("seed", "seed"),
+    ("exposure", "exposure"),
+)
 
 
 def is_run(path: Path) -> bool:
@@ -41,6 +62,41 @@ def read_log(run: Path, name: str = "log.jsonl") -> list[dict]:
     return out
 
 
+def read_config(run: Path) -> dict:
+    """The run's ``config.json`` (``{}`` when it has none, or one being written)."""
+    try:
+        config = json.loads((run / "config.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+    return config if isinstance(config, dict) else {}
+
+
+def settings(config: dict) -> dict[str, object]:
+    """``{label: value}`` of the :data:`SETTINGS` the config has, in their order: stores by
+    their names (the full addresses are in the run's config), a weight average of 0 as
+    none."""
+    out = {}
+    for key, label in SETTINGS:
+        if key not in config:
+            continue
+        value = config[key]
+        if key == "store":
+            value = ", ".join(str(s).rstrip("/").rsplit("/", 1)[-1] for s in value)
+        elif key == "ema_decay":
+            value = value or None
+        out[label] = value
+    return out
+
+
+def differing(runs: list[dict]) -> list[str]:
+    """The labels of the settings whose values differ between ``runs`` (their ``settings``),
+    in :data:`SETTINGS` order; none with fewer than two runs."""
+    if len(runs) < 2:
+        return []
+    labels = [label for _, label in SETTINGS]
+    return [k for k in labels if len({repr(r["settings"].get(k)) for r in runs}) > 1]
+
+
 def thin(rows: list, limit: int = CURVE_POINTS) -> list:
     if len(rows) <= limit:
         return rows
@@ -65,6 +121,7 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
         "name": name,
         "label": label or name,
         "path": str(run),
+        "settings": settings(read_config(run)),
         "step": last.get("step"),
         "epoch": last.get("epoch"),
         "loss": last.get("loss"),
