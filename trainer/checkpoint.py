@@ -9,10 +9,10 @@ have one (the bytes of ``render_jobs.screen_uv.FILE``: the checkpoint alone then
 material to the network's input, ``trainer.mapping``), and ``best`` (``{"step", "psnr"}``:
 the best held-out score at a checkpoint so far, or none), and ``ema`` when the run averages
 its weights (:meth:`trainer.ema.WeightAverage.state_dict`: the weights the checkpoint renders
-with, :func:`weights`). Written to a temporary file in the
-same folder, fsynced, then renamed into place; the newest ``keep`` are kept, and
-``checkpoints/best.pt`` is a second name of the one with the best held-out PSNR
-(:func:`keep_best`), kept when the rotation drops its step file.
+with, :func:`weights`). Written to a temporary file in the same folder, fsynced, then renamed
+into place; the newest ``keep`` are kept, and ``checkpoints/best.pt`` is a second name of the
+one with the best held-out PSNR (:func:`keep_best`), kept when the rotation drops its step
+file.
 """
 
 from __future__ import annotations
