@@ -25,33 +25,36 @@ from pathlib import Path
 import torch
 
 from storage.backend import write_atomic
+from trainer.config import WEIGHTS
 
 PATTERN = re.compile(r"^step-(\d{8})\.pt$")
 #: the checkpoint with the best held-out PSNR, beside the step files (``trainer.train``)
 BEST = "best.pt"
 
 
-#: which of a checkpoint's weights :func:`weights` gives
-WEIGHTS = ("auto", "average", "trained")
-
-
 class CheckpointError(RuntimeError):
     """A checkpoint is missing, unreadable or not one of ours."""
 
 
-def weights(state: dict, which: str = "auto") -> dict:
-    """A checkpoint's model state dict: ``trained`` (the optimizer's), ``average`` (the
-    moving average of a run with ``--ema-decay``) or ``auto`` (the average when there is
-    one: what render, eval, the viewer and export use)."""
+def chosen(state: dict, which: str = "auto") -> str:
+    """Which of a checkpoint's weights ``which`` (one of :data:`WEIGHTS`) names: ``trained``
+    (the optimizer's) or ``average`` (the moving average of a run with ``--ema-decay``);
+    ``auto`` is the average when there is one: what render, eval, the viewer and export
+    use."""
     if which not in WEIGHTS:
         raise ValueError(f"weights must be one of {', '.join(WEIGHTS)}, not {which!r}")
-    ema = state.get("ema")
-    if which == "average" and ema is None:
+    kept = state.get("ema") is not None
+    if which == "average" and not kept:
         raise CheckpointError(
             f"the run kept no average of its weights at step {state.get('step')} "
             "(train with --ema-decay)"
         )
-    return ema["weights"] if ema is not None and which != "trained" else state["model"]
+    return "average" if kept and which != "trained" else "trained"
+
+
+def weights(state: dict, which: str = "auto") -> dict:
+    """The model state dict of the checkpoint's weights that ``which`` names (:func:`chosen`)."""
+    return state["ema"]["weights"] if chosen(state, which) == "average" else state["model"]
 
 
 def folder(run_dir: str | os.PathLike) -> Path:

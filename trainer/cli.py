@@ -55,7 +55,7 @@ weights_option = click.option(
     "--weights",
     default="auto",
     show_default=True,
-    type=click.Choice(["auto", "average", "trained"]),
+    type=click.Choice(train_config.WEIGHTS),
     help="a run trained with --ema-decay keeps two sets: the moving average of its weights "
     "(auto picks it) and the optimizer's own (trained)",
 )

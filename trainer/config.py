@@ -16,6 +16,9 @@ import click
 from trainer.schedule import SCHEDULES
 
 LOSSES = ("l1+vgg", "l1")
+#: which of a checkpoint's weights a command runs (``trainer.checkpoint.weights``): here, free
+#: of torch, so that the CLI's options need not import it
+WEIGHTS = ("auto", "average", "trained")
 
 
 def _opt(default, help: str, **extra):

@@ -123,12 +123,12 @@ class Renderer(MapsRenderer):
         state = checkpoint.load(path)
         model = build_model(ModelConfig(**state["model_config"]))
         try:
-            model.load_state_dict(checkpoint.weights(state, weights))
+            which = checkpoint.chosen(state, weights)
         except checkpoint.CheckpointError as exc:
             raise checkpoint.CheckpointError(f"{path}: {exc}") from None
+        model.load_state_dict(checkpoint.weights(state, which))
         r = cls(model, Tonemap.from_dict(state["tonemap"]), pick_device(device))
-        r.state = state
-        r.weights = "trained" if weights == "trained" or "ema" not in state else "average"
+        r.state, r.weights = state, which
         return r
 
     @property
