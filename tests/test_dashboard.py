@@ -191,9 +191,10 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     (other / "config.json").write_text(
         json.dumps({**config, "lr_schedule": "cosine", "ema_decay": 0.999})
     )
-    (other / "val.jsonl").write_text(
-        "\n".join(json.dumps({**x, "psnr": x["psnr"] - 1}) for x in scores)
-    )
+    (other / "val.jsonl").write_text(  # an averaged run: its trained weights are scored too
+        "\n".join(json.dumps({**x, "psnr": x["psnr"] - 1, "trained_psnr": x["psnr"] - 3})
+                  for x in scores)
+    )  # fmt: skip
     with Server(sets, "--runs", tmp_path / "runs") as s:
         code, body = s.get("/metrics")
         families = {f.name: f for f in text_string_to_metric_families(body.decode())}
@@ -219,6 +220,9 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert value[("shaderball_train_loss", run)] == pytest.approx(0.05)
     assert value[("shaderball_train_val_psnr_db", run)] == 22.0  # the last score, not the best
     assert value[("shaderball_train_val_ssim", run)] == 0.5
+    averaged = (("run", f"{tmp_path / 'runs'}/r2"),)
+    assert value[("shaderball_train_val_trained_psnr_db", averaged)] == 19.0
+    assert ("shaderball_train_val_trained_psnr_db", run) not in value
     assert "held-out PSNR<b>22.00 dB</b>" in runs_page  # a torn last line is skipped
     assert "best 23.25 dB at step 20" in runs_page and "steps 10 to 30" in runs_page
     assert '">21.5</text>' in runs_page  # the PSNR curve spans its own range, not from 0
@@ -229,6 +233,12 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert '">20.5</text>' in compare and compare.count("<polyline") >= 2
     assert not any("material=" in str(k) for k in value)  # never a material label
     assert f"{tmp_path / 'runs'}/r1 <small>" in runs_page and "<svg" in runs_page
+    # the averaged run's held-out chart has the trained weights' line, and a card of its own
+    i1, i2 = (runs_page.index(f"{tmp_path / 'runs'}/{r} <small>") for r in ("r1", "r2"))
+    r1, r2 = runs_page[i1:i2], runs_page[i2:]
+    assert "trained weights" not in r1 and r1.count("<polyline") == 4
+    assert "trained weights' PSNR<b>19.00 dB</b>" in r2 and r2.count("<polyline") == 2
+    assert "moving average (renders)" in r2 and '">18.5</text>' in r2  # both lines' range
     # each run's settings, and a table of those that differ between the runs
     assert "stores <b>set.zarr</b> · loss <b>l1</b> · lr <b>0.001</b>" in runs_page
     assert "weight average <b>-</b> · max steps <b>-</b>" in runs_page  # none, as the run says

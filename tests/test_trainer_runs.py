@@ -457,6 +457,13 @@ def test_held_out_scores_are_evenly_spaced_and_change_nothing_trained(tiny_store
     assert scores["auto"]["weights"] == "average" and scores["trained"]["weights"] == "trained"
     assert val[-1]["psnr"] == pytest.approx(scores["auto"]["overall"]["psnr"], abs=2e-3)
     assert scores["auto"]["overall"]["psnr"] != scores["trained"]["overall"]["psnr"]
+    # ... and score the trained weights beside it, on the same samples
+    assert val[-1]["trained_psnr"] == pytest.approx(scores["trained"]["overall"]["psnr"], abs=2e-3)
+    assert val[-1]["trained_ssim"] == pytest.approx(scores["trained"]["overall"]["ssim"], abs=1e-4)
+    assert len(val) == 4 and all(
+        "trained_psnr" not in json.loads(x)
+        for x in (tmp_path / "scored" / "val.jsonl").read_text().splitlines()
+    )
     assert checkpoint.load(run)["ema"]["updates"] == 4
     assert evaluate(tmp_path / "scored", device="cpu")["weights"] == "trained"
     with pytest.raises(checkpoint.CheckpointError, match="scored.*kept no average"):

@@ -76,24 +76,28 @@ class RunLog:
         """Score the network on the held-out samples (:mod:`trainer.validation`), once a
         step: a line in ``val.jsonl``, TensorBoard's ``val/psnr`` and ``val/ssim``, a line
         above the bar, and ``val.png``, the grid ``trainer eval`` draws of the first
-        :data:`VAL_GRID_ROWS` samples (replaced whole). Its time is left out of the window's
-        images/s. Rank 0 only."""
+        :data:`VAL_GRID_ROWS` samples (replaced whole). A run with a moving average scores
+        the average (what its checkpoints render with) and the trained weights
+        (``trained_psnr``, ``trained_ssim``; TensorBoard's ``val/trained_psnr`` and
+        ``val/trained_ssim``). Its time is left out of the window's images/s. Rank 0 only."""
         v = self.validator
         if v is None or not len(v) or (self.last_val or {}).get("step") == t.step:
             return
         t0 = time.perf_counter()
+        others = {} if t.ema is None else {"trained": t.model}
         scores, shown = v.score(
-            t.rendering, t.model_cfg.roughness_channels, t.tonemap, self.fmt, shown=VAL_GRID_ROWS
+            t.rendering, t.model_cfg.roughness_channels, t.tonemap, self.fmt, VAL_GRID_ROWS, others
         )
         write_grid(self.out / "val.png", shown)
         self.window["t"] += time.perf_counter() - t0
         rec = {"step": t.step, "epoch": t.epoch, **scores, "time": round(time.time(), 3)}
         with open(self.out / "val.jsonl", "a") as f:
             f.write(json.dumps(rec) + "\n")
-        self.writer.add_scalar("val/psnr", rec["psnr"], t.step)
-        self.writer.add_scalar("val/ssim", rec["ssim"], t.step)
+        for key in ("psnr", "ssim", *(f"{name}_{k}" for name in others for k in ("psnr", "ssim"))):
+            self.writer.add_scalar(f"val/{key}", rec[key], t.step)
+        trained = f" (trained weights {rec['trained_psnr']:.2f} dB)" if others else ""
         bar.write(
-            f"step {t.step}: held-out PSNR {rec['psnr']:.2f} dB, SSIM {rec['ssim']:.4f} "
+            f"step {t.step}: held-out PSNR {rec['psnr']:.2f} dB, SSIM {rec['ssim']:.4f}{trained} "
             f"({rec['samples']} samples, {rec['seconds']:.1f} s)"
         )
         self.last_val = rec

@@ -187,7 +187,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     if t.ema is not None:
         log.start(
             f"weights averaged (decay {cfg.ema_decay}): the checkpoints render with the "
-            "average, and the held-out scores measure it"
+            "average, and the held-out scores measure it and the trained weights"
         )
     log.start(
         f"training on {len(split)} samples (held-out materials: "

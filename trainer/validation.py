@@ -7,8 +7,10 @@ shows when the network stops improving on materials it never trains on. FLIP is 
 The samples are ``count`` evenly spaced ones of the held-out split (every one when it has
 fewer), the same at every score of a run, read from the stores each time (nothing is kept in
 memory between scores). Only rank 0 scores (``trainer.train``), with the bare network the
-checkpoints render with (the moving average of a run with ``--ema-decay``): no collective
-runs, so the other ranks wait at their next gradient all-reduce.
+checkpoints render with: no collective runs, so the other ranks wait at their next gradient
+all-reduce. A run with ``--ema-decay`` renders with the moving average of its weights, and
+scores the trained weights too on the same batches (``others``), so that its curves show what
+the average gains.
 """
 
 from __future__ import annotations
@@ -46,32 +48,43 @@ class Validator:
         tonemap: Tonemap,
         fmt: torch.memory_format = torch.contiguous_format,
         shown: int = 0,
+        others: dict[str, torch.nn.Module] | None = None,
     ) -> tuple[dict, list[tuple[np.ndarray, np.ndarray]]]:
         """``{"samples", "psnr", "ssim", "seconds"}``: the means over the samples of ``model``
-        (put in eval mode for the scores, then back in the mode it was in) on its device;
-        and the ``(ground truth, prediction)`` display images of the first ``shown`` samples
-        (for :func:`trainer.evaluate.write_grid`)."""
+        on its device, and ``NAME_psnr`` and ``NAME_ssim`` of each ``NAME: model`` of
+        ``others`` on the same batches (each read once); every model is put in eval mode for
+        the scores, then back in the mode it was in. Also the ``(ground truth, prediction)``
+        display images of ``model``'s first ``shown`` samples (for
+        :func:`trainer.evaluate.write_grid`)."""
         t0 = time.perf_counter()
         device = next(model.parameters()).device
-        training = model.training
-        model.eval()
-        scores, pictures = [], []
+        models = {"": model, **(others or {})}
+        modes = {name: m.training for name, m in models.items()}
+        scores = {name: [] for name in models}
+        pictures = []
         try:
+            for m in models.values():
+                m.eval()
             for lo in range(0, len(self.ids), self.batch_size):
                 batch = self.reader.batch(self.ids[lo : lo + self.batch_size])
                 x = model_inputs(batch["maps"].to(device), roughness_channels)
+                x = x.contiguous(memory_format=fmt)
                 light = batch["light"].to(device, torch.float32)
-                pred = model(x.contiguous(memory_format=fmt), light).float()
                 target = tonemap(batch["render"].to(device))
-                scores.append(torch.stack([psnr(pred, target), ssim(pred, target)], 1).cpu())
-                for j in range(min(shown - len(pictures), len(pred))):
-                    pictures.append((target[j].cpu().numpy(), pred[j].cpu().numpy()))
+                for name, m in models.items():
+                    pred = m(x, light).float()
+                    scores[name].append(torch.stack([psnr(pred, target), ssim(pred, target)], 1))
+                    if name == "":
+                        for j in range(min(shown - len(pictures), len(pred))):
+                            pictures.append((target[j].cpu().numpy(), pred[j].cpu().numpy()))
         finally:
-            model.train(training)
-        mean = torch.cat(scores).double().mean(0) if scores else torch.full((2,), float("nan"))
-        return {
-            "samples": len(self.ids),
-            "psnr": round(float(mean[0]), 4),
-            "ssim": round(float(mean[1]), 5),
-            "seconds": round(time.perf_counter() - t0, 3),
-        }, pictures
+            for name, m in models.items():
+                m.train(modes[name])
+        out = {"samples": len(self.ids)}
+        for name, rows in scores.items():
+            mean = torch.cat(rows).double().mean(0).cpu() if rows else torch.full((2,), torch.nan)
+            prefix = f"{name}_" if name else ""
+            out[prefix + "psnr"] = round(float(mean[0]), 4)
+            out[prefix + "ssim"] = round(float(mean[1]), 5)
+        out["seconds"] = round(time.perf_counter() - t0, 3)
+        return out, pictures

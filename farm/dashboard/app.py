@@ -240,10 +240,17 @@ RUN_CURVES = (
 
 def _run_curves(run: dict) -> list[tuple]:
     """``(title, SVG)`` of each of :data:`RUN_CURVES` over the run's steps (held-out scores
-    only when the run has some)."""
-    return [
-        (title, pages.line_chart([(x["step"], x[k]) for x in run[rows] if k in x], steps=True,
-                                 from_zero=zero))
-        for rows, k, title, zero in RUN_CURVES
-        if rows == "log" or run[rows]
-    ]  # fmt: skip
+    only when the run has some). A run that averages its weights scores the trained weights
+    too (``trained_psnr``): its held-out chart has both lines."""
+    charts = []
+    for rows, k, title, zero in RUN_CURVES:
+        if rows != "log" and not run[rows]:
+            continue
+        points = [(x["step"], x[k]) for x in run[rows] if k in x]
+        trained = [(x["step"], x[f"trained_{k}"]) for x in run[rows] if f"trained_{k}" in x]
+        if rows == "val" and trained:
+            series = [("moving average (renders)", points), ("trained weights", trained)]
+            charts.append((title, pages.lines_chart(series, h=160)))
+        else:
+            charts.append((title, pages.line_chart(points, steps=True, from_zero=zero)))
+    return charts

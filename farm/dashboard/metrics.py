@@ -21,6 +21,7 @@ persist (:mod:`farm.dashboard.jobs`, :mod:`farm.dashboard.runs`).
 ``shaderball_train_data_wait_ratio``           its share of time waiting for data
 ``shaderball_train_val_psnr_db``               its held-out PSNR at the last score (``val.jsonl``)
 ``shaderball_train_val_ssim``                  its held-out SSIM at the last score
+``shaderball_train_val_trained_psnr_db``       with a moving average: the trained weights' PSNR
 =============================================  ====================================================
 """
 
@@ -97,14 +98,20 @@ class Collector:
                                   labels=["run"])  # fmt: skip
         vssim = GaugeMetricFamily(t + "val_ssim", "Held-out SSIM at the last score",
                                   labels=["run"])  # fmt: skip
+        vtrained = GaugeMetricFamily(t + "val_trained_psnr_db",
+                                     "Held-out PSNR of the trained weights beside the average",
+                                     labels=["run"])  # fmt: skip
         for run in self.runs():
-            if run["val_last"] is not None:
-                vpsnr.add_metric([run["label"]], run["val_last"]["psnr"])
-                vssim.add_metric([run["label"]], run["val_last"]["ssim"])
+            last = run["val_last"]
+            if last is not None:
+                vpsnr.add_metric([run["label"]], last["psnr"])
+                vssim.add_metric([run["label"]], last["ssim"])
+                if "trained_psnr" in last:
+                    vtrained.add_metric([run["label"]], last["trained_psnr"])
             if run["step"] is None:
                 continue
             step.add_metric([run["label"]], run["step"])
             loss.add_metric([run["label"]], run["loss"])
             ips.add_metric([run["label"]], run["images_per_second"])
             wait.add_metric([run["label"]], run["data_wait"])
-        yield from (step, loss, ips, wait, vpsnr, vssim)
+        yield from (step, loss, ips, wait, vpsnr, vssim, vtrained)

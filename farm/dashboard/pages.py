@@ -132,7 +132,10 @@ epoch<b>{{ (r.epoch + 1) if r.epoch is not none else "-" }}</b></div><div class=
 {% if r.val_last %}<div class="card" title="step {{ r.val_last.step }}, {{ r.val_last.samples
 }} held-out samples; best {{ "%.2f"|format(r.val_best.psnr) }} dB at step {{ r.val_best.step
 }}">held-out PSNR<b>{{ r.val_last.psnr|num("%.2f dB") }}</b></div><div class="card">held-out
-SSIM<b>{{ r.val_last.ssim|num("%.4f") }}</b></div>{% endif %}</div>
+SSIM<b>{{ r.val_last.ssim|num("%.4f") }}</b></div>{% if "trained_psnr" in r.val_last %}<div
+class="card" title="the trained weights, scored beside the moving average the checkpoints render
+with">trained weights' PSNR<b>{{ r.val_last.trained_psnr|num("%.2f dB") }}</b></div>{% endif %}{%
+endif %}</div>
 <div class="grid curves">{% for name, svg in r.curves %}<div><b>{{ name }}</b><br>{{ svg }}</div>
 {% endfor %}</div>{% if r.val_grid and r.val_last %}
 <p>held-out samples at step {{ r.val_last.step }}, the last score:</p><img
