@@ -634,7 +634,23 @@ def test_existing_run_needs_resume_and_eval_needs_a_holdout(tiny_store, tmp_path
     assert "already holds checkpoints: pass --resume" in msg
     resume = ["train", "--loss", "l1", "--store", tiny_store.url, "--out", str(out), "--resume"]
     assert "trained with --seed 0, not 5" in one_line_error([*resume, "--seed", "5"])
+    # the resumed run keeps its held-out draw, so another one is refused
+    assert "trained with --holdout-fraction 0.0, not 0.02" in one_line_error(resume)
+    same = [*resume, "--holdout-fraction", "0"]
+    assert "trained with --holdout-seed 0, not 3" in one_line_error([*same, "--holdout-seed", "3"])
     assert "no held-out samples" in one_line_error(["eval", "--checkpoint", str(out)])
+
+
+def test_runs_of_other_seeds_hold_out_the_same_materials(tiny_store, tmp_path):
+    """``--seed`` changes the init and the shuffle, not the held-out draw, so a seed sweep's
+    held-out scores compare; ``--holdout-seed`` draws others."""
+    held = {}
+    for name, kw in (("a", {}), ("b", {"seed": 1}), ("c", {"holdout_seed": 1})):
+        run = tmp_path / name
+        train(config(tiny_store, run, max_steps=1, holdout_fraction=0.5, val_samples=0, **kw))
+        held[name] = checkpoint.load(run)["catalog"]["heldout"]
+    assert held["a"] == held["b"] and held["a"] != held["c"]
+    assert len(held["a"][0]) == len(held["c"][0]) == 4  # half of the 8 materials
 
 
 def test_a_run_names_its_store_absolutely_and_is_read_from_any_folder(

@@ -71,8 +71,11 @@ class TrainConfig:
         1, "1, or 3 to repeat roughness as the authors' 12-channel input"
     )
     exposure: float = _opt(1.0, "tonemap exposure in stops (stored in checkpoints)")
-    seed: int = _opt(0, "seed of the init, the held-out split and the shuffle")
+    seed: int = _opt(0, "seed of the init and the shuffle")
     holdout_fraction: float = _opt(0.02, "materials held out for eval (the paper: 1,000 of 50,000)")
+    holdout_seed: int = _opt(
+        0, "seed of the held-out draw (apart from --seed: runs of other seeds hold out the same)"
+    )
     shuffle_buffer: int = _opt(256, "samples shuffled together after the shard shuffle")
     workers: int = _opt(2, "DataLoader worker processes per rank")
     checkpoint_every: int = _opt(500, "steps between checkpoints (and at each epoch's end)")
@@ -105,6 +108,7 @@ class TrainConfig:
             "width": self.width >= 1,
             "roughness_channels": self.roughness_channels in (1, 3),
             "seed": self.seed >= 0,
+            "holdout_seed": self.holdout_seed >= 0,
             "perceptual_weight": self.perceptual_weight >= 0,
             "workers": self.workers >= 0,
             "checkpoint_every": self.checkpoint_every >= 1,

@@ -287,22 +287,33 @@ def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found) -> Catalog:
         catalog = Catalog.from_dict(state["catalog"])
         if list(cfg.store) != [absolute_store(u) for u in catalog.urls]:
             raise RunError(f"{found} trained on {catalog.urls}, not {list(cfg.store)}")
-        for name in ("seed", "shuffle_buffer"):  # they fix the epoch order being resumed
-            if state["config"][name] != getattr(cfg, name):
-                raise RunError(
-                    f"{found} was trained with --{name.replace('_', '-')} "
-                    f"{state['config'][name]}, not {getattr(cfg, name)}"
-                )
+        _check_resumed(cfg, state["config"], found)
     else:
         snap = [None]
         if rk.master:
-            snap[0] = Catalog.snapshot(list(cfg.store), cfg.seed, cfg.holdout_fraction, None)
+            snap[0] = Catalog.snapshot(
+                list(cfg.store), cfg.holdout_seed, cfg.holdout_fraction, None
+            )
         if rk.distributed:
             dist.broadcast_object_list(snap, src=0)
         catalog = snap[0]
     if why := untrainable(catalog.resolution, nearest=False):
         raise RunError(f"{catalog.urls[0]}: {why}")
     return catalog
+
+
+def _check_resumed(cfg: TrainConfig, was: dict, found) -> None:
+    """Refuse to resume with another epoch order (``--seed``, ``--shuffle-buffer``) or
+    held-out draw (``--holdout-fraction``, ``--holdout-seed``) than the run's: the resumed
+    run keeps its own. A checkpoint whose config has no ``holdout_seed`` drew its held-out
+    materials with ``--seed``."""
+    was = {"holdout_seed": was["seed"], **was}
+    for name in ("seed", "shuffle_buffer", "holdout_fraction", "holdout_seed"):
+        if was[name] != getattr(cfg, name):
+            raise RunError(
+                f"{found} was trained with --{name.replace('_', '-')} {was[name]}, "
+                f"not {getattr(cfg, name)}"
+            )
 
 
 def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg) -> Trainee:

@@ -30,6 +30,7 @@ SETTINGS = (
     ("epochs", "epochs"),
     ("max_steps", "max steps"),
     ("holdout_fraction", "held out"),
+    ("holdout_seed", "held-out seed"),
     ("seed", "seed"),
     ("exposure", "exposure"),
 )
