@@ -47,7 +47,8 @@ class TrainConfig:
     warmup_steps: int = _opt(0, "steps of linear warm-up to --lr at the start")
     ema_decay: float = _opt(
         0.0,
-        "keep a moving average of the weights with this decay (e.g. 0.999; 0: none): what "
+        "keep a moving average of the weights with this decay (0: none, as the paper; 0.999 "
+        "recommended, docs/training.md): what "
         "the checkpoints render with and the held-out scores measure, beside the trained "
         "weights (trainer.ema)",
     )
