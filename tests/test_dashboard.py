@@ -179,8 +179,8 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
         for s in (10, 20)
     ]  # fmt: skip
     (runs / "log.jsonl").write_text("\n".join(json.dumps(x) for x in lines))
-    scores = [{"step": s, "epoch": 0, "samples": 4, "psnr": p, "ssim": 0.5} for s, p in
-              ((10, 21.5), (20, 23.25), (30, 22.0))]  # fmt: skip
+    scores = [{"step": s, "epoch": 0, "samples": 4, "psnr": p, "ssim": 0.5, "heldout_set": "3f2a"}
+              for s, p in ((10, 21.5), (20, 23.25), (30, 22.0))]  # fmt: skip
     (runs / "val.jsonl").write_text("\n".join(json.dumps(x) for x in scores) + "\n{torn")
     Image.new("RGB", (8, 8), (200, 30, 30)).save(runs / "val.png")
     other = tmp_path / "runs" / "r2"  # a second scored run: the page compares the two
@@ -191,16 +191,20 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     (other / "config.json").write_text(
         json.dumps({**config, "lr_schedule": "cosine", "ema_decay": 0.999})
     )
+    averaged = [{**x, "psnr": x["psnr"] - 1, "trained_psnr": x["psnr"] - 3} for x in scores]
     (other / "val.jsonl").write_text(  # an averaged run: its trained weights are scored too
-        "\n".join(json.dumps({**x, "psnr": x["psnr"] - 1, "trained_psnr": x["psnr"] - 3})
-                  for x in scores)
-    )  # fmt: skip
+        "\n".join(json.dumps(x) for x in averaged)
+    )
     with Server(sets, "--runs", tmp_path / "runs") as s:
         code, body = s.get("/metrics")
         families = {f.name: f for f in text_string_to_metric_families(body.decode())}
         runs_page = s.get("/runs")[1].decode()
         grid = s.get("/runfile/0/r1?file=val.png")
         nothing = s.get("/runfile/0/r1?file=config.json")
+        (other / "val.jsonl").write_text(  # the same run scoring other held-out samples
+            "\n".join(json.dumps({**x, "heldout_set": "9b1c"}) for x in averaged)
+        )
+        mixed_page = s.get("/runs")[1].decode()
     assert code == 200
     value = {
         (x.name, tuple(sorted(x.labels.items()))): x.value
@@ -249,6 +253,12 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert re.findall(r"<td>([^<]*)</td>", differ) == [
         f"{tmp_path / 'runs'}/r1", "constant", "-", f"{tmp_path / 'runs'}/r2", "cosine", "0.999",
     ]  # fmt: skip
+    # runs that score other held-out samples are flagged, and the table names their samples
+    assert 'id="mixed"' not in runs_page and 'id="mixed"' in mixed_page
+    start = mixed_page.index("Settings that differ")
+    differ = mixed_page[start : mixed_page.index("<h2>", start)]
+    assert re.findall(r"<th>([^<]*)</th>", differ)[-1] == "held-out samples"
+    assert re.findall(r"<td>([^<]*)</td>", differ)[3::4] == ["3f2a", "9b1c"]
 
 
 @pytest.mark.slow

@@ -644,13 +644,15 @@ def test_existing_run_needs_resume_and_eval_needs_a_holdout(tiny_store, tmp_path
 def test_runs_of_other_seeds_hold_out_the_same_materials(tiny_store, tmp_path):
     """``--seed`` changes the init and the shuffle, not the held-out draw, so a seed sweep's
     held-out scores compare; ``--holdout-seed`` draws others."""
-    held = {}
+    held, sets = {}, {}
     for name, kw in (("a", {}), ("b", {"seed": 1}), ("c", {"holdout_seed": 1})):
         run = tmp_path / name
-        train(config(tiny_store, run, max_steps=1, holdout_fraction=0.5, val_samples=0, **kw))
+        train(config(tiny_store, run, max_steps=1, holdout_fraction=0.5, val_every=1, **kw))
         held[name] = checkpoint.load(run)["catalog"]["heldout"]
+        sets[name] = json.loads((run / "val.jsonl").read_text())["heldout_set"]
     assert held["a"] == held["b"] and held["a"] != held["c"]
     assert len(held["a"][0]) == len(held["c"][0]) == 4  # half of the 8 materials
+    assert sets["a"] == sets["b"] != sets["c"]  # the scores name the samples they score
 
 
 def test_a_run_names_its_store_absolutely_and_is_read_from_any_folder(

@@ -76,7 +76,9 @@ class RunLog:
         """Score the network on the held-out samples (:mod:`trainer.validation`), once a
         step: a line in ``val.jsonl``, TensorBoard's ``val/psnr`` and ``val/ssim``, a line
         above the bar, and ``val.png``, the grid ``trainer eval`` draws of the first
-        :data:`VAL_GRID_ROWS` samples (replaced whole). A run with a moving average scores
+        :data:`VAL_GRID_ROWS` samples (replaced whole). ``heldout_set`` names the samples
+        scored (:func:`trainer.validation.samples_digest`), so that runs' scores are compared
+        only where they score the same samples. A run with a moving average scores
         the average (what its checkpoints render with) and the trained weights
         (``trained_psnr``, ``trained_ssim``; TensorBoard's ``val/trained_psnr`` and
         ``val/trained_ssim``). Its time is left out of the window's images/s. Rank 0 only."""
@@ -90,7 +92,8 @@ class RunLog:
         )
         write_grid(self.out / "val.png", shown)
         self.window["t"] += time.perf_counter() - t0
-        rec = {"step": t.step, "epoch": t.epoch, **scores, "time": round(time.time(), 3)}
+        rec = {"step": t.step, "epoch": t.epoch, **scores, "heldout_set": v.digest}
+        rec["time"] = round(time.time(), 3)
         with open(self.out / "val.jsonl", "a") as f:
             f.write(json.dumps(rec) + "\n")
         for key in ("psnr", "ssim", *(f"{name}_{k}" for name in others for k in ("psnr", "ssim"))):

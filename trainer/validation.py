@@ -15,6 +15,8 @@ the average gains.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
 
 import numpy as np
@@ -34,6 +36,7 @@ class Validator:
         spaced = np.linspace(0, len(split) - 1, k).round() if k else np.zeros(0)
         self.ids = np.unique(spaced.astype(np.int64))
         self.of = len(split)
+        self.digest = samples_digest(split, self.ids)
         self.reader = SampleReader(split)
         self.batch_size = batch_size
 
@@ -88,3 +91,11 @@ class Validator:
             out[prefix + "ssim"] = round(float(mean[1]), 5)
         out["seconds"] = round(time.perf_counter() - t0, 3)
         return out, pictures
+
+
+def samples_digest(split: Split, ids: np.ndarray) -> str:
+    """A short name of the samples ``ids`` of ``split`` (their stores and sample numbers):
+    two runs whose held-out scores carry the same one scored the same samples."""
+    h = hashlib.sha256(json.dumps(list(split.urls)).encode())
+    h.update(np.ascontiguousarray(split.refs[ids], dtype=np.int64).tobytes())
+    return h.hexdigest()[:12]

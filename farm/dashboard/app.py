@@ -196,11 +196,9 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
                   for r in rows]  # fmt: skip
         compare = pages.lines_chart(scored) if sum(len(p) > 1 for _, p in scored) > 1 else None
         differ = runs.differing([r for r in rows if r["settings"]])
-        return html(
-            text=pages.render(
-                "runs", runs=rows, compare=compare, differ=differ, secret=secret, title="runs"
-            )
-        )
+        sets = {r["settings"].get(runs.HELDOUT) for r in rows if r["val"]}
+        page = dict(compare=compare, differ=differ, mixed=compare is not None and len(sets) > 1)
+        return html(text=pages.render("runs", runs=rows, secret=secret, title="runs", **page))
 
     async def run_file(request):
         name = request.query.get("file")

@@ -89,12 +89,17 @@ def settings(config: dict) -> dict[str, object]:
     return out
 
 
+#: the label of a scored run's held-out samples (``heldout_set`` of its last score): runs
+#: whose values differ scored other samples, and their curves do not compare
+HELDOUT = "held-out samples"
+
+
 def differing(runs: list[dict]) -> list[str]:
     """The labels of the settings whose values differ between ``runs`` (their ``settings``),
-    in :data:`SETTINGS` order; none with fewer than two runs."""
+    in :data:`SETTINGS` order, then :data:`HELDOUT`; none with fewer than two runs."""
     if len(runs) < 2:
         return []
-    labels = [label for _, label in SETTINGS]
+    labels = [*(label for _, label in SETTINGS), HELDOUT]
     return [k for k in labels if len({repr(r["settings"].get(k)) for r in runs}) > 1]
 
 
@@ -118,11 +123,14 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
             ev = json.loads((run / "eval.json").read_text())
         except json.JSONDecodeError:
             ev = None
+    shown = settings(read_config(run))
+    if val and "heldout_set" in val[-1]:
+        shown[HELDOUT] = val[-1]["heldout_set"]
     return {
         "name": name,
         "label": label or name,
         "path": str(run),
-        "settings": settings(read_config(run)),
+        "settings": shown,
         "step": last.get("step"),
         "epoch": last.get("epoch"),
         "loss": last.get("loss"),
