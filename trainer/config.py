@@ -48,9 +48,8 @@ class TrainConfig:
     ema_decay: float = _opt(
         0.0,
         "keep a moving average of the weights with this decay (0: none, as the paper; 0.999 "
-        "recommended, docs/training.md): what "
-        "the checkpoints render with and the held-out scores measure, beside the trained "
-        "weights (trainer.ema)",
+        "recommended, docs/training.md): what the checkpoints render with and the held-out "
+        "scores measure, beside the trained weights (trainer.ema)",
     )
     beta1: float = _opt(0.9, "Adam β1")
     beta2: float = _opt(0.999, "Adam β2")

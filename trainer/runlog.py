@@ -96,8 +96,8 @@ class RunLog:
         rec["time"] = round(time.time(), 3)
         with open(self.out / "val.jsonl", "a") as f:
             f.write(json.dumps(rec) + "\n")
-        for key in ("psnr", "ssim", *(f"{name}_{k}" for name in others for k in ("psnr", "ssim"))):
-            self.writer.add_scalar(f"val/{key}", rec[key], t.step)
+        for key in (k for k in scores if k.endswith(("psnr", "ssim"))):
+            self.writer.add_scalar(f"val/{key}", scores[key], t.step)
         trained = f" (trained weights {rec['trained_psnr']:.2f} dB)" if others else ""
         bar.write(
             f"step {t.step}: held-out PSNR {rec['psnr']:.2f} dB, SSIM {rec['ssim']:.4f}{trained} "

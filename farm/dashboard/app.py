@@ -245,8 +245,8 @@ def _run_curves(run: dict) -> list[tuple]:
         if rows != "log" and not run[rows]:
             continue
         points = [(x["step"], x[k]) for x in run[rows] if k in x]
-        trained = [(x["step"], x[f"trained_{k}"]) for x in run[rows] if f"trained_{k}" in x]
-        if rows == "val" and trained:
+        trained = [(x["step"], x["trained_psnr"]) for x in run[rows] if "trained_psnr" in x]
+        if trained:  # only score lines carry it
             series = [("moving average (renders)", points), ("trained weights", trained)]
             charts.append((title, pages.lines_chart(series, h=160)))
         else:
