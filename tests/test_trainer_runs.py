@@ -591,7 +591,8 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
     for option, value in [("--width", "0"), ("--seed", "-1"), ("--roughness-channels", "2"),
                           ("--perceptual-weight", "-1"), ("--epochs", "0"),
                           ("--val-every", "-1"), ("--val-samples", "-2"),
-                          ("--warmup-steps", "-1"), ("--ema-decay", "1.0")]:  # fmt: skip
+                          ("--warmup-steps", "-1"), ("--ema-decay", "1.0"),
+                          ("--holdout-seed", "-1")]:  # fmt: skip
         msg = one_line_error([*base, "--store", tiny_store.url, option, value])
         assert msg.startswith(f"Error: invalid {option[2:].replace('-', '_')}: {value}"), msg
 
