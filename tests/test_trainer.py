@@ -413,3 +413,46 @@ def test_a_checkpoint_renders_with_its_average_unless_told_otherwise():
         weights(plain, "average")
     with pytest.raises(ValueError, match="weights must be one of"):
         weights(kept, "best")
+
+
+# ---- comparing checkpoints ------------------------------------------------------------------
+
+
+def test_paired_differences_resample_whole_materials():
+    from trainer.compare import MIN_MATERIALS, paired_difference
+
+    rng = np.random.default_rng(1)
+    base = rng.normal(25, 3, 200)
+    groups = np.repeat(np.arange(40), 5)[:, None] * [1, 1]  # 40 materials x 5 suns
+    same = paired_difference(base, base, groups)
+    assert (same["mean"], same["low"], same["high"], same["higher"]) == (0, 0, 0, 0)
+    shifted = paired_difference(base, base + 0.5, groups)
+    assert shifted["mean"] == pytest.approx(0.5) and shifted["higher"] == 1
+    assert shifted["low"] == pytest.approx(0.5) and shifted["high"] == pytest.approx(0.5)
+    # a material's suns move together: the interval is that of the 40 materials' means
+    # (normal approximation: 1.96 standard errors, the bootstrap's n - 1 over n variance),
+    # not the far narrower one of 200 independent samples
+    effect = np.repeat(rng.normal(0.3, 1.0, 40), 5)
+    d = paired_difference(base, base + effect, groups)
+    means = effect.reshape(40, 5)[:, 0]
+    half = 1.96 * means.std() / np.sqrt(40)
+    assert d["mean"] == pytest.approx(means.mean())
+    assert d["low"] < d["mean"] < d["high"]
+    assert (d["high"] - d["low"]) / 2 == pytest.approx(half, rel=0.15)
+    assert (d["high"] - d["low"]) / 2 > 2 * 1.96 * effect.std() / np.sqrt(200)
+    assert paired_difference(base, base + effect, groups) == d  # a fixed seed
+    # under MIN_MATERIALS materials: the mean and the share, no interval
+    few = paired_difference(base[:10], base[:10] + 1, groups[:10])
+    assert few["materials"] == 2 < MIN_MATERIALS and few["low"] is None and few["mean"] == 1
+    # materials are (store, material) pairs: material 0 of two stores is two materials
+    two = np.array([[0, 0], [0, 0], [1, 0], [1, 0]])
+    assert paired_difference(np.zeros(4), np.ones(4), two)["materials"] == 2
+
+
+def test_comparison_labels_name_the_weights_only_where_paths_repeat():
+    from trainer.compare import labels
+
+    assert labels(["a", "b"], ["average", "trained"]) == ["a", "b"]
+    assert labels(["a", "a", "b"], ["average", "trained", "trained"]) == [
+        "a (average)", "a (trained)", "b",
+    ]  # fmt: skip

@@ -703,6 +703,71 @@ def test_eval_on_other_materials_refuses_the_runs_own(tiny_store, trained, tmp_p
         assert says in one_line_error([*wrong, store]), store
 
 
+def test_eval_compares_checkpoints_on_the_same_samples(tiny_store, trained, tmp_path):
+    """Several --checkpoint are scored on the same samples as eval scores each alone, each
+    against the first; runs that hold out other samples are refused."""
+    early = sorted((trained / "checkpoints").glob("step-*.pt"))[0]
+    models = [str(trained), str(early), str(trained)]
+    kept = (trained / "eval.json").read_bytes() if (trained / "eval.json").exists() else None
+    each = [x for m in models for x in ("--checkpoint", m)]
+    r = CliRunner().invoke(trainer_main, ["eval", *each, "--grid", str(tmp_path / "cmp.png"),
+                                          "--json"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    result = json.loads(r.output[r.output.index("{") :])
+    alone = [evaluate(m, device="cpu", grid_count=0) for m in models[:2]]
+    assert result["samples"] == alone[0]["samples"] == result["models"][0]["overall"]["n"]
+    assert result["materials"] == len(checkpoint.load(trained)["catalog"]["heldout"][0])
+    assert result["heldout_set"] == json.loads(
+        (trained / "val.jsonl").read_text().splitlines()[-1])["heldout_set"]  # fmt: skip
+    first, second, again = result["models"]
+    for together, one in ((first, alone[0]), (second, alone[1])):
+        assert together["overall"] == one["overall"] and together["by_kind"] == one["by_kind"]
+    assert [m["checkpoint_step"] for m in result["models"]] == [
+        54,
+        checkpoint.load(early)["step"],
+        54,
+    ]
+    assert [m["label"] for m in result["models"]] == [
+        f"{trained} (trained)", str(early), f"{trained} (trained)"]  # fmt: skip
+    d = second["vs_first"]["psnr"]
+    assert d["mean"] == pytest.approx(
+        second["overall"]["psnr"] - first["overall"]["psnr"], abs=2e-3
+    )
+    assert d["materials"] == 2 and d["low"] is None  # too few materials for an interval
+    assert again["vs_first"]["psnr"]["mean"] == 0 and again["vs_first"]["flip"]["higher"] == 0
+    # ground truth, three networks, three errors; nothing kept beside the run
+    assert Image.open(tmp_path / "cmp.png").size == (7 * 256, 24 + 4 * 256)
+    after = (trained / "eval.json").read_bytes() if (trained / "eval.json").exists() else None
+    assert after == kept
+    # the table: each model, PSNR by kind, each against the first
+    two = ["eval", "--checkpoint", str(trained), "--checkpoint", str(early)]
+    r = CliRunner().invoke(trainer_main, [*two, "--grid-count", "0"])
+    assert r.exit_code == 0, r.output
+    assert f"{result['samples']} held-out samples of 2 materials" in r.output
+    assert "PSNR dB by material kind" in r.output and "against 1: mean difference" in r.output
+    assert f"{d['mean']:+.2f}" in r.output.split("against 1")[1]
+    # on other stores, every model on all their samples
+    layout = Layout(num_materials=2, suns_per_material=2, resolution=64, shard_size=4)
+    other = create_store(str(tmp_path / "other.zarr"), layout, {})
+    write_shard(other, 0, synthetic_payload(layout, 0))
+    on = CliRunner().invoke(trainer_main, [*two, "--on", other.url, "--json"])
+    assert on.exit_code == 0, on.output
+    assert json.loads(on.output[on.output.index("{") :])["samples"] == 4
+    # another held-out draw, another tonemap, and a count of --weights that matches nothing
+    run = tmp_path / "other-draw"
+    train(config(tiny_store, run, max_steps=1, holdout_seed=1))
+    msg = one_line_error(["eval", "--checkpoint", str(trained), "--checkpoint", str(run)])
+    assert msg.startswith(f"Error: {run}: ") and f"holds out other samples than {trained}" in msg
+    bright = tmp_path / "bright"  # the same held-out samples, brighter targets
+    train(config(tiny_store, bright, max_steps=1, exposure=2.0))
+    msg = one_line_error(["eval", "--checkpoint", str(trained), "--checkpoint", str(bright)])
+    assert msg.startswith(f"Error: {bright}: trained against another tonemap than {trained}")
+    r = CliRunner().invoke(
+        trainer_main, ["eval", *each, "--weights", "auto", "--weights", "trained"]
+    )
+    assert r.exit_code == 2 and "--weights: given 2 times for 3 checkpoints" in r.output
+
+
 def test_launch_commands():
     r = CliRunner().invoke(trainer_main, ["launch", "--dry-run", "--store", "s.zarr"])
     assert r.exit_code == 0 and "--standalone --nnodes 1 --nproc-per-node 1" in r.output

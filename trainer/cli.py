@@ -51,13 +51,16 @@ device_option = click.option(
     help="where the network runs",
 )
 
+WEIGHTS_HELP = (
+    "a run trained with --ema-decay keeps two sets: the moving average of its weights "
+    "(auto picks it) and the optimizer's own (trained)"
+)
 weights_option = click.option(
     "--weights",
     default="auto",
     show_default=True,
     type=click.Choice(train_config.WEIGHTS),
-    help="a run trained with --ema-decay keeps two sets: the moving average of its weights "
-    "(auto picks it) and the optimizer's own (trained)",
+    help=WEIGHTS_HELP,
 )
 
 
@@ -190,12 +193,18 @@ def launch(
 
 
 @main.command("eval")
-@click.option("--checkpoint", "ckpt", required=True, help=CHECKPOINT_OR_MODEL)
+@click.option(
+    "--checkpoint",
+    "ckpts",
+    required=True,
+    multiple=True,
+    help=f"{CHECKPOINT_OR_MODEL} (repeat to compare several on the same samples)",
+)
 @click.option("--store", "stores", multiple=True, help="the run's stores at another address")
 @click.option("--batch-size", default=8, show_default=True, type=click.IntRange(min=1),
               help="images per batch")  # fmt: skip
 @click.option("--grid", type=click.Path(path_type=Path), default=None,
-              help="the grid picture (.png, .jpg, .webp) [RUN/eval.png]")  # fmt: skip
+              help="the grid picture (.png, .jpg, .webp) [RUN/eval.png for one run]")  # fmt: skip
 @click.option("--grid-count", default=4, show_default=True, type=click.IntRange(min=0),
               help="samples in the grid (0: no grid)")  # fmt: skip
 @click.option(
@@ -207,9 +216,15 @@ def launch(
     "the run's held-out split",
 )
 @device_option
-@weights_option
+@click.option(
+    "--weights",
+    multiple=True,
+    type=click.Choice(train_config.WEIGHTS),
+    help=f"{WEIGHTS_HELP}; once for every --checkpoint, or once per --checkpoint in order  "
+    "[default: auto]",
+)
 @click.option("--json", "as_json", is_flag=True, help="print the metrics as JSON")
-def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, weights, as_json):
+def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, as_json):
     """PSNR, SSIM and FLIP on held-out materials, overall and per kind, and a PNG grid
     (ground truth | prediction | error x4) of a few samples.
 
@@ -218,40 +233,64 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, weights, as_js
     An .onnx model from trainer export is scored in ONNX Runtime on the same materials (the
     file names its run's stores and held-out split): what a tool running that file shows.
 
+    Several --checkpoint are scored on the same samples, each batch read once, and each
+    after the first is compared with the first: the mean PSNR, SSIM and FLIP differences
+    with 95 % intervals of a bootstrap over materials, and the share of samples where its
+    PSNR is higher. Their runs must hold out the same samples (the same stores, --holdout-seed and
+    --holdout-fraction), or be scored --on the same stores.
+
     \b
     Examples:
       trainer eval --checkpoint runs/demo --grid runs/demo/eval.png
       trainer eval --checkpoint runs/a --on out/test.zarr --json
       trainer eval --checkpoint runs/demo/ball.onnx --grid onnx-eval.png
       trainer eval --checkpoint runs/ema --weights trained    # without the run's average
+      trainer eval --checkpoint runs/seed0 --checkpoint runs/seed1 --grid both.png
+      trainer eval --checkpoint runs/ema --checkpoint runs/ema --weights trained --weights average
     """
+    check_picture_name(grid, "--grid")
+    if len(weights) not in (0, 1, len(ckpts)):
+        raise click.BadParameter(
+            f"given {len(weights)} times for {len(ckpts)} checkpoints: once for all of them, "
+            "or once per --checkpoint in order",
+            param_hint="--weights",
+        )
+    weights = list(weights) * (len(ckpts) if len(weights) == 1 else 1) or ["auto"] * len(ckpts)
+    if len(ckpts) > 1:
+        _compare(list(ckpts), weights, stores, batch_size, grid, grid_count, on, device, as_json)
+        return
+    _eval_one(ckpts[0], weights[0], stores, batch_size, grid, grid_count, on, device, as_json)
+
+
+def _eval_errors() -> tuple[type, ...]:
     from storage.errors import StoreError
     from storage.extras import MissingExtra
     from trainer.checkpoint import CheckpointError
-    from trainer.evaluate import EvalError, evaluate
+    from trainer.evaluate import EvalError
+
+    return StoreError, CheckpointError, EvalError, MissingExtra
+
+
+def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, as_json):
+    """One model's scores, kept beside its run when they are what the run renders."""
+    from trainer.evaluate import evaluate
 
     run_scores = Path(ckpt).is_dir() and not on and weights == "auto"  # what the run renders
     if grid is None and run_scores:
         grid = Path(ckpt) / "eval.png"
-    check_picture_name(grid, "--grid")
     try:
         result = evaluate(
             ckpt, list(stores) or None, batch_size, grid, grid_count, device,
             list(on) or None, weights,
         )  # fmt: skip
-    except (StoreError, CheckpointError, EvalError, MissingExtra) as exc:
+    except _eval_errors() as exc:
         _fail(exc)
     if run_scores:  # beside the run's log, for the dashboard's runs page
         from storage.backend import write_atomic
 
         data = json.dumps(result, indent=1, default=str).encode()
         write_atomic(Path(ckpt) / "eval.json", lambda f: f.write(data))
-    if result["on_checked_against_run"] is False:
-        click.echo(
-            f"warning: {ckpt} names no stores of its run, so the --on stores were not checked "
-            "for materials it trained on",
-            err=True,
-        )
+    _warn_unchecked(ckpt, result)
     if as_json:
         click.echo(json.dumps(result, indent=2))
         return
@@ -267,6 +306,73 @@ def eval_(ckpt, stores, batch_size, grid, grid_count, on, device, weights, as_js
     click.echo(tabulate(rows, head, floatfmt=("", "", ".2f", ".4f", ".4f")))
     if "grid" in result:
         click.echo(f"grid: {result['grid']}")
+
+
+def _warn_unchecked(ckpt, result: dict) -> None:
+    if result["on_checked_against_run"] is False:
+        click.echo(
+            f"warning: {ckpt} names no stores of its run, so the --on stores were not checked "
+            "for materials it trained on",
+            err=True,
+        )
+
+
+def _compare(ckpts, weights, stores, batch_size, grid, grid_count, on, device, as_json):
+    """Several models' scores on the same samples, each against the first."""
+    from trainer.compare import compare
+
+    try:
+        result = compare(
+            ckpts, weights, list(stores) or None, batch_size, grid, grid_count, device,
+            list(on) or None,
+        )  # fmt: skip
+    except _eval_errors() as exc:
+        _fail(exc)
+    for model in result["models"]:
+        _warn_unchecked(model["checkpoint"], model)
+    if as_json:
+        click.echo(json.dumps(result, indent=2))
+        return
+    where = "samples of the --on stores" if result["on"] else "held-out samples"
+    click.echo(
+        f"{result['samples']} {where} of {result['materials']} materials (set "
+        f"{result['heldout_set']}), every model on the same ones"
+    )
+    models = result["models"]
+    rows = [
+        [i, m["label"], m["checkpoint_step"], m["overall"]["psnr"], m["overall"]["ssim"],
+         m["overall"]["flip"]]
+        for i, m in enumerate(models, 1)
+    ]  # fmt: skip
+    head = ["", "checkpoint", "step", "PSNR dB", "SSIM", "FLIP"]
+    click.echo(tabulate(rows, head, floatfmt=("", "", "", ".2f", ".4f", ".4f")))
+    kinds = list(models[0]["by_kind"])
+    rows = [[k, models[0]["by_kind"][k]["n"], *(m["by_kind"][k]["psnr"] for m in models)]
+            for k in kinds]  # fmt: skip
+    click.echo("\nPSNR dB by material kind")
+    click.echo(tabulate(rows, ["kind", "n", *range(1, len(models) + 1)], floatfmt=".2f"))
+    click.echo(
+        f"\nagainst 1: mean difference [{result['level']:.0%} interval, a bootstrap over "
+        "materials]; FLIP: lower is better"
+    )
+    click.echo(tabulate(*difference_table(models), disable_numparse=True))
+    if "grid" in result:
+        click.echo(f"grid: {result['grid']}")
+
+
+def difference_table(models: list[dict]) -> tuple[list[list], list[str]]:
+    """Rows and header of each model after the first against the first: the mean
+    difference of each score and its interval, and the share of samples it renders with the
+    higher PSNR."""
+    rows = []
+    for i, m in enumerate(models[1:], 2):
+        row = [i]
+        for metric, fmt in (("psnr", "+.2f"), ("ssim", "+.4f"), ("flip", "+.4f")):
+            d = m["vs_first"][metric]
+            ci = "" if d["low"] is None else f" [{d['low']:{fmt}}, {d['high']:{fmt}}]"
+            row.append(f"{d['mean']:{fmt}}{ci}")
+        rows.append([*row, f"{m['vs_first']['psnr']['higher']:.0%}"])
+    return rows, ["", "PSNR dB", "SSIM", "FLIP", "higher PSNR on"]
 
 
 def _floats(text: str | None, n: int, name: str):

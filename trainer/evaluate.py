@@ -11,6 +11,7 @@ with it).
 from __future__ import annotations
 
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -215,30 +216,14 @@ def evaluate(
     """Metrics of checkpoint ``ckpt`` (or a model ``trainer export`` wrote, run in ONNX
     Runtime: :func:`trainer.infer.load_renderer`) on its run's held-out split, or on every
     sample of the stores ``on`` (:func:`test_split`); writes a ground truth | prediction |
-    error PNG grid of the first ``grid_count`` samples to ``grid`` when given. ``weights``:
+    error PNG grid of ``grid_count`` samples spread over them to ``grid`` when given. ``weights``:
     which of a checkpoint's (:func:`trainer.checkpoint.weights`)."""
     renderer = load_renderer(ckpt, device, weights)
     try:
         split = test_split(renderer, stores, on)
     except NoCatalog as exc:
         raise NoCatalog(f"{ckpt}: {exc}") from None
-    reader = SampleReader(split)
-    kinds = [{m: rec["kind"] for m, rec in s.materials().items()} for s in reader.stores]
-    tally, shown = Tally(), []
-    ids = np.arange(len(split))
-    for lo in tqdm(range(0, len(ids), batch_size), desc="eval", unit="batch"):
-        batch = reader.batch(ids[lo : lo + batch_size])
-        pred = renderer.render_batch(batch["maps"], batch["light"])
-        target = renderer.tonemap(batch["render"].to(pred.device))
-        names = []
-        for i in batch["id"].tolist():
-            store, sample = split.refs[i]
-            layout = reader.stores[store].layout
-            names.append(kinds[store][layout.material_of_sample(int(sample))])
-        tally.add(pred, target, names)
-        for j in range(len(names)):
-            if len(shown) < grid_count:
-                shown.append((target[j].cpu().numpy(), pred[j].cpu().numpy()))
+    scored = score([renderer], split, batch_size, grid_count)
     result = {
         "checkpoint_step": renderer.step,
         "runtime": renderer.runtime,
@@ -247,12 +232,58 @@ def evaluate(
         "on_checked_against_run": trained_on_is_checked(renderer) if on else None,
         "samples": len(split),
         "on": list(on) if on else None,
-        **tally.summary(),
+        **scored.tallies[0].summary(),
     }
-    if grid is not None and shown:
-        write_grid(grid, shown)
+    if grid is not None and scored.shown:
+        write_grid(grid, scored.shown)
         result["grid"] = str(grid)
     return result
+
+
+@dataclass
+class Scored:
+    """What :func:`score` measured: a :class:`Tally` per renderer (samples in the split's
+    order), each sample's material as ``(store, material)``, and samples spread over the
+    split (:func:`spread`) as ``(target, prediction of each renderer)`` display images for a
+    grid."""
+
+    tallies: list[Tally]
+    materials: list[tuple[int, int]]
+    shown: list[tuple[np.ndarray, ...]]
+
+
+def score(renderers: list[MapsRenderer], split, batch_size: int, grid_count: int) -> Scored:
+    """Every renderer on every sample of ``split``, each batch read once. The targets are
+    the first renderer's tonemap of the renders (renderers compared must share it)."""
+    reader = SampleReader(split)
+    kinds = [{m: rec["kind"] for m, rec in s.materials().items()} for s in reader.stores]
+    out = Scored([Tally() for _ in renderers], [], [])
+    ids = np.arange(len(split))
+    show = set(spread(len(split), grid_count).tolist())
+    for lo in tqdm(range(0, len(ids), batch_size), desc="eval", unit="batch"):
+        batch = reader.batch(ids[lo : lo + batch_size])
+        mats = []
+        for i in batch["id"].tolist():
+            store, sample = split.refs[i]
+            mats.append((int(store), reader.stores[store].layout.material_of_sample(int(sample))))
+        names = [kinds[s][m] for s, m in mats]
+        target = renderers[0].tonemap(batch["render"])
+        preds = []
+        for renderer, tally in zip(renderers, out.tallies, strict=True):
+            pred = renderer.render_batch(batch["maps"], batch["light"])
+            tally.add(pred, target.to(pred.device), names)
+            preds.append(pred.cpu().numpy())
+        out.materials += mats
+        for j, i in enumerate(batch["id"].tolist()):
+            if i in show:
+                out.shown.append((target[j].numpy(), *(p[j] for p in preds)))
+    return out
+
+
+def spread(n: int, count: int) -> np.ndarray:
+    """``count`` (at most ``n``) sample numbers evenly spaced over ``0 .. n - 1``, first and
+    last included: samples of materials far apart in the split, not one material's suns."""
+    return np.unique(np.round(np.linspace(0, n - 1, min(count, n))).astype(np.int64))
 
 
 def _summary(pairs: list) -> dict:
@@ -272,16 +303,21 @@ GRID_COLUMNS = ("ground truth", "network", "|error| x {gain:g}")
 
 
 def write_grid(
-    path: Path, rows: list[tuple[np.ndarray, np.ndarray]], error_gain: float = 4.0
+    path: Path,
+    rows: list[tuple[np.ndarray, ...]],
+    error_gain: float = 4.0,
+    labels: tuple[str, ...] = ("network",),
 ) -> None:
-    """A PNG with one row per sample: ground truth | prediction | |error| x ``error_gain``,
-    under a header naming the columns; small renders are enlarged to be judged by eye."""
+    """A PNG with one row per sample ``(ground truth, prediction, ...)``: the ground truth,
+    each prediction, then each |error| x ``error_gain``, under a header naming the columns
+    (``labels`` name the predictions, when there are several); small renders are enlarged
+    to be judged by eye."""
     from PIL import ImageDraw, ImageFont
 
     tiles = []
-    for gt, pred in rows:
-        err = np.clip(np.abs(gt - pred).mean(0, keepdims=True) * error_gain, 0, 1)
-        tiles.append(np.concatenate([to_uint8(gt), to_uint8(pred), to_uint8(err)], axis=1))
+    for gt, *preds in rows:
+        errs = [np.clip(np.abs(gt - p).mean(0, keepdims=True) * error_gain, 0, 1) for p in preds]
+        tiles.append(np.concatenate([to_uint8(x) for x in (gt, *preds, *errs)], axis=1))
     body = np.concatenate(tiles, axis=0)
     size = rows[0][0].shape[-1]
     factor = max(1, -(-GRID_MIN_TILE // size))
@@ -290,6 +326,26 @@ def write_grid(
     grid = Image.new("RGB", (body.shape[1], body.shape[0] + header), (24, 24, 24))
     grid.paste(Image.fromarray(body), (0, header))
     draw, font = ImageDraw.Draw(grid), ImageFont.load_default(size=14)
-    for i, name in enumerate(GRID_COLUMNS):
-        draw.text((i * tile + 6, 4), name.format(gain=error_gain), fill=(235, 235, 235), font=font)
+    for i, name in enumerate(grid_columns(labels, error_gain)):
+        draw.text((i * tile + 6, 4), _fit(draw, name, font, tile - 12), fill=(235, 235, 235),
+                  font=font)  # fmt: skip
     save_image(grid, path)
+
+
+def grid_columns(labels: tuple[str, ...], error_gain: float) -> list[str]:
+    """The grid's column names: one prediction's are ``GRID_COLUMNS``; several are named by
+    their labels, their errors by their numbers (1 is the first)."""
+    if len(labels) == 1:
+        return [name.format(gain=error_gain) for name in GRID_COLUMNS]
+    errors = [f"|error {i}| x {error_gain:g}" for i in range(1, len(labels) + 1)]
+    return ["ground truth", *(f"{i}: {x}" for i, x in enumerate(labels, 1)), *errors]
+
+
+def _fit(draw, text: str, font, width: int) -> str:
+    """``text``, or its end after "..." where the whole is wider than ``width`` pixels."""
+    cut = 0
+    while (
+        cut < len(text) and draw.textlength(("..." if cut else "") + text[cut:], font=font) > width
+    ):
+        cut += 1
+    return ("..." if cut else "") + text[cut:]

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from trainer.data import SampleReader, Split
-from trainer.evaluate import psnr, ssim
+from trainer.evaluate import psnr, spread, ssim
 from trainer.targets import Tonemap, model_inputs
 
 
@@ -32,9 +32,7 @@ class Validator:
     time."""
 
     def __init__(self, split: Split, count: int, batch_size: int = 8):
-        k = min(count, len(split))
-        spaced = np.linspace(0, len(split) - 1, k).round() if k else np.zeros(0)
-        self.ids = np.unique(spaced.astype(np.int64))
+        self.ids = spread(len(split), count)
         self.of = len(split)
         self.digest = samples_digest(split, self.ids)
         self.reader = SampleReader(split)

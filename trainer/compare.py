@@ -1,0 +1,153 @@
+"""Several checkpoints scored on the same held-out samples, and how sure their differences are.
+
+``trainer eval --checkpoint A --checkpoint B ...`` runs every model on each batch it reads
+(:func:`trainer.evaluate.score`), so the scores are paired: per sample, B's PSNR less A's.
+The samples of one material (its suns) are not independent draws, so the confidence
+interval of a mean difference resamples whole materials (a cluster bootstrap):
+:func:`paired_difference`. The first checkpoint is the one the others are compared with.
+
+Models compare only on the same samples against the same targets: the runs must hold out
+the same samples of the same stores (one ``--holdout-seed`` and ``--holdout-fraction`` on
+one set of stores, whatever their ``--seed``), or be scored ``--on`` the same other stores,
+and share a tonemap.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from trainer.evaluate import (
+    EvalError,
+    NoCatalog,
+    score,
+    test_split,
+    trained_on_is_checked,
+    write_grid,
+)
+from trainer.infer import load_renderer
+from trainer.validation import samples_digest
+
+#: the bootstrap's resamples and coverage; a fixed seed keeps the printed interval the same
+#: run to run
+RESAMPLES, LEVEL, SEED = 2000, 0.95, 0
+#: fewer materials than this give no interval: a bootstrap over so few says little
+MIN_MATERIALS = 5
+METRICS = ("psnr", "ssim", "flip")
+
+
+def paired_difference(
+    base: np.ndarray, other: np.ndarray, groups: np.ndarray, resamples: int = RESAMPLES
+) -> dict:
+    """Mean of ``other - base`` over paired samples, with the ``LEVEL`` interval of a
+    bootstrap that resamples the samples' ``groups`` (materials) whole, and the share of
+    samples where ``other`` is the higher. The interval is ``None`` under
+    ``MIN_MATERIALS`` groups.
+
+    Hand-written because ``scipy.stats.bootstrap`` resamples single observations, not
+    clusters of them."""
+    d = np.asarray(other, np.float64) - np.asarray(base, np.float64)
+    _, g = np.unique(np.asarray(groups), axis=0, return_inverse=True)
+    g = g.reshape(-1)
+    n = int(g.max()) + 1 if len(g) else 0
+    out = {"mean": float(d.mean()), "higher": float((d > 0).mean()), "materials": n}
+    if n < MIN_MATERIALS:
+        return {**out, "low": None, "high": None}
+    sums, counts = np.bincount(g, d, n), np.bincount(g, None, n)
+    pick = np.random.default_rng(SEED).integers(0, n, (resamples, n))
+    means = sums[pick].sum(1) / counts[pick].sum(1)
+    tail = (1 - LEVEL) / 2 * 100
+    low, high = np.percentile(means, [tail, 100 - tail])
+    return {**out, "low": float(low), "high": float(high)}
+
+
+def labels(names: list[str], weights: list[str]) -> list[str]:
+    """What each model is called: its name as given, and its weights where two names are
+    the same."""
+    return [f"{n} ({w})" if names.count(n) > 1 else n for n, w in zip(names, weights, strict=True)]
+
+
+def compare(
+    ckpts: list[str],
+    weights: list[str],
+    stores: list[str] | None = None,
+    batch_size: int = 8,
+    grid: Path | None = None,
+    grid_count: int = 4,
+    device: str = "auto",
+    on: list[str] | None = None,
+) -> dict:
+    """Scores of the models ``ckpts`` (each with its ``weights``) on the same samples, and of
+    each after the first against the first (:func:`paired_difference` of PSNR, SSIM and
+    FLIP); a grid of ``grid_count`` samples spread over them (ground truth, each model,
+    each error) to ``grid`` when given."""
+    renderers, splits = [], []
+    for ckpt, w in zip(ckpts, weights, strict=True):
+        renderer = load_renderer(ckpt, device, w)
+        try:
+            splits.append(test_split(renderer, stores, on))
+        except (NoCatalog, EvalError) as exc:
+            raise type(exc)(f"{ckpt}: {exc}") from None
+        renderers.append(renderer)
+    _same_samples(ckpts, renderers, splits)
+    split = splits[0]
+    scored = score(renderers, split, batch_size, grid_count)
+    names = labels(list(ckpts), [r.weights for r in renderers])
+    groups = np.array(scored.materials, np.int64).reshape(-1, 2)
+    rows = [np.array(t.scores["all"], np.float64) for t in scored.tallies]
+    models = []
+    for i, (ckpt, renderer, tally) in enumerate(zip(ckpts, renderers, scored.tallies, strict=True)):
+        model = {
+            "checkpoint": str(ckpt),
+            "label": names[i],
+            "checkpoint_step": renderer.step,
+            "runtime": renderer.runtime,
+            "weights": renderer.weights,
+            "on_checked_against_run": trained_on_is_checked(renderer) if on else None,
+            **tally.summary(),
+        }
+        if i:
+            model["vs_first"] = {
+                m: paired_difference(rows[0][:, k], rows[i][:, k], groups)
+                for k, m in enumerate(METRICS)
+            }
+        models.append(model)
+    result = {
+        "samples": len(split),
+        "materials": len(np.unique(groups, axis=0)),
+        "heldout_set": samples_digest(split, np.arange(len(split))),
+        "on": list(on) if on else None,
+        "level": LEVEL,
+        "models": models,
+    }
+    if grid is not None and scored.shown:
+        write_grid(grid, scored.shown, labels=tuple(names))
+        result["grid"] = str(grid)
+    return result
+
+
+def _named(split) -> set[tuple[str, int]]:
+    """The samples of ``split`` as ``(store address, sample)``."""
+    return {(split.urls[s], int(k)) for s, k in split.refs.tolist()}
+
+
+def _same_samples(ckpts, renderers, splits) -> None:
+    """An :class:`EvalError` naming the first model that would be scored on other samples
+    than the first, or against other targets."""
+    first = splits[0]
+    for ckpt, renderer, split in zip(ckpts[1:], renderers[1:], splits[1:], strict=True):
+        theirs, ours = _named(split), _named(first)
+        if theirs != ours:
+            raise EvalError(
+                f"{ckpt}: holds out other samples than {ckpts[0]} ({len(theirs & ours)} in "
+                f"common of {len(theirs)} and {len(ours)}: other stores, --holdout-seed or "
+                "--holdout-fraction); compare them --on a store neither trained on"
+            )
+        if renderer.tonemap != renderers[0].tonemap:
+            theirs, ours = (f"{t.curve} at exposure {t.exposure:g}"
+                            for t in (renderer.tonemap, renderers[0].tonemap))  # fmt: skip
+            raise EvalError(
+                f"{ckpt}: trained against another tonemap than {ckpts[0]} ({theirs}, not "
+                f"{ours}): their scores do not compare"
+            )
