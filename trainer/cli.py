@@ -319,7 +319,7 @@ def _warn_unchecked(ckpt, result: dict) -> None:
 
 def _compare(ckpts, weights, stores, batch_size, grid, grid_count, on, device, as_json):
     """Several models' scores on the same samples, each against the first."""
-    from trainer.compare import compare
+    from trainer.compare import compare, report
 
     try:
         result = compare(
@@ -333,46 +333,7 @@ def _compare(ckpts, weights, stores, batch_size, grid, grid_count, on, device, a
     if as_json:
         click.echo(json.dumps(result, indent=2))
         return
-    where = "samples of the --on stores" if result["on"] else "held-out samples"
-    click.echo(
-        f"{result['samples']} {where} of {result['materials']} materials (set "
-        f"{result['heldout_set']}), every model on the same ones"
-    )
-    models = result["models"]
-    rows = [
-        [i, m["label"], m["checkpoint_step"], m["overall"]["psnr"], m["overall"]["ssim"],
-         m["overall"]["flip"]]
-        for i, m in enumerate(models, 1)
-    ]  # fmt: skip
-    head = ["", "checkpoint", "step", "PSNR dB", "SSIM", "FLIP"]
-    click.echo(tabulate(rows, head, floatfmt=("", "", "", ".2f", ".4f", ".4f")))
-    kinds = list(models[0]["by_kind"])
-    rows = [[k, models[0]["by_kind"][k]["n"], *(m["by_kind"][k]["psnr"] for m in models)]
-            for k in kinds]  # fmt: skip
-    click.echo("\nPSNR dB by material kind")
-    click.echo(tabulate(rows, ["kind", "n", *range(1, len(models) + 1)], floatfmt=".2f"))
-    click.echo(
-        f"\nagainst 1: mean difference [{result['level']:.0%} interval, a bootstrap over "
-        "materials]; FLIP: lower is better"
-    )
-    click.echo(tabulate(*difference_table(models), disable_numparse=True))
-    if "grid" in result:
-        click.echo(f"grid: {result['grid']}")
-
-
-def difference_table(models: list[dict]) -> tuple[list[list], list[str]]:
-    """Rows and header of each model after the first against the first: the mean
-    difference of each score and its interval, and the share of samples it renders with the
-    higher PSNR."""
-    rows = []
-    for i, m in enumerate(models[1:], 2):
-        row = [i]
-        for metric, fmt in (("psnr", "+.2f"), ("ssim", "+.4f"), ("flip", "+.4f")):
-            d = m["vs_first"][metric]
-            ci = "" if d["low"] is None else f" [{d['low']:{fmt}}, {d['high']:{fmt}}]"
-            row.append(f"{d['mean']:{fmt}}{ci}")
-        rows.append([*row, f"{m['vs_first']['psnr']['higher']:.0%}"])
-    return rows, ["", "PSNR dB", "SSIM", "FLIP", "higher PSNR on"]
+    click.echo(report(result))
 
 
 def _floats(text: str | None, n: int, name: str):

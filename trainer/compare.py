@@ -17,6 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from tabulate import tabulate
 
 from trainer.evaluate import (
     EvalError,
@@ -125,6 +126,56 @@ def compare(
         write_grid(grid, scored.shown, labels=tuple(names))
         result["grid"] = str(grid)
     return result
+
+
+def report(result: dict) -> str:
+    """:func:`compare`'s result as text: each model's scores, PSNR by material kind, and
+    each model after the first against the first."""
+    models = result["models"]
+    where = "samples of the --on stores" if result["on"] else "held-out samples"
+    rows = [
+        [i, m["label"], m["checkpoint_step"], m["overall"]["psnr"], m["overall"]["ssim"],
+         m["overall"]["flip"]]
+        for i, m in enumerate(models, 1)
+    ]  # fmt: skip
+    kinds = [
+        [k, first["n"], *(m["by_kind"][k]["psnr"] for m in models)]
+        for k, first in models[0]["by_kind"].items()
+    ]
+    lines = [
+        f"{result['samples']} {where} of {result['materials']} materials (set "
+        f"{result['heldout_set']}), every model on the same ones",
+        tabulate(
+            rows,
+            ["", "checkpoint", "step", "PSNR dB", "SSIM", "FLIP"],
+            floatfmt=("", "", "", ".2f", ".4f", ".4f"),
+        ),  # fmt: skip
+        "",
+        "PSNR dB by material kind",
+        tabulate(kinds, ["kind", "n", *range(1, len(models) + 1)], floatfmt=".2f"),
+        "",
+        f"against 1: mean difference [{result['level']:.0%} interval, a bootstrap over "
+        "materials]; FLIP: lower is better",
+        tabulate(*_difference_table(models), disable_numparse=True),
+    ]
+    if "grid" in result:
+        lines.append(f"grid: {result['grid']}")
+    return "\n".join(lines)
+
+
+def _difference_table(models: list[dict]) -> tuple[list[list], list[str]]:
+    """Rows and header of each model after the first against the first: the mean
+    difference of each score and its interval, and the share of samples where its PSNR is
+    the higher."""
+    rows = []
+    for i, m in enumerate(models[1:], 2):
+        row = [i]
+        for metric, fmt in (("psnr", "+.2f"), ("ssim", "+.4f"), ("flip", "+.4f")):
+            d = m["vs_first"][metric]
+            ci = "" if d["low"] is None else f" [{d['low']:{fmt}}, {d['high']:{fmt}}]"
+            row.append(f"{d['mean']:{fmt}}{ci}")
+        rows.append([*row, f"{m['vs_first']['psnr']['higher']:.0%}"])
+    return rows, ["", "PSNR dB", "SSIM", "FLIP", "higher PSNR on"]
 
 
 def _named(split) -> set[tuple[str, int]]:
