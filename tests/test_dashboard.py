@@ -195,6 +195,9 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     (other / "val.jsonl").write_text(  # an averaged run: its trained weights are scored too
         "\n".join(json.dumps(x) for x in averaged)
     )
+    for run in (runs, other):  # listed, not read
+        (run / "checkpoints").mkdir()
+        (run / "checkpoints" / "step-00000030.pt").write_bytes(b"")
     with Server(sets, "--runs", tmp_path / "runs") as s:
         code, body = s.get("/metrics")
         families = {f.name: f for f in text_string_to_metric_families(body.decode())}
@@ -259,6 +262,9 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     differ = mixed_page[start : mixed_page.index("<h2>", start)]
     assert re.findall(r"<th>([^<]*)</th>", differ)[-1] == "held-out samples"
     assert re.findall(r"<td>([^<]*)</td>", differ)[3::4] == ["3f2a", "9b1c"]
+    # runs of the same samples get the command that compares them sample by sample
+    command = f"trainer eval --checkpoint {runs} --checkpoint {other}"
+    assert f"<code>{command}</code>" in runs_page and "compare-command" not in mixed_page
 
 
 @pytest.mark.slow
@@ -334,6 +340,22 @@ def test_the_progress_history_stays_bounded_over_a_long_job():
     assert history[0] == [0.0, 0] and history[-1] == [9999.0, 49995]
     times = [t for t, _ in history]
     assert times == sorted(times) and times[len(times) // 2] > 2000  # spread over the life
+
+
+def test_the_compare_command_names_runs_of_the_same_samples_that_have_checkpoints():
+    from farm.dashboard.runs import HELDOUT, compare_command
+
+    def run(path, held="3f2a", ckpts=("step-1.pt",), val=({"psnr": 1},)):
+        return {"path": path, "settings": {HELDOUT: held} if held else {},
+                "checkpoints": list(ckpts), "val": list(val)}  # fmt: skip
+
+    unscored = run("c", val=())  # left out: nothing to compare it on
+    assert compare_command([run("a"), run("b d"), unscored]) == (
+        "trainer eval --checkpoint a --checkpoint 'b d'"
+    )
+    for other in (run("b", held="9b1c"), run("b", held=None), run("b", ckpts=())):
+        assert compare_command([run("a"), other]) is None
+    assert compare_command([run("a"), unscored]) is None
 
 
 def test_store_settings_show_as_people_read_them():

@@ -745,6 +745,7 @@ def test_eval_compares_checkpoints_on_the_same_samples(tiny_store, trained, tmp_
     assert r.exit_code == 0, r.output
     assert f"{result['samples']} held-out samples of 2 materials" in r.output
     assert "PSNR dB by material kind" in r.output and "against 1: mean difference" in r.output
+    assert "(no intervals: fewer than 5 materials)" in r.output
     assert f"{d['mean']:+.2f}" in r.output.split("against 1")[1]
     # on other stores, every model on all their samples
     layout = Layout(num_materials=2, suns_per_material=2, resolution=64, shard_size=4)

@@ -132,6 +132,7 @@ def report(result: dict) -> str:
     """:func:`compare`'s result as text: each model's scores, PSNR by material kind, and
     each model after the first against the first."""
     models = result["models"]
+    few = result["materials"] < MIN_MATERIALS
     where = "samples of the --on stores" if result["on"] else "held-out samples"
     rows = [
         [i, m["label"], m["checkpoint_step"], m["overall"]["psnr"], m["overall"]["ssim"],
@@ -155,7 +156,8 @@ def report(result: dict) -> str:
         tabulate(kinds, ["kind", "n", *range(1, len(models) + 1)], floatfmt=".2f"),
         "",
         f"against 1: mean difference [{result['level']:.0%} interval, a bootstrap over "
-        "materials]; FLIP: lower is better",
+        "materials]; FLIP: lower is better"
+        + (f" (no intervals: fewer than {MIN_MATERIALS} materials)" if few else ""),
         tabulate(*_difference_table(models), disable_numparse=True),
     ]
     if "grid" in result:

@@ -197,7 +197,8 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         compare = pages.lines_chart(scored) if sum(len(p) > 1 for _, p in scored) > 1 else None
         differ = runs.differing([r for r in rows if r["settings"]])
         sets = {r["settings"].get(runs.HELDOUT) for r in rows if r["val"]}
-        page = dict(compare=compare, differ=differ, mixed=compare is not None and len(sets) > 1)
+        page = dict(compare=compare, differ=differ, mixed=compare is not None and len(sets) > 1,
+                    command=runs.compare_command(rows))  # fmt: skip
         return html(text=pages.render("runs", runs=rows, secret=secret, title="runs", **page))
 
     async def run_file(request):

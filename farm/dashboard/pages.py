@@ -120,7 +120,9 @@ RUNS = """{% extends "base" %}{% block main %}
 {% if compare %}<h2>Held-out PSNR of every run (dB)</h2>{{ compare }}{% endif %}{% if mixed %}
 <p class="err" id="mixed">These runs do not all score the same held-out samples (another store,
 --holdout-fraction, --holdout-seed or --val-samples; "-": a run that does not name them): compare
-their curves with that in mind.</p>{% endif %}
+their curves with that in mind.</p>{% endif %}{% if command %}<p id="compare-command">They score
+the same held-out samples: compare their latest checkpoints sample by sample, with 95 %
+intervals, by <code>{{ command }}</code></p>{% endif %}
 {% if differ %}<h2>Settings that differ</h2><table><tr><th>run</th>{% for k in differ
 %}<th>{{ k }}</th>{% endfor %}</tr>{% for r in runs %}<tr><td>{{
 r.label }}</td>{% for k in differ %}<td>{{ r.settings.get(k)|setting }}</td>{% endfor %}</tr>{%

@@ -9,6 +9,7 @@ the metrics."""
 from __future__ import annotations
 
 import json
+import shlex
 from pathlib import Path
 
 #: log lines kept for a curve (evenly thinned): a long run's log has one a few seconds
@@ -101,6 +102,22 @@ def differing(runs: list[dict]) -> list[str]:
         return []
     labels = [*(label for _, label in SETTINGS), HELDOUT]
     return [k for k in labels if len({repr(r["settings"].get(k)) for r in runs}) > 1]
+
+
+def compare_command(runs: list[dict]) -> str | None:
+    """The ``trainer eval`` command that scores the scored ``runs`` sample by sample, each
+    against the first, with intervals: for two or more that all name the same held-out
+    samples (:data:`HELDOUT`) and have checkpoints; ``None`` otherwise."""
+    scored = [r for r in runs if r["val"]]
+    sets = {r["settings"].get(HELDOUT) for r in scored}
+    if (
+        len(scored) < 2
+        or len(sets) > 1
+        or None in sets
+        or not all(r["checkpoints"] for r in scored)
+    ):
+        return None
+    return "trainer eval " + " ".join(f"--checkpoint {shlex.quote(r['path'])}" for r in scored)
 
 
 def thin(rows: list, limit: int = CURVE_POINTS) -> list:
