@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import csv
 import json
 import os
 import re
@@ -739,6 +740,34 @@ def test_eval_compares_checkpoints_on_the_same_samples(tiny_store, trained, tmp_
     assert Image.open(tmp_path / "cmp.png").size == (7 * 256, 24 + 4 * 256)
     after = (trained / "eval.json").read_bytes() if (trained / "eval.json").exists() else None
     assert after == kept
+    # every sample's scores, where it is, its material and its sun, for each model
+    table = tmp_path / "out" / "samples.csv"
+    r = CliRunner().invoke(trainer_main, ["eval", *each[:4], "--per-sample", str(table)])
+    assert r.exit_code == 0 and f"each sample's scores: {table}" in r.output, r.output
+    rows = list(csv.DictReader(table.open()))
+    assert len(rows) == result["samples"] and list(rows[0])[-6:] == [
+        "psnr_1", "ssim_1", "flip_1", "psnr_2", "ssim_2", "flip_2"]  # fmt: skip
+    for i, model in ((1, first), (2, second)):
+        mean = np.mean([float(x[f"psnr_{i}"]) for x in rows])
+        assert mean == pytest.approx(model["overall"]["psnr"], abs=2e-3)
+    kinds = {m: rec["kind"] for m, rec in tiny_store.materials().items()}
+    for x in rows:
+        sample, material = int(x["sample"]), int(x["material"])
+        sun, turbidity = tiny_store.light(sample)
+        assert x["store"] == tiny_store.url and x["kind"] == kinds[material]
+        assert material == tiny_store.layout.material_of_sample(sample)
+        assert float(x["turbidity"]) == pytest.approx(turbidity, rel=1e-5)
+        assert np.sin(np.radians(float(x["sun_elevation_deg"]))) == pytest.approx(sun[2], abs=1e-3)
+    alone = tmp_path / "alone.csv"
+    r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(early), "--grid-count", "0",
+                                          "--per-sample", str(alone)])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert [x["psnr_2"] for x in rows] == [x["psnr_1"] for x in csv.DictReader(alone.open())]
+    r = CliRunner().invoke(
+        trainer_main, ["eval", *each[:2], "--per-sample", str(tmp_path / "s.txt")]
+    )
+    assert r.exit_code == 2 and "--per-sample: '" in r.output and "a .csv file" in r.output
+    assert not (tmp_path / "s.txt").exists()
     # the table: each model, PSNR by kind, each against the first
     two = ["eval", "--checkpoint", str(trained), "--checkpoint", str(early)]
     r = CliRunner().invoke(trainer_main, [*two, "--grid-count", "0"])

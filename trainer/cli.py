@@ -223,8 +223,14 @@ def launch(
     help=f"{WEIGHTS_HELP}; once for every --checkpoint, or once per --checkpoint in order  "
     "[default: auto]",
 )
+@click.option(
+    "--per-sample",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="a .csv file of every sample's scores, with its material and sun, for each checkpoint",
+)
 @click.option("--json", "as_json", is_flag=True, help="print the metrics as JSON")
-def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, as_json):
+def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, per_sample, as_json):
     """PSNR, SSIM and FLIP on held-out materials, overall and per kind, and a PNG grid
     (ground truth | prediction | error x4) of a few samples.
 
@@ -247,8 +253,13 @@ def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, as_j
       trainer eval --checkpoint runs/ema --weights trained    # without the run's average
       trainer eval --checkpoint runs/seed0 --checkpoint runs/seed1 --grid both.png
       trainer eval --checkpoint runs/ema --checkpoint runs/ema --weights trained --weights average
+      trainer eval --checkpoint runs/a --per-sample runs/a/samples.csv   # which materials fail
     """
     check_picture_name(grid, "--grid")
+    if per_sample is not None and per_sample.suffix.lower() != ".csv":
+        raise click.BadParameter(
+            f"'{per_sample}' does not name a .csv file", param_hint="--per-sample"
+        )
     if len(weights) not in (0, 1, len(ckpts)):
         raise click.BadParameter(
             f"given {len(weights)} times for {len(ckpts)} checkpoints: once for all of them, "
@@ -256,10 +267,11 @@ def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, as_j
             param_hint="--weights",
         )
     weights = list(weights) * (len(ckpts) if len(weights) == 1 else 1) or ["auto"] * len(ckpts)
+    args = (stores, batch_size, grid, grid_count, on, device, per_sample, as_json)
     if len(ckpts) > 1:
-        _compare(list(ckpts), weights, stores, batch_size, grid, grid_count, on, device, as_json)
+        _compare(list(ckpts), weights, *args)
         return
-    _eval_one(ckpts[0], weights[0], stores, batch_size, grid, grid_count, on, device, as_json)
+    _eval_one(ckpts[0], weights[0], *args)
 
 
 def _eval_errors() -> tuple[type, ...]:
@@ -271,7 +283,7 @@ def _eval_errors() -> tuple[type, ...]:
     return StoreError, CheckpointError, EvalError, MissingExtra
 
 
-def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, as_json):
+def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, per_sample, as_json):
     """One model's scores, kept beside its run when they are what the run renders."""
     from trainer.evaluate import evaluate
 
@@ -281,7 +293,7 @@ def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, a
     try:
         result = evaluate(
             ckpt, list(stores) or None, batch_size, grid, grid_count, device,
-            list(on) or None, weights,
+            list(on) or None, weights, per_sample,
         )  # fmt: skip
     except _eval_errors() as exc:
         _fail(exc)
@@ -306,6 +318,8 @@ def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, a
     click.echo(tabulate(rows, head, floatfmt=("", "", ".2f", ".4f", ".4f")))
     if "grid" in result:
         click.echo(f"grid: {result['grid']}")
+    if "per_sample" in result:
+        click.echo(f"each sample's scores: {result['per_sample']}")
 
 
 def _warn_unchecked(ckpt, result: dict) -> None:
@@ -317,14 +331,14 @@ def _warn_unchecked(ckpt, result: dict) -> None:
         )
 
 
-def _compare(ckpts, weights, stores, batch_size, grid, grid_count, on, device, as_json):
+def _compare(ckpts, weights, stores, batch_size, grid, grid_count, on, device, per_sample, as_json):
     """Several models' scores on the same samples, each against the first."""
     from trainer.compare import compare, report
 
     try:
         result = compare(
             ckpts, weights, list(stores) or None, batch_size, grid, grid_count, device,
-            list(on) or None,
+            list(on) or None, per_sample,
         )  # fmt: skip
     except _eval_errors() as exc:
         _fail(exc)

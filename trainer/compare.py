@@ -26,6 +26,7 @@ from trainer.evaluate import (
     test_split,
     trained_on_is_checked,
     write_grid,
+    write_sample_table,
 )
 from trainer.infer import load_renderer
 from trainer.validation import samples_digest
@@ -78,11 +79,13 @@ def compare(
     grid_count: int = 4,
     device: str = "auto",
     on: list[str] | None = None,
+    per_sample: Path | None = None,
 ) -> dict:
     """Scores of the models ``ckpts`` (each with its ``weights``) on the same samples, and of
     each after the first against the first (:func:`paired_difference` of PSNR, SSIM and
     FLIP); a grid of ``grid_count`` samples spread over them (ground truth, each model,
-    each error) to ``grid`` when given."""
+    each error) to ``grid`` when given, and every sample's scores to the CSV file
+    ``per_sample`` (:func:`trainer.evaluate.write_sample_table`)."""
     renderers, splits = [], []
     for ckpt, w in zip(ckpts, weights, strict=True):
         renderer = load_renderer(ckpt, device, w)
@@ -125,6 +128,9 @@ def compare(
     if grid is not None and scored.shown:
         write_grid(grid, scored.shown, labels=tuple(names))
         result["grid"] = str(grid)
+    if per_sample is not None:
+        write_sample_table(per_sample, split, scored)
+        result["per_sample"] = str(per_sample)
     return result
 
 
@@ -162,6 +168,8 @@ def report(result: dict) -> str:
     ]
     if "grid" in result:
         lines.append(f"grid: {result['grid']}")
+    if "per_sample" in result:
+        lines.append(f"each sample's scores: {result['per_sample']}")
     return "\n".join(lines)
 
 

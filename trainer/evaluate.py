@@ -212,11 +212,13 @@ def evaluate(
     device: str = "auto",
     on: list[str] | None = None,
     weights: str = "auto",
+    per_sample: Path | None = None,
 ) -> dict:
     """Metrics of checkpoint ``ckpt`` (or a model ``trainer export`` wrote, run in ONNX
     Runtime: :func:`trainer.infer.load_renderer`) on its run's held-out split, or on every
     sample of the stores ``on`` (:func:`test_split`); writes a ground truth | prediction |
-    error PNG grid of ``grid_count`` samples spread over them to ``grid`` when given. ``weights``:
+    error PNG grid of ``grid_count`` samples spread over them to ``grid`` when given, and each
+    sample's scores to the CSV file ``per_sample`` (:func:`write_sample_table`). ``weights``:
     which of a checkpoint's (:func:`trainer.checkpoint.weights`)."""
     renderer = load_renderer(ckpt, device, weights)
     try:
@@ -237,6 +239,9 @@ def evaluate(
     if grid is not None and scored.shown:
         write_grid(grid, scored.shown)
         result["grid"] = str(grid)
+    if per_sample is not None:
+        write_sample_table(per_sample, split, scored)
+        result["per_sample"] = str(per_sample)
     return result
 
 
@@ -278,6 +283,39 @@ def score(renderers: list[MapsRenderer], split, batch_size: int, grid_count: int
             if i in show:
                 out.shown.append((target[j].numpy(), *(p[j] for p in preds)))
     return out
+
+
+#: the per-sample table's columns before the scores: where the sample is, its material, its sun
+SAMPLE_COLUMNS = ("store", "sample", "material", "source", "kind", "sun_x", "sun_y", "sun_z",
+                  "sun_elevation_deg", "turbidity")  # fmt: skip
+
+
+def write_sample_table(path: Path, split, scored: Scored) -> None:
+    """A CSV file of every sample :func:`score` scored, in its order: ``SAMPLE_COLUMNS``,
+    then ``psnr_I``, ``ssim_I`` and ``flip_I`` of each renderer ``I`` (1 is the first);
+    written whole or not at all."""
+    import csv
+    import io
+
+    from storage.backend import write_atomic
+
+    stores = [Store(url, split.storage_options) for url in split.urls]
+    records = [store.materials() for store in stores]
+    scores = [t.scores["all"] for t in scored.tallies]
+    text = io.StringIO()
+    out = csv.writer(text, lineterminator="\n")
+    out.writerow([*SAMPLE_COLUMNS, *(f"{m}_{i}" for i in range(1, len(scores) + 1)
+                                     for m in ("psnr", "ssim", "flip"))])  # fmt: skip
+    for i, (s, k) in enumerate(split.refs.tolist()):
+        material = stores[s].layout.material_of_sample(k)
+        rec = records[s][material]
+        sun, turbidity = stores[s].light(k)
+        elevation = float(np.degrees(np.arcsin(np.clip(sun[2], -1, 1))))
+        out.writerow([split.urls[s], k, material, rec["source_id"], rec["kind"],
+                      *(f"{x:.5f}" for x in sun), f"{elevation:.2f}", f"{turbidity:g}",
+                      *(f"{x:.5g}" for rows in scores for x in rows[i])])  # fmt: skip
+    data = text.getvalue().encode()
+    write_atomic(path, lambda f: f.write(data))
 
 
 def spread(n: int, count: int) -> np.ndarray:
