@@ -100,23 +100,14 @@ def compare(
     names = labels(list(ckpts), [r.weights for r in renderers])
     groups = np.array(scored.materials, np.int64).reshape(-1, 2)
     rows = [np.array(t.scores["all"], np.float64) for t in scored.tallies]
-    models = []
-    for i, (ckpt, renderer, tally) in enumerate(zip(ckpts, renderers, scored.tallies, strict=True)):
-        model = {
-            "checkpoint": str(ckpt),
-            "label": names[i],
-            "checkpoint_step": renderer.step,
-            "runtime": renderer.runtime,
-            "weights": renderer.weights,
-            "on_checked_against_run": trained_on_is_checked(renderer) if on else None,
-            **tally.summary(),
+    models = [
+        _model_entry(ckpt, name, renderer, tally, on)
+        for ckpt, name, renderer, tally in zip(ckpts, names, renderers, scored.tallies, strict=True)
+    ]
+    for model, row in zip(models[1:], rows[1:], strict=True):
+        model["vs_first"] = {
+            m: paired_difference(rows[0][:, k], row[:, k], groups) for k, m in enumerate(METRICS)
         }
-        if i:
-            model["vs_first"] = {
-                m: paired_difference(rows[0][:, k], rows[i][:, k], groups)
-                for k, m in enumerate(METRICS)
-            }
-        models.append(model)
     result = {
         "samples": len(split),
         "materials": len(np.unique(groups, axis=0)),
@@ -132,6 +123,19 @@ def compare(
         write_sample_table(per_sample, split, scored)
         result["per_sample"] = str(per_sample)
     return result
+
+
+def _model_entry(ckpt, label: str, renderer, tally, on) -> dict:
+    """One model's part of :func:`compare`'s result (before its differences)."""
+    return {
+        "checkpoint": str(ckpt),
+        "label": label,
+        "checkpoint_step": renderer.step,
+        "runtime": renderer.runtime,
+        "weights": renderer.weights,
+        "on_checked_against_run": trained_on_is_checked(renderer) if on else None,
+        **tally.summary(),
+    }
 
 
 def report(result: dict) -> str:
