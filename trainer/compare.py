@@ -200,9 +200,9 @@ def _named(split) -> set[tuple[str, int]]:
 def _same_samples(ckpts, renderers, splits) -> None:
     """An :class:`EvalError` naming the first model that would be scored on other samples
     than the first, or against other targets."""
-    first = splits[0]
+    ours = _named(splits[0])
     for ckpt, renderer, split in zip(ckpts[1:], renderers[1:], splits[1:], strict=True):
-        theirs, ours = _named(split), _named(first)
+        theirs = _named(split)
         if theirs != ours:
             raise EvalError(
                 f"{ckpt}: holds out other samples than {ckpts[0]} ({len(theirs & ours)} in "
@@ -210,9 +210,9 @@ def _same_samples(ckpts, renderers, splits) -> None:
                 "--holdout-fraction); compare them --on a store neither trained on"
             )
         if renderer.tonemap != renderers[0].tonemap:
-            theirs, ours = (f"{t.curve} at exposure {t.exposure:g}"
-                            for t in (renderer.tonemap, renderers[0].tonemap))  # fmt: skip
+            other, base = (f"{t.curve} at exposure {t.exposure:g}"
+                           for t in (renderer.tonemap, renderers[0].tonemap))  # fmt: skip
             raise EvalError(
-                f"{ckpt}: trained against another tonemap than {ckpts[0]} ({theirs}, not "
-                f"{ours}): their scores do not compare"
+                f"{ckpt}: trained against another tonemap than {ckpts[0]} ({other}, not "
+                f"{base}): their scores do not compare"
             )

@@ -248,13 +248,15 @@ def evaluate(
 @dataclass
 class Scored:
     """What :func:`score` measured: a :class:`Tally` per renderer (samples in the split's
-    order), each sample's material as ``(store, material)``, and samples spread over the
-    split (:func:`spread`) as ``(target, prediction of each renderer)`` display images for a
-    grid."""
+    order), each sample's material as ``(store, material)``, samples spread over the split
+    (:func:`spread`) as ``(target, prediction of each renderer)`` display images for a grid,
+    and the stores it read."""
 
     tallies: list[Tally]
     materials: list[tuple[int, int]]
     shown: list[tuple[np.ndarray, ...]]
+    #: the split's stores as read (their per-shard metadata cached)
+    stores: list[Store]
 
 
 def score(renderers: list[MapsRenderer], split, batch_size: int, grid_count: int) -> Scored:
@@ -262,7 +264,7 @@ def score(renderers: list[MapsRenderer], split, batch_size: int, grid_count: int
     the first renderer's tonemap of the renders (renderers compared must share it)."""
     reader = SampleReader(split)
     kinds = [{m: rec["kind"] for m, rec in s.materials().items()} for s in reader.stores]
-    out = Scored([Tally() for _ in renderers], [], [])
+    out = Scored([Tally() for _ in renderers], [], [], reader.stores)
     ids = np.arange(len(split))
     show = set(spread(len(split), grid_count).tolist())
     for lo in tqdm(range(0, len(ids), batch_size), desc="eval", unit="batch"):
@@ -299,7 +301,7 @@ def write_sample_table(path: Path, split, scored: Scored) -> None:
 
     from storage.backend import write_atomic
 
-    stores = [Store(url, split.storage_options) for url in split.urls]
+    stores = scored.stores
     records = [store.materials() for store in stores]
     scores = [t.scores["all"] for t in scored.tallies]
     text = io.StringIO()
