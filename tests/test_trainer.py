@@ -371,6 +371,30 @@ def test_learning_rate_schedules_are_functions_of_the_step():
     assert run_steps(3, None, 7) == 21 and run_steps(3, 5, 7) == 5 and run_steps(1, 50, 7) == 7
 
 
+def test_a_cosine_resumed_with_another_length_goes_on_from_its_rate():
+    from trainer.schedule import lr_at, record, resumed_knee
+
+    was = record("cosine", 20, (2, 1.0))  # 2 warm-up steps, then a cosine to step 20
+    assert resumed_knee(8, was, 20, 2) == (2, 1.0)  # the same length: the same curve
+    assert resumed_knee(1, was, 40, 2) == (2, 1.0)  # the cosine has not begun: a longer one
+    knee = resumed_knee(8, was, 40, 2)  # twice as long from step 8
+    before = lr_at(8, 1.0, "cosine", 20, 2)
+    assert knee == (8, pytest.approx(before)) and 0.5 < before < 1
+    after = [lr_at(s, 1.0, "cosine", 40, 2, knee) for s in range(8, 41)]
+    assert after[0] == pytest.approx(before) and after[-1] == 0.0  # no jump, down to 0 at 40
+    assert all(a > b for a, b in zip(after, after[1:], strict=False))
+    assert after[16] == pytest.approx(before / 2)  # half of it half way through the rest
+    shorter = resumed_knee(8, was, 12, 2)
+    assert lr_at(8, 1.0, "cosine", 12, 2, shorter) == pytest.approx(before)
+    assert lr_at(12, 1.0, "cosine", 12, 2, shorter) == 0.0
+    assert resumed_knee(20, was, 30, 2) == (20, 0.0)  # resumed past its end: at 0
+    again = record("cosine", 40, knee)  # resumed twice: from the second knee on
+    assert resumed_knee(10, again, 40, 2) == knee
+    assert resumed_knee(10, again, 60, 2) == (10, pytest.approx(after[2]))
+    assert resumed_knee(8, record("constant", 20, (0, 1.0)), 20, 2) == (8, 1.0)  # starts now
+    assert resumed_knee(8, None, 40, 2) == (2, 1.0)  # a checkpoint with no record
+
+
 def test_the_weight_average_warms_up_then_keeps_its_decay():
     from trainer.ema import WeightAverage, decay_at
 

@@ -34,7 +34,7 @@ from trainer.evaluate import evaluate
 from trainer.infer import Renderer, load_renderer
 from trainer.model import ModelConfig, NeuralRenderer
 from trainer.targets import Tonemap, model_inputs
-from trainer.train import TrainingDiverged, train
+from trainer.train import RunError, TrainingDiverged, train
 from trainer.validation import Validator
 
 pytestmark = pytest.mark.slow
@@ -534,6 +534,41 @@ def test_killed_run_resumes_with_exactly_the_remaining_order(tiny_store, tmp_pat
     assert a["ema"]["updates"] == b["ema"]["updates"] == a["step"]  # and the average, exactly
     assert all(torch.equal(a["ema"]["weights"][k], b["ema"]["weights"][k]) for k in a["model"])
     assert checkpoint.load(run / "checkpoints" / "best.pt")["step"] == a["best"]["step"]
+
+
+def test_a_cosine_resumed_for_more_epochs_goes_on_from_its_rate(tiny_store, tmp_path, capsys):
+    """A run killed mid-cosine and resumed for twice the epochs goes on from the rate it had
+    (no jump up) down to 0 at its new end; resumed again after that end, it is refused."""
+    from trainer.schedule import lr_at
+
+    run = tmp_path / "r"
+    kw = {"lr_schedule": "cosine", "log_every": 1, "checkpoint_every": 2, "keep": 100}
+    train(config(tiny_store, run, epochs=2, **kw))
+    total = checkpoint.load(run)["schedule"]["total"]
+    assert total > 6 and checkpoint.load(run)["schedule"]["knee"] == [0, 1.0]
+    for p in checkpoint.folder(run).glob("*.pt"):  # killed just after its step-4 checkpoint
+        if p.name == "best.pt" or int(p.stem.split("-")[1]) > 4:
+            p.unlink()
+    rates = {ln["step"]: ln["lr"] for ln in map(json.loads, (run / "log.jsonl").open())}
+    capsys.readouterr()
+    train(config(tiny_store, run, epochs=4, resume=True, **kw))
+    knee = (4, lr_at(4, 1.0, "cosine", total))
+    said = f"the run is {2 * total} steps long, not {total}: the cosine rate goes on from "
+    assert (
+        f"{said}{1e-3 * knee[1]:.3g} at step 4 to 0 at step {2 * total}" in capsys.readouterr().out
+    )
+    lines = [json.loads(ln) for ln in (run / "log.jsonl").read_text().splitlines()]
+    resumed = {ln["step"]: ln["lr"] for ln in lines[len(rates) :]}
+    assert sorted(resumed) == list(range(5, 2 * total + 1))  # every step, logged once
+    for step, rate in resumed.items():  # the rate a step used: that of the step before
+        assert rate == pytest.approx(lr_at(step - 1, 1e-3, "cosine", 2 * total, 0, knee), rel=1e-5)
+    assert resumed[5] == rates[5] < lr_at(4, 1e-3, "cosine", 2 * total)  # on from there, no jump
+    assert resumed[6] > rates[6]  # and down more slowly
+    assert checkpoint.load(run)["schedule"] == {
+        "schedule": "cosine", "total": 2 * total, "knee": [4, pytest.approx(knee[1])],
+    }  # fmt: skip
+    with pytest.raises(RunError, match=f"ended its cosine rate at step {2 * total}: more steps"):
+        train(config(tiny_store, run, epochs=5, resume=True, **kw))
 
 
 def test_perceptual_loss_and_divergence(tiny_store, tmp_path):

@@ -6,8 +6,12 @@ continues on the same curve, and every rank computes the same rate.
 
 Either starts with ``--warmup-steps`` of linear warm-up (``lr / warmup`` at the first step,
 ``lr`` at the last). The run's length is its epochs (or ``--max-steps``, when fewer) at the
-ranks and batch size it starts with: a run resumed on another number of ranks has another
-length, and its cosine is stretched or shrunk from the step it resumes at.
+ranks and batch size it runs with. The cosine runs from its *knee* ``(step, scale)``, where
+the rate is ``scale x lr``, down to 0 at the run's last step; a run starts with the knee at
+the end of its warm-up, scale 1. A run resumed with another length (other epochs,
+``--max-steps``, rank count or batch size) moves the knee to the step it resumes at, with the
+rate it had there (:func:`resumed_knee`): the rate goes on from where it was, without a jump,
+down to 0 at the new end. Checkpoints keep the knee and the length (``record``).
 """
 
 from __future__ import annotations
@@ -16,18 +20,24 @@ import math
 
 SCHEDULES = ("constant", "cosine")
 
+Knee = tuple[int, float]
 
-def lr_at(step: int, lr: float, schedule: str, total: int, warmup: int = 0) -> float:
-    """The rate of global step ``step`` (0: the first) of a run of ``total`` steps."""
+
+def lr_at(
+    step: int, lr: float, schedule: str, total: int, warmup: int = 0, knee: Knee | None = None
+) -> float:
+    """The rate of global step ``step`` (0: the first) of a run of ``total`` steps whose
+    cosine starts at ``knee`` (default: the end of the warm-up, at ``lr``)."""
     if step < warmup:
         return lr * (step + 1) / warmup
     if schedule == "constant":
         return lr
     if schedule != "cosine":
         raise ValueError(f"unknown learning-rate schedule {schedule!r}: one of {SCHEDULES}")
-    span = max(total - warmup, 1)
-    done = min(step - warmup, span) / span
-    return lr * 0.5 * (1.0 + math.cos(math.pi * done))
+    start, scale = knee if knee is not None else (warmup, 1.0)
+    span = max(total - start, 1)
+    done = min(max(step - start, 0), span) / span
+    return lr * scale * 0.5 * (1.0 + math.cos(math.pi * done))
 
 
 def run_steps(epochs: int, max_steps: int | None, per_epoch: int) -> int:
@@ -35,3 +45,25 @@ def run_steps(epochs: int, max_steps: int | None, per_epoch: int) -> int:
     fewer)."""
     total = epochs * per_epoch
     return total if max_steps is None else min(total, max_steps)
+
+
+def record(schedule: str, total: int, knee: Knee) -> dict:
+    """What a checkpoint keeps of the schedule, for :func:`resumed_knee`."""
+    return {"schedule": schedule, "total": total, "knee": [knee[0], knee[1]]}
+
+
+def resumed_knee(step: int, was: dict | None, total: int, warmup: int) -> Knee:
+    """The knee of a run resumed at ``step`` with ``total`` steps, from its checkpoint's
+    :func:`record` ``was``: the same knee when the length is the same (the same rates as the
+    run never stopped) or the cosine has not begun; else ``step``, at the rate the run had
+    there, which is 0 for a cosine that had ended. A run that was constant starts its cosine
+    at ``step`` (or at the end of the warm-up, if later), at ``lr``. A checkpoint with no
+    record gets the knee of a run that started with the new length."""
+    if was is None:
+        return (warmup, 1.0)
+    if was["schedule"] != "cosine":
+        return (max(step, warmup), 1.0)
+    knee = (int(was["knee"][0]), float(was["knee"][1]))
+    if total == was["total"] or step <= knee[0]:
+        return knee
+    return (step, lr_at(step, 1.0, "cosine", was["total"], warmup, knee))

@@ -45,7 +45,7 @@ from trainer.ema import WeightAverage
 from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
 from trainer.runlog import RunLog
-from trainer.schedule import lr_at, run_steps
+from trainer.schedule import Knee, lr_at, record, resumed_knee, run_steps
 from trainer.targets import Tonemap, model_inputs
 from trainer.validation import Validator
 
@@ -137,6 +137,7 @@ class Trainee:
     bad: torch.Tensor  # () bool: a non-finite gradient norm was seen (checked lazily)
     screen_uv: bytes | None = None  # the stores' layout, so checkpoints map new materials
     run_steps: int = 0  # the run's length in global steps, for the learning-rate schedule
+    knee: Knee = (0, 1.0)  # where the cosine rate starts: trainer.schedule
     best: dict | None = None  # the best held-out score at a checkpoint: {"step", "psnr"}
     ema: WeightAverage | None = None  # rank 0's moving average of the weights (--ema-decay)
     step: int = 0
@@ -170,6 +171,8 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     split = catalog.split("train")
     per_epoch = steps_left(len(split), rk.world, cfg.batch_size)
     t.run_steps = run_steps(cfg.epochs, cfg.max_steps, per_epoch)
+    was = state.get("schedule") if state is not None else None
+    t.knee = resumed_knee(t.step, was, t.run_steps, cfg.warmup_steps)
     stream = ShardStream(
         split, batch=cfg.batch_size, seed=cfg.seed, buffer=cfg.shuffle_buffer, world=rk.world,
         rank=rk.rank, epochs=cfg.epochs,
@@ -184,6 +187,8 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
             "materials only (farm screen-uv STORE adds it; resume to carry it)"
         )
     log.start(log.validation_plan())
+    if note := _schedule_note(cfg, t, was):
+        log.start(note)
     if t.ema is not None:
         log.start(
             f"weights averaged (decay {cfg.ema_decay}): the checkpoints render with the "
@@ -223,6 +228,20 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         "val": log.last_val,
         "best": t.best,
     }
+
+
+def _schedule_note(cfg: TrainConfig, t: Trainee, was: dict | None) -> str | None:
+    """A line on a resumed cosine that does not go on as it was: it starts, or it goes on
+    over another length."""
+    if cfg.lr_schedule != "cosine" or was is None or t.knee == tuple(was["knee"]):
+        return None
+    start, scale = t.knee
+    how = (
+        f"the run is {t.run_steps} steps long, not {was['total']}: the cosine rate goes on"
+        if was["schedule"] == "cosine"
+        else "the cosine rate starts"
+    )
+    return f"{how} from {cfg.lr * scale:.3g} at step {start} to 0 at step {t.run_steps}"
 
 
 def _epoch(cfg: TrainConfig, rk: Rank, t: Trainee, batches, split_size: int, log, bar) -> int:
@@ -277,7 +296,24 @@ def _resume_state(cfg: TrainConfig, out: Path) -> tuple[dict | None, Path | None
     found = checkpoint.latest(out)
     if found is not None and not cfg.resume:
         raise RunError(f"{out} already holds checkpoints: pass --resume, or another --out")
-    return (checkpoint.load(found) if (cfg.resume and found is not None) else None), found
+    state = checkpoint.load(found) if (cfg.resume and found is not None) else None
+    if state is not None:
+        _check_schedule(cfg, state, found)
+    return state, found
+
+
+def _check_schedule(cfg: TrainConfig, state: dict, found: Path) -> None:
+    """Refuse to train on past the end of a cosine rate, where every step would be at rate
+    0. (A resume that asks for no more steps, or changes the schedule, is let through.)"""
+    was = state.get("schedule")
+    if not was or was["schedule"] != "cosine" or cfg.lr_schedule != "cosine":
+        return
+    more = state["epoch"] < cfg.epochs and (cfg.max_steps is None or state["step"] < cfg.max_steps)
+    if more and state["step"] >= was["total"]:
+        raise RunError(
+            f"{found} ended its cosine rate at step {was['total']}: more steps would train at "
+            "rate 0; resume with --lr-schedule constant (and a small --lr) to train on"
+        )
 
 
 def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found) -> Catalog:
@@ -377,7 +413,7 @@ def train_step(cfg: TrainConfig, rk: Rank, t: Trainee, batch: dict) -> torch.Ten
         loss = t.criterion(t.net(x, light), target)
     t.opt.zero_grad(set_to_none=True)
     loss.backward()
-    rate = lr_at(t.step, cfg.lr, cfg.lr_schedule, t.run_steps, cfg.warmup_steps)
+    rate = lr_at(t.step, cfg.lr, cfg.lr_schedule, t.run_steps, cfg.warmup_steps, t.knee)
     for group in t.opt.param_groups:
         group["lr"] = rate
     params = t.model.parameters()
@@ -439,6 +475,7 @@ def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None
             **({"screen_uv": t.screen_uv} if t.screen_uv is not None else {}),
             **({"ema": t.ema.state_dict()} if t.ema is not None else {}),
             "best": t.best,
+            "schedule": record(cfg.lr_schedule, t.run_steps, t.knee),
         },
         keep=cfg.keep,
     )
