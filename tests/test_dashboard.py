@@ -342,8 +342,10 @@ def test_the_progress_history_stays_bounded_over_a_long_job():
     assert times == sorted(times) and times[len(times) // 2] > 2000  # spread over the life
 
 
-def test_the_compare_command_names_runs_of_the_same_samples_that_have_checkpoints():
-    from farm.dashboard.runs import HELDOUT, compare_command
+def test_the_compare_command_names_runs_of_the_same_samples_that_have_checkpoints(
+    tmp_path, monkeypatch
+):
+    from farm.dashboard.runs import HELDOUT, compare_command, run_summary
 
     def run(path, held="3f2a", ckpts=("step-1.pt",), val=({"psnr": 1},)):
         return {"path": path, "settings": {HELDOUT: held} if held else {},
@@ -356,6 +358,8 @@ def test_the_compare_command_names_runs_of_the_same_samples_that_have_checkpoint
     for other in (run("b", held="9b1c"), run("b", held=None), run("b", ckpts=())):
         assert compare_command([run("a"), other]) is None
     assert compare_command([run("a"), unscored]) is None
+    monkeypatch.chdir(tmp_path)  # a dashboard given --runs relative names its runs absolutely
+    assert run_summary("0/a", Path("runs/a"))["path"] == str(tmp_path / "runs" / "a")
 
 
 def test_store_settings_show_as_people_read_them():

@@ -9,6 +9,7 @@ the metrics."""
 from __future__ import annotations
 
 import json
+import os
 import shlex
 from pathlib import Path
 
@@ -146,7 +147,7 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
     return {
         "name": name,
         "label": label or name,
-        "path": str(run),
+        "path": os.path.abspath(run),  # so that the compare command works from any folder
         "settings": shown,
         "step": last.get("step"),
         "epoch": last.get("epoch"),
