@@ -26,6 +26,15 @@ def draw_heldout(materials: list, count: int, seed: int) -> list:
     return [materials[i] for i in order[:count]]
 
 
+def holdout_count(fraction: float, materials: list) -> int:
+    """How many of ``materials`` to hold out: ``fraction`` of them, at least one when there
+    are two or more, and never all of them."""
+    count = round(fraction * len(materials))
+    if fraction > 0 and len(materials) > 1:
+        count = max(count, 1)
+    return max(0, min(count, len(materials) - 1))
+
+
 @dataclass
 class Catalog:
     """Stores, their committed shards and held-out materials, as of one moment."""
@@ -37,27 +46,39 @@ class Catalog:
 
     @classmethod
     def snapshot(
-        cls, urls: list[str], seed: int, holdout_fraction: float, storage_options: dict | None
+        cls,
+        urls: list[str],
+        seed: int,
+        holdout_fraction: float,
+        storage_options: dict | None,
+        keep: dict[str, tuple[list[int], list[int]]] | None = None,
     ) -> Catalog:
         """Open ``urls`` and draw the held-out materials: ``holdout_fraction`` of them (at
-        least one when there are two or more), by ``seed``."""
+        least one when there are two or more), by ``seed``.
+
+        ``keep`` (a fine-tuned run's: the run it starts from) maps a url to the shards that
+        run took of it and the materials it held out: those materials keep their side of the
+        split (held out stay held out, trained on stay in training), and only the materials
+        it never saw are drawn, at ``holdout_fraction``."""
         if not 0 <= holdout_fraction < 1:
             raise ValueError(f"holdout fraction must be in [0, 1), not {holdout_fraction}")
         stores = [Store(u, storage_options) for u in urls]
         for s in stores:
             if not s.committed_shards():
                 raise StoreError(f"{s.url}: the store has no committed samples to train on")
-        materials = [
-            (i, m)
-            for i, s in enumerate(stores)
-            for shard in s.committed_shards()
-            for m in s.layout.shard_materials(shard)
-        ]
-        count = round(holdout_fraction * len(materials))
-        if holdout_fraction > 0 and len(materials) > 1:
-            count = max(count, 1)
         heldout: list[set[int]] = [set() for _ in urls]
-        for store, material in draw_heldout(materials, min(count, len(materials) - 1), seed):
+        unseen = []
+        for i, (url, s) in enumerate(zip(urls, stores, strict=True)):
+            shards, kept = (keep or {}).get(url, ((), ()))
+            seen = {m for shard in shards for m in s.layout.shard_materials(shard)}
+            heldout[i] |= seen & set(kept)
+            unseen += [
+                (i, m)
+                for shard in s.committed_shards()
+                for m in s.layout.shard_materials(shard)
+                if m not in seen
+            ]
+        for store, material in draw_heldout(unseen, holdout_count(holdout_fraction, unseen), seed):
             heldout[store].add(material)
         return cls(
             urls=[s.url for s in stores],

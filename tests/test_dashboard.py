@@ -170,6 +170,9 @@ def test_a_taken_port_or_an_unknown_host_is_one_line(tmp_path):
     ]
 
 
+FINE_TUNED = "/data/runs/r0/checkpoints/best.pt"  # shown as r0/best.pt
+
+
 def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     runs = tmp_path / "runs" / "r1"
     runs.mkdir(parents=True)
@@ -189,7 +192,7 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
               "ema_decay": 0.0, "max_steps": None}  # fmt: skip
     (runs / "config.json").write_text(json.dumps(config))
     (other / "config.json").write_text(
-        json.dumps({**config, "lr_schedule": "cosine", "ema_decay": 0.999})
+        json.dumps({**config, "lr_schedule": "cosine", "ema_decay": 0.999, "init": FINE_TUNED})
     )
     averaged = [{**x, "psnr": x["psnr"] - 1, "trained_psnr": x["psnr"] - 3} for x in scores]
     (other / "val.jsonl").write_text(  # an averaged run: its trained weights are scored too
@@ -252,16 +255,17 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     start = compare.index("Settings that differ")
     differ = compare[start : compare.index("<h2>", start)]
     heads = re.findall(r"<th>([^<]*)</th>", differ)
-    assert heads == ["run", "schedule", "weight average"]
+    assert heads == ["run", "fine-tuned from", "schedule", "weight average"]
     assert re.findall(r"<td>([^<]*)</td>", differ) == [
-        f"{tmp_path / 'runs'}/r1", "constant", "-", f"{tmp_path / 'runs'}/r2", "cosine", "0.999",
+        f"{tmp_path / 'runs'}/r1", "-", "constant", "-",
+        f"{tmp_path / 'runs'}/r2", "r0/best.pt", "cosine", "0.999",
     ]  # fmt: skip
     # runs that score other held-out samples are flagged, and the table names their samples
     assert 'id="mixed"' not in runs_page and 'id="mixed"' in mixed_page
     start = mixed_page.index("Settings that differ")
     differ = mixed_page[start : mixed_page.index("<h2>", start)]
     assert re.findall(r"<th>([^<]*)</th>", differ)[-1] == "held-out samples"
-    assert re.findall(r"<td>([^<]*)</td>", differ)[3::4] == ["3f2a", "9b1c"]
+    assert re.findall(r"<td>([^<]*)</td>", differ)[4::5] == ["3f2a", "9b1c"]
     # runs of the same samples get the command that compares them sample by sample
     command = f"trainer eval --checkpoint {runs} --checkpoint {other}"
     assert f"<code>{command}</code>" in runs_page and "compare-command" not in mixed_page

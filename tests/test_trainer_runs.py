@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import json
 import os
 import re
@@ -569,6 +570,51 @@ def test_a_cosine_resumed_for_more_epochs_goes_on_from_its_rate(tiny_store, tmp_
     }  # fmt: skip
     with pytest.raises(RunError, match=f"ended its cosine rate at step {2 * total}: more steps"):
         train(config(tiny_store, run, epochs=5, resume=True, **kw))
+
+
+def test_a_run_fine_tunes_another_runs_network_on_more_stores(tiny_store, tmp_path, capsys):
+    """``--init``: the network (the average's weights, shape, tonemap) of another run, a fresh
+    optimizer at step 0, the first run's held-out materials still held out; a run folder with
+    checkpoints resumes instead; a store of another resolution and network options given
+    beside it are refused."""
+    first = tmp_path / "first"
+    train(config(tiny_store, first, width=8, exposure=0.5, ema_decay=0.9, max_steps=2))
+    was = checkpoint.load(first)
+    layout = Layout(num_materials=2, suns_per_material=2, resolution=64, shard_size=4)
+    more = create_store(str(tmp_path / "more.zarr"), layout, {})
+    write_shard(more, 0, synthetic_payload(layout, 0))
+    run = tmp_path / "tuned"
+    cfg = TrainConfig(**{**BASE, "store": (tiny_store.url, more.url), "out": str(run),
+                         "init": str(first), "lr": 1e-30, "max_steps": 1})  # fmt: skip
+    train(cfg)
+    now = checkpoint.load(run)
+    assert now["step"] == 1 and now["best"]["step"] == 1 and "ema" not in now
+    assert now["model_config"] == was["model_config"] and now["tonemap"] == was["tonemap"]
+    average = checkpoint.weights(was)  # a step at rate 1e-30 moves no weight measurably
+    assert not all(torch.equal(average[k], was["model"][k]) for k in average)
+    params = [k for k in average if "running_" not in k and "batches" not in k]  # not BN stats
+    assert all(torch.allclose(now["model"][k], average[k], rtol=0, atol=1e-20) for k in params)
+    assert now["catalog"]["heldout"][0] == was["catalog"]["heldout"][0]
+    assert len(now["catalog"]["heldout"][1]) == 1  # a quarter of the new store's 2, at least 1
+    said = json.loads((run / "config.json").read_text())
+    assert (said["width"], said["exposure"], said["init"]) == (8, 0.5, str(first))
+    assert f"fine-tuning the network of {first}" in capsys.readouterr().out
+    train(dataclasses.replace(cfg, resume=True, max_steps=2))
+    assert checkpoint.load(run)["step"] == 2  # resumed, not started again from --init
+    assert "only starts a run" in capsys.readouterr().out
+
+    big = Layout(num_materials=2, suns_per_material=2, resolution=128, shard_size=4)
+    other = create_store(str(tmp_path / "big.zarr"), big, {})
+    write_shard(other, 0, synthetic_payload(big, 0))
+    with pytest.raises(RunError, match=f"{first} renders 64², the stores hold 128²"):
+        train(config(SimpleNamespace(url=other.url), tmp_path / "big", init=str(first)))
+    assert not (tmp_path / "big").exists()
+    start = ["train", "--store", tiny_store.url, "--out", str(tmp_path / "x"), "--init"]
+    r = CliRunner().invoke(trainer_main, [*start, str(first), "--no-skips"])
+    assert r.exit_code == 2 and "--skips: a run started from --init takes its network" in r.output
+    (tmp_path / "ball.onnx").write_bytes(b"onnx")
+    onnx = one_line_error([*start, str(tmp_path / "ball.onnx")])
+    assert "ball.onnx: an exported model" in onnx
 
 
 def test_perceptual_loss_and_divergence(tiny_store, tmp_path):

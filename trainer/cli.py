@@ -21,6 +21,14 @@ def _fail(exc: Exception):
 
 
 def _make_config(kwargs: dict):
+    if kwargs.get("init") is not None:  # the network comes whole from the checkpoint
+        ctx = click.get_current_context()
+        for name in train_config.NETWORK:
+            if ctx.get_parameter_source(name) is click.core.ParameterSource.COMMANDLINE:
+                raise click.UsageError(
+                    f"--{name.replace('_', '-')}: a run started from --init takes its network "
+                    "(shape and exposure) from that checkpoint"
+                )
     try:
         return train_config.TrainConfig(**kwargs)
     except ValueError as exc:
@@ -158,6 +166,13 @@ def launch(
     \b
       trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint node0:29400 \\
           --node-rank 0 --store s3://bucket/ds.zarr --out /shared/runs/r1
+
+    Fine-tune a trained network on a new material library (the materials the first run
+    held out stay held out):
+
+    \b
+      trainer launch --init runs/r1 --store out/set.zarr --store out/leather.zarr \\
+          --lr 1e-4 --epochs 5 --out runs/r1-leather
 
     In a Kubeflow Trainer TrainJob (torch-distributed runtime) the node count, rank and
     rendezvous come from its PET_* variables: give only the training options.

@@ -21,6 +21,10 @@ LOSSES = ("l1+vgg", "l1")
 WEIGHTS = ("auto", "average", "trained")
 
 
+#: the options that shape the network: a run started from --init takes them from it
+NETWORK = ("model", "width", "skips", "roughness_channels", "exposure")
+
+
 def _opt(default, help: str, **extra):
     return field(default=default, metadata={"help": help, **extra})
 
@@ -89,6 +93,12 @@ class TrainConfig:
     val_samples: int = _opt(
         64, "held-out samples scored, evenly spaced over the held-out split (0: no scores)"
     )
+    init: str | None = _opt(
+        None,
+        "fine-tune: start from this run's or checkpoint's network (its weights, shape and "
+        "tonemap) with a fresh optimizer at step 0; the materials it trained on stay in "
+        "training and those it held out stay held out",
+    )
     max_steps: int | None = _opt(None, "stop (with a checkpoint) after this many steps in all")
     resume: bool = _opt(False, "continue from the run folder's latest checkpoint")
     device: str = _opt(
@@ -98,6 +108,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         self.store = tuple(absolute_store(u) for u in self.store)
+        self.init = None if self.init is None else os.path.abspath(self.init)
         checks = {
             "epochs": self.epochs >= 1,
             "batch_size": self.batch_size >= 1,

@@ -38,7 +38,7 @@ from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
 from storage.schema import untrainable
-from trainer import checkpoint, faults
+from trainer import checkpoint, faults, finetune
 from trainer.config import TrainConfig, absolute_store
 from trainer.data import Catalog, ShardStream, loader, steps_left
 from trainer.ema import WeightAverage
@@ -156,7 +156,9 @@ def preflight(cfg: TrainConfig) -> None:
     used (or resumed), the VGG weights load. Raises as :func:`train` would, the inputs named
     on the command line (run folder, stores) before the weights."""
     state, found = _resume_state(cfg, Path(cfg.out))
-    _catalog(cfg, Rank(0, 1, torch.device("cpu"), False), state, found)
+    init = finetune.init_state(cfg, state)
+    _catalog(finetune.with_network(cfg, init), Rank(0, 1, torch.device("cpu"), False), state,
+             found, init)  # fmt: skip
     if cfg.loss == "l1+vgg":
         load_vgg(cfg.vgg_weights)
 
@@ -164,9 +166,11 @@ def preflight(cfg: TrainConfig) -> None:
 def _train(cfg: TrainConfig, rk: Rank) -> dict:
     out = Path(cfg.out)
     state, found = _resume_state(cfg, out)
+    init = finetune.init_state(cfg, state)
+    cfg = finetune.with_network(cfg, init)
     vgg = load_vgg(cfg.vgg_weights) if cfg.loss == "l1+vgg" else None  # fail before any work
-    catalog = _catalog(cfg, rk, state, found)
-    t = _build(cfg, rk, catalog, state, vgg)
+    catalog = _catalog(cfg, rk, state, found, init)
+    t = _build(cfg, rk, catalog, state, vgg, init)
     faults.install(t.opt, t.step, rk.master)
     split = catalog.split("train")
     per_epoch = steps_left(len(split), rk.world, cfg.batch_size)
@@ -187,6 +191,11 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
             "materials only (farm screen-uv STORE adds it; resume to carry it)"
         )
     log.start(log.validation_plan())
+    if cfg.init is not None:
+        log.start(
+            f"fine-tuning the network of {cfg.init}" if init is not None
+            else f"resuming from {found}: --init {cfg.init} only starts a run"
+        )  # fmt: skip
     if note := _schedule_note(cfg, t, was):
         log.start(note)
     if t.ema is not None:
@@ -316,9 +325,10 @@ def _check_schedule(cfg: TrainConfig, state: dict, found: Path) -> None:
         )
 
 
-def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found) -> Catalog:
+def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found, init=None) -> Catalog:
     """The resumed run's catalog (checked against ``cfg``), or one snapshot of the stores
-    taken by rank 0 and shared with every rank (even if a farm is still writing them)."""
+    taken by rank 0 and shared with every rank (even if a farm is still writing them), which
+    keeps the split of the run ``init`` starts from (:mod:`trainer.finetune`)."""
     if state is not None:
         catalog = Catalog.from_dict(state["catalog"])
         if list(cfg.store) != [absolute_store(u) for u in catalog.urls]:
@@ -328,13 +338,16 @@ def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found) -> Catalog:
         snap = [None]
         if rk.master:
             snap[0] = Catalog.snapshot(
-                list(cfg.store), cfg.holdout_seed, cfg.holdout_fraction, None
-            )
+                list(cfg.store), cfg.holdout_seed, cfg.holdout_fraction, None,
+                keep=finetune.kept_split(init),
+            )  # fmt: skip
         if rk.distributed:
             dist.broadcast_object_list(snap, src=0)
         catalog = snap[0]
     if why := untrainable(catalog.resolution, nearest=False):
         raise RunError(f"{catalog.urls[0]}: {why}")
+    if init is not None and (why := finetune.mismatch(init, cfg.init, catalog)):
+        raise RunError(why)
     return catalog
 
 
@@ -352,15 +365,18 @@ def _check_resumed(cfg: TrainConfig, was: dict, found) -> None:
             )
 
 
-def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg) -> Trainee:
-    """Model, loss and optimizer, fresh (seeded) or loaded from ``state``."""
+def _build(
+    cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg, init=None
+) -> Trainee:
+    """Model, loss and optimizer: fresh (seeded), loaded from ``state``, or a fresh optimizer
+    on the network of ``init``."""
     model_cfg = ModelConfig(
         catalog.resolution, cfg.width, cfg.skips, cfg.roughness_channels, arch=cfg.model
     )
     tonemap = Tonemap(exposure=cfg.exposure)
-    if state is not None:
-        model_cfg = ModelConfig(**state["model_config"])
-        tonemap = Tonemap.from_dict(state["tonemap"])
+    if (loaded := state if state is not None else init) is not None:
+        model_cfg = ModelConfig(**loaded["model_config"])
+        tonemap = Tonemap.from_dict(loaded["tonemap"])
     torch.manual_seed(cfg.seed)
     model = build_model(model_cfg).to(rk.device, memory_format=rk.fmt)
     criterion = RendererLoss(vgg, cfg.perceptual_weight).to(rk.device, memory_format=rk.fmt)
@@ -370,7 +386,9 @@ def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg
     bad = torch.zeros((), dtype=torch.bool, device=rk.device)
     t = Trainee(model, model, opt, criterion, model_cfg, tonemap, catalog, bad)
     if rk.master:
-        t.screen_uv = _screen_uv(catalog, state)
+        t.screen_uv = _screen_uv(catalog, state, init)
+    if init is not None:
+        model.load_state_dict(checkpoint.weights(init))
     if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])  # train_step sets the rate: --lr may change
@@ -385,9 +403,9 @@ def _build(cfg: TrainConfig, rk: Rank, catalog: Catalog, state: dict | None, vgg
     return t
 
 
-def _screen_uv(catalog: Catalog, state: dict | None) -> bytes | None:
+def _screen_uv(catalog: Catalog, state: dict | None, init: dict | None = None) -> bytes | None:
     """The layout a checkpoint carries: the resumed checkpoint's, else the first store's
-    (checked against that store), else none."""
+    (checked against that store), else the fine-tuned checkpoint's, else none."""
     if state is not None and state.get("screen_uv") is not None:
         return state["screen_uv"]
     from render_jobs.screen_uv import FILE
@@ -395,7 +413,7 @@ def _screen_uv(catalog: Catalog, state: dict | None) -> bytes | None:
 
     store = Store(catalog.urls[0])
     if store.screen_uv() is None:  # raises StoreError when it is unusable
-        return None
+        return None if init is None else init.get("screen_uv")
     return store.backend.get(FILE)
 
 

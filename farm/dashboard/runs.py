@@ -19,6 +19,7 @@ CURVE_POINTS = 600
 #: the settings of a run that the runs page shows, in order: (``config.json`` key, label)
 SETTINGS = (
     ("store", "stores"),
+    ("init", "fine-tuned from"),
     ("model", "model"),
     ("width", "width"),
     ("skips", "skips"),
@@ -87,8 +88,16 @@ def settings(config: dict) -> dict[str, object]:
             value = ", ".join(str(s).rstrip("/").rsplit("/", 1)[-1] for s in value)
         elif key == "ema_decay":
             value = value or None
+        elif key == "init" and value:
+            value = _short_checkpoint(value)
         out[label] = value
     return out
+
+
+def _short_checkpoint(path: str) -> str:
+    """A run folder by its name, a checkpoint file as ``RUN/FILE``."""
+    p = Path(path)
+    return f"{p.parent.parent.name}/{p.name}" if p.parent.name == "checkpoints" else p.name
 
 
 #: the label of a scored run's held-out samples (``heldout_set`` of its last score): runs
