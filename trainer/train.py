@@ -157,8 +157,8 @@ def preflight(cfg: TrainConfig) -> None:
     on the command line (run folder, stores) before the weights."""
     state, found = _resume_state(cfg, Path(cfg.out))
     init = finetune.init_state(cfg, state)
-    _catalog(finetune.with_network(cfg, init), Rank(0, 1, torch.device("cpu"), False), state,
-             found, init)  # fmt: skip
+    cpu = Rank(0, 1, torch.device("cpu"), False)
+    _catalog(finetune.with_network(cfg, init), cpu, state, found, init)
     if cfg.loss == "l1+vgg":
         load_vgg(cfg.vgg_weights)
 
