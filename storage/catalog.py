@@ -51,33 +51,32 @@ class Catalog:
         seed: int,
         holdout_fraction: float,
         storage_options: dict | None,
-        keep: dict[str, tuple[list[int], list[int]]] | None = None,
+        keep: tuple[set[str], set[str]] | None = None,
     ) -> Catalog:
         """Open ``urls`` and draw the held-out materials: ``holdout_fraction`` of them (at
         least one when there are two or more), by ``seed``.
 
-        ``keep`` (a fine-tuned run's: the run it starts from) maps a url to the shards that
-        run took of it and the materials it held out: those materials keep their side of the
-        split (held out stay held out, trained on stay in training), and only the materials
-        it never saw are drawn, at ``holdout_fraction``."""
+        ``keep`` (a fine-tuned run's: the ``source_id`` of each material the run it starts
+        from trained on, and of each it held out) keeps those materials on their side of the
+        split, in whichever store they are: held out stay held out, trained on stay in
+        training. Only the others are drawn, at ``holdout_fraction``."""
         if not 0 <= holdout_fraction < 1:
             raise ValueError(f"holdout fraction must be in [0, 1), not {holdout_fraction}")
         stores = [Store(u, storage_options) for u in urls]
         for s in stores:
             if not s.committed_shards():
                 raise StoreError(f"{s.url}: the store has no committed samples to train on")
+        trained, kept = keep or (set(), set())
         heldout: list[set[int]] = [set() for _ in urls]
         unseen = []
-        for i, (url, s) in enumerate(zip(urls, stores, strict=True)):
-            shards, kept = (keep or {}).get(url, ((), ()))
-            seen = {m for shard in shards for m in s.layout.shard_materials(shard)}
-            heldout[i] |= seen & set(kept)
-            unseen += [
-                (i, m)
-                for shard in s.committed_shards()
-                for m in s.layout.shard_materials(shard)
-                if m not in seen
-            ]
+        for i, s in enumerate(stores):
+            ids = {m: rec["source_id"] for m, rec in s.materials().items()} if keep else {}
+            for shard in s.committed_shards():
+                for m in s.layout.shard_materials(shard):
+                    if ids.get(m) in kept:
+                        heldout[i].add(m)
+                    elif ids.get(m) not in trained:
+                        unseen.append((i, m))
         for store, material in draw_heldout(unseen, holdout_count(holdout_fraction, unseen), seed):
             heldout[store].add(material)
         return cls(

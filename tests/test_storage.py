@@ -319,23 +319,31 @@ def test_stores_read_as_one_catalog_split_by_material(tmp_path):
 
 
 def test_a_fine_tuned_catalog_keeps_the_split_of_the_run_it_starts_from(tmp_path):
-    a, b = full_store(tmp_path / "a.zarr"), full_store(tmp_path / "b.zarr", seed=1)
-    first = Catalog.snapshot([a.url], seed=3, holdout_fraction=0.3, storage_options=None)
-    took = first.shards[0][:2]  # the first run saw two of a's shards (a farm still writing)
-    seen = {m for shard in took for m in LAYOUT.shard_materials(shard)}
-    kept = [m for m in first.heldout[0] if m in seen]
-    keep = {a.url: (took, kept)}
+    """Materials are kept on their side by identity, in any store: ``a2`` holds ``a``'s
+    materials rendered again (the same seed), ``b`` others."""
+    a, a2 = full_store(tmp_path / "a.zarr"), full_store(tmp_path / "a2.zarr")
+    b = create_store(str(tmp_path / "b.zarr"), LAYOUT, {})
+    for shard in range(LAYOUT.num_shards):
+        payload = synthetic_payload(LAYOUT, shard, 1)
+        for rec in payload.materials:
+            rec["source_id"] = "b" + rec["source_id"]
+        write_shard(b, shard, payload)
+    ids = {m: rec["source_id"] for m, rec in a.materials().items()}
+    # the first run saw a's first two shards (a farm still writing) and held one out
+    seen = {m for shard in (0, 1) for m in LAYOUT.shard_materials(shard)}
+    kept = {min(seen)}
+    keep = ({ids[m] for m in seen - kept}, {ids[m] for m in kept})
     unseen = 2 * LAYOUT.num_materials - len(seen)
     draws = set()
     for seed in range(4):
-        cat = Catalog.snapshot([a.url, b.url], seed, 0.3, None, keep=keep)
-        assert set(cat.heldout[0]) & seen == set(kept)  # held out stay out, trained stay in
+        cat = Catalog.snapshot([a2.url, b.url], seed, 0.3, None, keep=keep)
+        assert set(cat.heldout[0]) & seen == kept  # held out stay out, trained stay in
         new = [m for m in cat.heldout[0] if m not in seen] + cat.heldout[1]
         assert len(new) == holdout_count(0.3, range(unseen))  # the rest drawn as ever
         draws.add(tuple(new))
     assert len(draws) > 1  # by the seed
     urls = [a.url, b.url]
-    assert Catalog.snapshot(urls, 0, 0.3, None, keep={}) == Catalog.snapshot(urls, 0, 0.3, None)
+    assert Catalog.snapshot(urls, 0, 0.3, None, keep=None) == Catalog.snapshot(urls, 0, 0.3, None)
     counts = [(0.25, 14, 4), (0.01, 10, 1), (0.5, 1, 0), (0.99, 3, 2), (0.0, 5, 0), (0.5, 0, 0)]
     assert [holdout_count(f, range(n)) for f, n, _ in counts] == [c for *_, c in counts]
 

@@ -28,6 +28,7 @@ from tests.flaky_proxy import FlakyProxy
 from tests.storage_helpers import synthetic_payload
 from tests.test_trainer import vgg_weights_file
 from trainer import checkpoint
+from trainer import train as train_module
 from trainer.cli import main as trainer_main
 from trainer.config import TrainConfig
 from trainer.data import Catalog, ShardStream, loader, steps_left
@@ -615,6 +616,10 @@ def test_a_run_fine_tunes_another_runs_network_on_more_stores(tiny_store, tmp_pa
     (tmp_path / "ball.onnx").write_bytes(b"onnx")
     onnx = one_line_error([*start, str(tmp_path / "ball.onnx")])
     assert "ball.onnx: an exported model" in onnx
+    ghost = {**was, "catalog": {**was["catalog"], "urls": [str(tmp_path / "gone.zarr")]}}
+    capsys.readouterr()
+    assert train_module._kept(cfg, ghost) is None  # the first run's stores are gone: said
+    assert "its stores cannot be read" in capsys.readouterr().out
 
 
 def test_perceptual_loss_and_divergence(tiny_store, tmp_path):

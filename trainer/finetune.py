@@ -5,10 +5,12 @@ moving average when it kept one, ``trainer.checkpoint.weights``), its shape (``-
 ``--width``, ``--skips``, ``--roughness-channels``) and its tonemap (``--exposure``), so
 that its targets are the ones the network learnt. Everything else starts afresh: the
 optimizer, the step count, the rate schedule, the moving average (from the loaded weights),
-the best score. The held-out split keeps the checkpoint's: on the stores both runs train on,
-the materials it held out stay held out and those it trained on stay in training, so the
-new run's held-out scores measure materials neither run has seen; materials it never saw
-are drawn at ``--holdout-fraction``.
+the best score. The held-out split keeps the checkpoint's: a material it held out stays held
+out and one it trained on stays in training, in whichever store the new run finds it (by its
+``source_id``: a material rendered again into another store is the same material), so the
+new run's held-out scores measure materials neither network has seen; materials it never
+saw are drawn at ``--holdout-fraction``. This reads the first run's stores; where they
+cannot be read the new run says so and draws every material.
 
 ``--init`` matters only at a run's start: a run folder that holds checkpoints resumes from
 them (as a restarted pod or torchrun attempt does), whatever ``--init`` says.
@@ -19,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 
 from storage.catalog import Catalog
+from storage.reader import Store
 from trainer import checkpoint
 from trainer.config import TrainConfig, absolute_store
 
@@ -46,16 +49,21 @@ def with_network(cfg: TrainConfig, init: dict | None) -> TrainConfig:
     )
 
 
-def kept_split(init: dict | None) -> dict[str, tuple[list[int], list[int]]] | None:
-    """What :meth:`Catalog.snapshot` keeps of ``init``'s split: per store (named as the
-    trainer names stores), the shards it took and the materials it held out."""
+def kept_materials(init: dict | None) -> tuple[set[str], set[str]] | None:
+    """What :meth:`Catalog.snapshot` keeps of ``init``'s split: the ``source_id`` of every
+    material it trained on and of every one it held out, read from its stores (raises
+    :class:`StoreError` when one cannot be read)."""
     if init is None:
         return None
     was = Catalog.from_dict(init["catalog"])
-    return {
-        absolute_store(url): (shards, heldout)
-        for url, shards, heldout in zip(was.urls, was.shards, was.heldout, strict=True)
-    }
+    trained, held = set(), set()
+    for url, shards, heldout in zip(was.urls, was.shards, was.heldout, strict=True):
+        store = Store(absolute_store(url))
+        records = store.materials()
+        for shard in shards:
+            for m in store.layout.shard_materials(shard):
+                (held if m in heldout else trained).add(records[m]["source_id"])
+    return trained, held
 
 
 def mismatch(init: dict, path: str, catalog: Catalog) -> str | None:

@@ -37,6 +37,7 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
+from storage.errors import StoreError
 from storage.schema import untrainable
 from trainer import checkpoint, faults, finetune
 from trainer.config import TrainConfig, absolute_store
@@ -339,7 +340,7 @@ def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found, init=None) -
         if rk.master:
             snap[0] = Catalog.snapshot(
                 list(cfg.store), cfg.holdout_seed, cfg.holdout_fraction, None,
-                keep=finetune.kept_split(init),
+                keep=_kept(cfg, init),
             )  # fmt: skip
         if rk.distributed:
             dist.broadcast_object_list(snap, src=0)
@@ -349,6 +350,20 @@ def _catalog(cfg: TrainConfig, rk: Rank, state: dict | None, found, init=None) -
     if init is not None and (why := finetune.mismatch(init, cfg.init, catalog)):
         raise RunError(why)
     return catalog
+
+
+def _kept(cfg: TrainConfig, init: dict | None):
+    """The split a fine-tuned run keeps (:mod:`trainer.finetune`), or none, said, when the
+    first run's stores cannot be read."""
+    try:
+        return finetune.kept_materials(init)
+    except StoreError as exc:
+        print(
+            f"{cfg.init}: its stores cannot be read ({exc}): the held-out materials are drawn "
+            "afresh and may include some it trained on",
+            flush=True,
+        )
+        return None
 
 
 def _check_resumed(cfg: TrainConfig, was: dict, found) -> None:
