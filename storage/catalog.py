@@ -86,6 +86,17 @@ class Catalog:
             resolution=stores[0].layout.resolution,
         )
 
+    def material_sources(self, stores: list[Store]) -> tuple[set[str], set[str]]:
+        """The ``source_id`` of every material the snapshot trains on and of every one it
+        holds out, read from its stores opened where they are now (``stores``, in order)."""
+        trained, held = set(), set()
+        for store, shards, heldout in zip(stores, self.shards, self.heldout, strict=True):
+            records = store.materials()
+            for shard in shards:
+                for m in store.layout.shard_materials(shard):
+                    (held if m in heldout else trained).add(records[m]["source_id"])
+        return trained, held
+
     def to_dict(self) -> dict:
         return {
             "urls": list(self.urls),

@@ -191,16 +191,9 @@ def _run_stores(catalog: Catalog) -> list[Store]:
 
 
 def _trained_sources(renderer: MapsRenderer, stores: list[str] | None) -> set[str]:
-    """Source ids of the materials the run trained on (its stores' committed materials, less
-    the held-out ones of each), its stores at ``stores`` when given."""
+    """Source ids of the materials the run trained on, its stores at ``stores`` when given."""
     catalog = _catalog(renderer, stores)
-    run_stores = _run_stores(catalog)
-    out = set()
-    for store, held in zip(run_stores, catalog.heldout, strict=True):
-        for m, rec in store.materials().items():
-            if m not in set(held):
-                out.add(rec["source_id"])
-    return out
+    return catalog.material_sources(_run_stores(catalog))[0]
 
 
 def evaluate(

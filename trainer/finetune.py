@@ -56,14 +56,7 @@ def kept_materials(init: dict | None) -> tuple[set[str], set[str]] | None:
     if init is None:
         return None
     was = Catalog.from_dict(init["catalog"])
-    trained, held = set(), set()
-    for url, shards, heldout in zip(was.urls, was.shards, was.heldout, strict=True):
-        store = Store(absolute_store(url))
-        records = store.materials()
-        for shard in shards:
-            for m in store.layout.shard_materials(shard):
-                (held if m in heldout else trained).add(records[m]["source_id"])
-    return trained, held
+    return was.material_sources([Store(absolute_store(url)) for url in was.urls])
 
 
 def mismatch(init: dict, path: str, catalog: Catalog) -> str | None:
