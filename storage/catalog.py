@@ -10,7 +10,7 @@ material straddles the split. :meth:`Catalog.split` gives the ``train`` or ``tes
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -35,6 +35,18 @@ def holdout_count(fraction: float, materials: list) -> int:
     return max(0, min(count, len(materials) - 1))
 
 
+def identities(stores: list[Store]) -> dict[str, list[tuple[int, int]]]:
+    """Each committed material's ``source_id`` → its copies, as ``(store, material)``
+    (``store`` an index into ``stores``)."""
+    copies: dict[str, list[tuple[int, int]]] = {}
+    for i, s in enumerate(stores):
+        records = s.materials()
+        for shard in s.committed_shards():
+            for m in s.layout.shard_materials(shard):
+                copies.setdefault(records[m]["source_id"], []).append((i, m))
+    return copies
+
+
 @dataclass
 class Catalog:
     """Stores, their committed shards and held-out materials, as of one moment."""
@@ -43,6 +55,8 @@ class Catalog:
     shards: list[list[int]]  # committed shards per store
     heldout: list[list[int]]  # held-out material indices per store
     resolution: int
+    # materials found more than once (by ``source_id``) when the snapshot was taken; not kept
+    repeated: int = field(default=0, compare=False)
 
     @classmethod
     def snapshot(
@@ -56,34 +70,33 @@ class Catalog:
         """Open ``urls`` and draw the held-out materials: ``holdout_fraction`` of them (at
         least one when there are two or more), by ``seed``.
 
+        Materials are drawn by identity (``source_id``), so a material in several stores
+        (rendered again, or by two farm jobs with the same ``--seed``) is on one side of the
+        split in all of them, and the draw does not depend on the order of ``urls``.
         ``keep`` (a fine-tuned run's: the ``source_id`` of each material the run it starts
-        from trained on, and of each it held out) keeps those materials on their side of the
-        split, in whichever store they are: held out stay held out, trained on stay in
-        training. Only the others are drawn, at ``holdout_fraction``."""
+        from trained on, and of each it held out) keeps those materials on their side, in
+        whichever store they are: held out stay held out, trained on stay in training. Only
+        the others are drawn, at ``holdout_fraction``."""
         if not 0 <= holdout_fraction < 1:
             raise ValueError(f"holdout fraction must be in [0, 1), not {holdout_fraction}")
         stores = [Store(u, storage_options) for u in urls]
         for s in stores:
             if not s.committed_shards():
                 raise StoreError(f"{s.url}: the store has no committed samples to train on")
+        copies = identities(stores)
         trained, kept = keep or (set(), set())
+        unseen = sorted(copies.keys() - trained - kept)
+        held = kept | set(draw_heldout(unseen, holdout_count(holdout_fraction, unseen), seed))
         heldout: list[set[int]] = [set() for _ in urls]
-        unseen = []
-        for i, s in enumerate(stores):
-            ids = {m: rec["source_id"] for m, rec in s.materials().items()} if keep else {}
-            for shard in s.committed_shards():
-                for m in s.layout.shard_materials(shard):
-                    if ids.get(m) in kept:
-                        heldout[i].add(m)
-                    elif ids.get(m) not in trained:
-                        unseen.append((i, m))
-        for store, material in draw_heldout(unseen, holdout_count(holdout_fraction, unseen), seed):
-            heldout[store].add(material)
+        for source in held & copies.keys():
+            for store, material in copies[source]:
+                heldout[store].add(material)
         return cls(
             urls=[s.url for s in stores],
             shards=[s.committed_shards() for s in stores],
             heldout=[sorted(h) for h in heldout],
             resolution=stores[0].layout.resolution,
+            repeated=sum(len(c) > 1 for c in copies.values()),
         )
 
     def material_sources(self, stores: list[Store]) -> tuple[set[str], set[str]]:

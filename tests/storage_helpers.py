@@ -8,6 +8,8 @@ from storage.schema import Layout, ShardPayload
 
 
 def synthetic_payload(layout: Layout, shard: int, seed: int = 0) -> ShardPayload:
+    """Random maps and renders of ``shard``'s samples, drawn by ``seed``; material ``i`` is
+    ``m{i}`` for seed 0 and ``s{seed}m{i}`` for the others (another material)."""
     rng = np.random.default_rng([seed, shard])
     s, m, r = layout.shard_samples(shard), layout.shard_materials(shard), layout.resolution
     z = rng.uniform(0.2, 1.0, len(s))
@@ -24,7 +26,7 @@ def synthetic_payload(layout: Layout, shard: int, seed: int = 0) -> ShardPayload
         materials=[
             {
                 "kind": "procedural" if i % 2 else "uniform",
-                "source_id": f"m{i}",
+                "source_id": f"s{seed}m{i}" if seed else f"m{i}",
                 "spec": {"seed": i},
             }
             for i in m

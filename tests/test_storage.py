@@ -310,24 +310,42 @@ def test_stores_read_as_one_catalog_split_by_material(tmp_path):
     assert len(test) == len(held) * LAYOUT.suns_per_material  # every sun of a held material
     assert {int(s) for s, _ in train.refs} == {0, 1}  # both stores, as one
     again = Catalog.snapshot(urls, seed=0, holdout_fraction=0.25, storage_options=None)
-    assert again.heldout == cat.heldout
+    assert again.heldout == cat.heldout and cat.repeated == 0
     other = Catalog.snapshot(urls, seed=1, holdout_fraction=0.25, storage_options=None)
     assert other.heldout != cat.heldout
+    assert Catalog.snapshot(urls[::-1], 0, 0.25, None).heldout == cat.heldout[::-1]  # any order
     assert Catalog.from_dict(cat.to_dict()) == cat
     with pytest.raises(ValueError, match="cannot hold out 99 of 14"):
         draw_heldout(list(range(14)), 99, 0)
+
+
+def test_a_material_in_several_stores_is_on_one_side_of_the_split_in_all(tmp_path):
+    """``again`` holds ``a``'s materials (a farm job with the same seed), half of them
+    committed; ``b`` others."""
+    a, b = full_store(tmp_path / "a.zarr"), full_store(tmp_path / "b.zarr", seed=1)
+    again = create_store(str(tmp_path / "again.zarr"), LAYOUT, {})
+    for shard in range(0, LAYOUT.num_shards, 2):
+        write_shard(again, shard, synthetic_payload(LAYOUT, shard))
+    copied = [m for shard in again.committed_shards() for m in LAYOUT.shard_materials(shard)]
+    copies_held = 0
+    for seed in range(6):
+        cat = Catalog.snapshot([a.url, again.url, b.url], seed, 0.25, None)
+        assert cat.heldout[1] == [m for m in cat.heldout[0] if m in copied]
+        copies_held += len(cat.heldout[1])
+        assert cat.repeated == len(copied)
+        distinct = 2 * LAYOUT.num_materials  # a's and b's: again adds none
+        assert len(cat.heldout[0]) + len(cat.heldout[2]) == holdout_count(0.25, range(distinct))
+        test = {(int(s), LAYOUT.material_of_sample(int(k))) for s, k in cat.split("test").refs}
+        train = {(int(s), LAYOUT.material_of_sample(int(k))) for s, k in cat.split("train").refs}
+        assert not {m for s, m in test if s < 2} & {m for s, m in train if s < 2}
+    assert copies_held  # the seeds drew some of the copied materials
 
 
 def test_a_fine_tuned_catalog_keeps_the_split_of_the_run_it_starts_from(tmp_path):
     """Materials are kept on their side by identity, in any store: ``a2`` holds ``a``'s
     materials rendered again (the same seed), ``b`` others."""
     a, a2 = full_store(tmp_path / "a.zarr"), full_store(tmp_path / "a2.zarr")
-    b = create_store(str(tmp_path / "b.zarr"), LAYOUT, {})
-    for shard in range(LAYOUT.num_shards):
-        payload = synthetic_payload(LAYOUT, shard, 1)
-        for rec in payload.materials:
-            rec["source_id"] = "b" + rec["source_id"]
-        write_shard(b, shard, payload)
+    b = full_store(tmp_path / "b.zarr", seed=1)
     ids = {m: rec["source_id"] for m, rec in a.materials().items()}
     # the first run saw a's first two shards (a farm still writing) and held one out
     seen = {m for shard in (0, 1) for m in LAYOUT.shard_materials(shard)}

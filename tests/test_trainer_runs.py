@@ -622,6 +622,27 @@ def test_a_run_fine_tunes_another_runs_network_on_more_stores(tiny_store, tmp_pa
     assert "its stores cannot be read" in capsys.readouterr().out
 
 
+def test_a_material_in_two_stores_is_held_out_in_both_or_neither(tiny_store, tmp_path, capsys):
+    """``again`` holds two of the tiny store's materials (their ``source_id``), rendered again."""
+    layout = Layout(num_materials=2, suns_per_material=2, resolution=64, shard_size=4)
+    again = create_store(str(tmp_path / "again.zarr"), layout, {})
+    payload = synthetic_payload(layout, 0)
+    records = tiny_store.materials()
+    for m, rec in enumerate(payload.materials):
+        rec["source_id"] = records[m]["source_id"]
+    write_shard(again, 0, payload)
+    run = tmp_path / "run"
+    stores = (tiny_store.url, again.url)
+    train(TrainConfig(**{**BASE, "store": stores, "out": str(run), "max_steps": 1,
+                         "holdout_fraction": 0.5}))  # fmt: skip
+    held = checkpoint.load(run)["catalog"]["heldout"]
+    assert held[1] == [m for m in (0, 1) if m in held[0]]
+    assert len(held[0]) == 4  # half of the 8 distinct materials
+    assert "2 material(s) are in more than one store" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="again.zarr is given twice"):
+        TrainConfig(**{**BASE, "store": (*stores, again.url), "out": str(run)})
+
+
 def test_perceptual_loss_and_divergence(tiny_store, tmp_path):
     weights = vgg_weights_file(tmp_path / "vgg16.pth")
     out = tmp_path / "vgg"

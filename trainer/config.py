@@ -135,6 +135,8 @@ class TrainConfig:
         for name, ok in checks.items():
             if not ok:
                 raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
+        if again := [u for i, u in enumerate(self.store) if u in self.store[:i]]:
+            raise ValueError(f"--store {again[0]} is given twice")
 
     def to_dict(self) -> dict:
         d = asdict(self)

@@ -186,24 +186,9 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     log = RunLog(cfg, rk, out)
     if rk.master and cfg.val_samples:
         log.validator = Validator(catalog.split("test"), cfg.val_samples)
-    if t.screen_uv is None:
-        log.start(
-            f"{catalog.urls[0]} has no screen UV layout: the checkpoints will render stored "
-            "materials only (farm screen-uv STORE adds it; resume to carry it)"
-        )
     log.start(log.validation_plan())
-    if cfg.init is not None:
-        log.start(
-            f"fine-tuning the network of {cfg.init}" if init is not None
-            else f"resuming from {found}: --init {cfg.init} only starts a run"
-        )  # fmt: skip
-    if note := _schedule_note(cfg, t, was):
+    for note in _start_notes(cfg, t, catalog, init, found, was):
         log.start(note)
-    if t.ema is not None:
-        log.start(
-            f"weights averaged (decay {cfg.ema_decay}): the checkpoints render with the "
-            "average, and the held-out scores measure it and the trained weights"
-        )
     log.start(
         f"training on {len(split)} samples (held-out materials: "
         f"{sum(map(len, catalog.heldout))}), {rk.world} rank(s) x batch {cfg.batch_size} "
@@ -238,6 +223,35 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         "val": log.last_val,
         "best": t.best,
     }
+
+
+def _start_notes(cfg: TrainConfig, t: Trainee, catalog: Catalog, init, found, was) -> list[str]:
+    """The lines a run prints as it starts on what it does differently from a plain run."""
+    notes = []
+    if t.screen_uv is None:
+        notes.append(
+            f"{catalog.urls[0]} has no screen UV layout: the checkpoints will render stored "
+            "materials only (farm screen-uv STORE adds it; resume to carry it)"
+        )
+    if cfg.init is not None:
+        notes.append(
+            f"fine-tuning the network of {cfg.init}" if init is not None
+            else f"resuming from {found}: --init {cfg.init} only starts a run"
+        )  # fmt: skip
+    if catalog.repeated:
+        notes.append(
+            f"{catalog.repeated} material(s) are in more than one store (by source_id): each "
+            "is on one side of the split in all of them (farm jobs with another --seed render "
+            "new materials)"
+        )
+    if note := _schedule_note(cfg, t, was):
+        notes.append(note)
+    if t.ema is not None:
+        notes.append(
+            f"weights averaged (decay {cfg.ema_decay}): the checkpoints render with the "
+            "average, and the held-out scores measure it and the trained weights"
+        )
+    return notes
 
 
 def _schedule_note(cfg: TrainConfig, t: Trainee, was: dict | None) -> str | None:
