@@ -55,6 +55,10 @@ class Catalog:
     shards: list[list[int]]  # committed shards per store
     heldout: list[list[int]]  # held-out material indices per store
     resolution: int
+    # the ``source_id`` of every material the network trains on (with those of the run it
+    # is fine-tuned from) and of every one it holds out; ``None`` in catalogs kept without
+    trained_sources: list[str] | None = None
+    held_sources: list[str] | None = None
     # materials found more than once (by ``source_id``) when the snapshot was taken; not kept
     repeated: int = field(default=0, compare=False)
 
@@ -96,12 +100,23 @@ class Catalog:
             shards=[s.committed_shards() for s in stores],
             heldout=[sorted(h) for h in heldout],
             resolution=stores[0].layout.resolution,
+            trained_sources=sorted(trained | (copies.keys() - held)),
+            held_sources=sorted(held),
             repeated=sum(len(c) > 1 for c in copies.values()),
         )
 
-    def material_sources(self, stores: list[Store]) -> tuple[set[str], set[str]]:
+    @property
+    def records_sources(self) -> bool:
+        """Whether the catalog names its materials itself (:meth:`material_sources` then
+        reads no store)."""
+        return self.trained_sources is not None
+
+    def material_sources(self, stores: list[Store] | None = None) -> tuple[set[str], set[str]]:
         """The ``source_id`` of every material the snapshot trains on and of every one it
-        holds out, read from its stores opened where they are now (``stores``, in order)."""
+        holds out: as recorded, or for a catalog kept without them read from its stores
+        opened where they are now (``stores``, in order)."""
+        if self.records_sources:
+            return set(self.trained_sources), set(self.held_sources)
         trained, held = set(), set()
         for store, shards, heldout in zip(stores, self.shards, self.heldout, strict=True):
             records = store.materials()
@@ -116,6 +131,8 @@ class Catalog:
             "shards": [list(s) for s in self.shards],
             "heldout": [list(h) for h in self.heldout],
             "resolution": self.resolution,
+            "trained_sources": self.trained_sources,
+            "held_sources": self.held_sources,
         }
 
     @classmethod

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing as mp
 import os
@@ -315,6 +316,9 @@ def test_stores_read_as_one_catalog_split_by_material(tmp_path):
     assert other.heldout != cat.heldout
     assert Catalog.snapshot(urls[::-1], 0, 0.25, None).heldout == cat.heldout[::-1]  # any order
     assert Catalog.from_dict(cat.to_dict()) == cat
+    recorded = cat.material_sources()
+    assert recorded == dataclasses.replace(cat, trained_sources=None).material_sources([a, b])
+    assert len(recorded[1]) == len(held) and not recorded[0] & recorded[1]
     with pytest.raises(ValueError, match="cannot hold out 99 of 14"):
         draw_heldout(list(range(14)), 99, 0)
 
@@ -360,6 +364,9 @@ def test_a_fine_tuned_catalog_keeps_the_split_of_the_run_it_starts_from(tmp_path
         assert len(new) == holdout_count(0.3, range(unseen))  # the rest drawn as ever
         draws.add(tuple(new))
     assert len(draws) > 1  # by the seed
+    alone = Catalog.snapshot([b.url], 0, 0.3, None, keep=keep)  # none of the kept in b
+    assert keep[0] <= set(alone.trained_sources) and keep[1] <= set(alone.held_sources)
+    assert alone.material_sources() == (set(alone.trained_sources), set(alone.held_sources))
     urls = [a.url, b.url]
     assert Catalog.snapshot(urls, 0, 0.3, None, keep=None) == Catalog.snapshot(urls, 0, 0.3, None)
     counts = [(0.25, 14, 4), (0.01, 10, 1), (0.5, 1, 0), (0.99, 3, 2), (0.0, 5, 0), (0.5, 0, 0)]

@@ -617,8 +617,13 @@ def test_a_run_fine_tunes_another_runs_network_on_more_stores(tiny_store, tmp_pa
     onnx = one_line_error([*start, str(tmp_path / "ball.onnx")])
     assert "ball.onnx: an exported model" in onnx
     ghost = {**was, "catalog": {**was["catalog"], "urls": [str(tmp_path / "gone.zarr")]}}
+    catalog = Catalog.from_dict(was["catalog"])  # names its materials: no store is read
+    kept = (set(catalog.trained_sources), set(catalog.held_sources))
+    assert train_module._kept(cfg, ghost) == kept and len(kept[1]) == 2
+    assert kept == catalog.material_sources([tiny_store])  # as the store says
     capsys.readouterr()
-    assert train_module._kept(cfg, ghost) is None  # the first run's stores are gone: said
+    old = {**ghost, "catalog": {**ghost["catalog"], "trained_sources": None, "held_sources": None}}
+    assert train_module._kept(cfg, old) is None  # kept without them, its stores gone: said
     assert "its stores cannot be read" in capsys.readouterr().out
 
 
@@ -800,8 +805,14 @@ def test_eval_on_other_materials_refuses_the_runs_own(tiny_store, trained, tmp_p
     assert json.loads(r.output[r.output.index("{") :])["overall"]["n"] == 4
     own = one_line_error(["eval", "--checkpoint", str(trained), "--on", tiny_store.url])
     assert "of its materials were trained on" in own and own.startswith(f"Error: {tiny_store.url}")
-    moved = ["eval", "--checkpoint", str(trained), "--store", str(tmp_path / "moved.zarr")]
-    assert "the run's store is not there" in one_line_error([*moved, "--on", other.url])
+    moved = ["--store", str(tmp_path / "moved.zarr"), "--on", other.url, "--json"]
+    r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(trained), *moved])
+    assert r.exit_code == 0, r.output  # the checkpoint names its materials: no store is read
+    state = checkpoint.load(checkpoint.latest(trained))
+    state["catalog"] |= {"trained_sources": None, "held_sources": None}  # as kept without them
+    torch.save(state, tmp_path / "old.pt")
+    old = ["eval", "--checkpoint", str(tmp_path / "old.pt"), *moved]
+    assert "the run's store is not there" in one_line_error(old)
     small = create_store(str(tmp_path / "small.zarr"), Layout(2, 2, 32, 4), {})
     wrong = ["eval", "--checkpoint", str(trained), "--store"]
     for store, says in [

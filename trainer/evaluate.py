@@ -193,7 +193,7 @@ def _run_stores(catalog: Catalog) -> list[Store]:
 def _trained_sources(renderer: MapsRenderer, stores: list[str] | None) -> set[str]:
     """Source ids of the materials the run trained on, its stores at ``stores`` when given."""
     catalog = _catalog(renderer, stores)
-    return catalog.material_sources(_run_stores(catalog))[0]
+    return catalog.material_sources(None if catalog.records_sources else _run_stores(catalog))[0]
 
 
 def evaluate(

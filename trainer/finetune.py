@@ -9,8 +9,11 @@ the best score. The held-out split keeps the checkpoint's: a material it held ou
 out and one it trained on stays in training, in whichever store the new run finds it (by its
 ``source_id``: a material rendered again into another store is the same material), so the
 new run's held-out scores measure materials neither network has seen; materials it never
-saw are drawn at ``--holdout-fraction``. This reads the first run's stores; where they
-cannot be read the new run says so and draws every material.
+saw are drawn at ``--holdout-fraction``. The checkpoint's catalog names those materials,
+and the new run's names them with its own, so a chain of fine-tunes keeps every material
+any of its networks trained on out of its held-out split. A catalog kept without them is read
+from the first run's stores; where they cannot be read the new run says so and draws every
+material.
 
 ``--init`` matters only at a run's start: a run folder that holds checkpoints resumes from
 them (as a restarted pod or torchrun attempt does), whatever ``--init`` says.
@@ -51,11 +54,14 @@ def with_network(cfg: TrainConfig, init: dict | None) -> TrainConfig:
 
 def kept_materials(init: dict | None) -> tuple[set[str], set[str]] | None:
     """What :meth:`Catalog.snapshot` keeps of ``init``'s split: the ``source_id`` of every
-    material it trained on and of every one it held out, read from its stores (raises
-    :class:`StoreError` when one cannot be read)."""
+    material it trained on and of every one it held out, as its catalog records them, or
+    read from its stores for a catalog kept without them (raises :class:`StoreError` when
+    one cannot be read)."""
     if init is None:
         return None
     was = Catalog.from_dict(init["catalog"])
+    if was.records_sources:
+        return was.material_sources()
     return was.material_sources([Store(absolute_store(url)) for url in was.urls])
 
 
