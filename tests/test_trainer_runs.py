@@ -891,6 +891,7 @@ def test_eval_compares_checkpoints_on_the_same_samples(tiny_store, trained, tmp_
     r = CliRunner().invoke(trainer_main, [*two, "--grid-count", "0"])
     assert r.exit_code == 0, r.output
     assert f"{result['samples']} held-out samples of 2 materials" in r.output
+    assert ", held out by 1), every model on the same ones" in r.output
     assert "PSNR dB by material kind" in r.output and "against 1: mean difference" in r.output
     assert "(no intervals: fewer than 5 materials)" in r.output
     assert f"{d['mean']:+.2f}" in r.output.split("against 1")[1]
@@ -905,7 +906,7 @@ def test_eval_compares_checkpoints_on_the_same_samples(tiny_store, trained, tmp_
     run = tmp_path / "other-draw"
     train(config(tiny_store, run, max_steps=1, holdout_seed=1))
     msg = one_line_error(["eval", "--checkpoint", str(trained), "--checkpoint", str(run)])
-    assert msg.startswith(f"Error: {run}: ") and f"holds out other samples than {trained}" in msg
+    assert msg.startswith(f"Error: {run}: trained on 2 of the 2 materials {trained} holds out")
     bright = tmp_path / "bright"  # the same held-out samples, brighter targets
     train(config(tiny_store, bright, max_steps=1, exposure=2.0))
     msg = one_line_error(["eval", "--checkpoint", str(trained), "--checkpoint", str(bright)])
@@ -914,6 +915,33 @@ def test_eval_compares_checkpoints_on_the_same_samples(tiny_store, trained, tmp_
         trainer_main, ["eval", *each, "--weights", "auto", "--weights", "trained"]
     )
     assert r.exit_code == 2 and "--weights: given 2 times for 3 checkpoints" in r.output
+
+
+def test_eval_compares_a_network_with_one_fine_tuned_from_it(tiny_store, trained, tmp_path):
+    """A fine-tuned run holds out its first run's held-out materials and more: compared
+    either way round, every model is scored on the first's held-out samples."""
+    layout = Layout(num_materials=8, suns_per_material=2, resolution=64, shard_size=4)
+    more = create_store(str(tmp_path / "more.zarr"), layout, {})
+    for shard in range(layout.num_shards):
+        write_shard(more, shard, synthetic_payload(layout, shard, seed=3))
+    tuned = tmp_path / "tuned"
+    train(TrainConfig(**{**BASE, "store": (tiny_store.url, more.url), "out": str(tuned),
+                         "init": str(trained), "max_steps": 1}))  # fmt: skip
+    alone = {str(m): evaluate(m, device="cpu", grid_count=0) for m in (trained, tuned)}
+    for first, second in ((trained, tuned), (tuned, trained)):
+        r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(first),
+                                              "--checkpoint", str(second), "--json"])  # fmt: skip
+        assert r.exit_code == 0, r.output
+        result = json.loads(r.output[r.output.index("{") :])
+        assert result["models"][0]["overall"] == alone[str(first)]["overall"]
+        assert result["samples"] == alone[str(first)]["samples"]
+    assert alone[str(tuned)]["samples"] > alone[str(trained)]["samples"]  # and more's held out
+    exported = tmp_path / "bare.onnx"
+    r = CliRunner().invoke(trainer_main, ["export", "--checkpoint", str(trained), "-o",
+                                          str(exported), "--no-catalog"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    msg = one_line_error(["eval", "--checkpoint", str(tuned), "--checkpoint", str(exported)])
+    assert msg.startswith(f"Error: {exported}: the model names no stores of its run")
 
 
 def test_launch_commands():

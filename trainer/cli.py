@@ -257,8 +257,10 @@ def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, per_
     Several --checkpoint are scored on the same samples, each batch read once, and each
     after the first is compared with the first: the mean PSNR, SSIM and FLIP differences
     with 95 % intervals of a bootstrap over materials, and the share of samples where its
-    PSNR is higher. Their runs must hold out the same samples (the same stores, --holdout-seed and
-    --holdout-fraction), or be scored --on the same stores.
+    PSNR is higher. They are scored on the first's held-out samples, which none of the others
+    may have trained on: runs that hold out the same materials (the same --holdout-seed and
+    --holdout-fraction), or a network and one fine-tuned from it (--init), either way round.
+    With --on they are scored on those stores.
 
     \b
     Examples:
@@ -269,6 +271,7 @@ def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, per_
       trainer eval --checkpoint runs/seed0 --checkpoint runs/seed1 --grid both.png
       trainer eval --checkpoint runs/ema --checkpoint runs/ema --weights trained --weights average
       trainer eval --checkpoint runs/a --per-sample runs/a/samples.csv   # which materials fail
+      trainer eval --checkpoint runs/tuned --checkpoint runs/a   # what fine-tuning gained
     """
     check_picture_name(grid, "--grid")
     if per_sample is not None and per_sample.suffix.lower() != ".csv":

@@ -6,10 +6,14 @@ The samples of one material (its suns) are not independent draws, so the confide
 interval of a mean difference resamples whole materials (a cluster bootstrap):
 :func:`paired_difference`. The first checkpoint is the one the others are compared with.
 
-Models compare only on the same samples against the same targets: the runs must hold out
-the same samples of the same stores (one ``--holdout-seed`` and ``--holdout-fraction`` on
-one set of stores, whatever their ``--seed``), or be scored ``--on`` the same other stores,
-and share a tonemap.
+Models compare only on samples none of them trained on, against the same targets: every
+model is scored on the first one's held-out samples, and each of the others must not have
+trained on any of their materials (by ``source_id``, as its checkpoint names them). So runs
+that hold out the same samples compare (one ``--holdout-seed`` and ``--holdout-fraction`` on
+one set of stores, whatever their ``--seed``), and so do a network and one fine-tuned from it
+(``--init`` keeps the first run's held-out materials held out), either way round. With
+``--on`` every model is scored on the other stores' samples, checked against each one. The
+models must share a tonemap.
 """
 
 from __future__ import annotations
@@ -19,12 +23,14 @@ from pathlib import Path
 import numpy as np
 from tabulate import tabulate
 
+from storage.reader import Store
 from trainer.evaluate import (
     EvalError,
     NoCatalog,
     score,
     test_split,
     trained_on_is_checked,
+    trained_sources,
     write_grid,
     write_sample_table,
 )
@@ -87,15 +93,16 @@ def compare(
     each error) to ``grid`` when given, and every sample's scores to the CSV file
     ``per_sample`` (:func:`trainer.evaluate.write_sample_table`)."""
     renderers, splits = [], []
-    for ckpt, w in zip(ckpts, weights, strict=True):
+    for i, (ckpt, w) in enumerate(zip(ckpts, weights, strict=True)):
         renderer = load_renderer(ckpt, device, w)
         try:
-            splits.append(test_split(renderer, stores, on))
+            if i == 0 or on:  # each model's check of the --on stores
+                splits.append(test_split(renderer, stores, on))
         except (NoCatalog, EvalError) as exc:
             raise type(exc)(f"{ckpt}: {exc}") from None
         renderers.append(renderer)
-    _same_samples(ckpts, renderers, splits)
     split = splits[0]
+    _comparable(ckpts, renderers, split, stores, on)
     scored = score(renderers, split, batch_size, grid_count)
     names = labels(list(ckpts), [r.weights for r in renderers])
     groups = np.array(scored.materials, np.int64).reshape(-1, 2)
@@ -155,7 +162,8 @@ def report(result: dict) -> str:
     ]
     lines = [
         f"{result['samples']} {where} of {result['materials']} materials (set "
-        f"{result['heldout_set']}), every model on the same ones",
+        f"{result['heldout_set']}{'' if result['on'] else ', held out by 1'}), every model "
+        "on the same ones",
         tabulate(
             rows,
             ["", "checkpoint", "step", "PSNR dB", "SSIM", "FLIP"],
@@ -192,27 +200,42 @@ def _difference_table(models: list[dict]) -> tuple[list[list], list[str]]:
     return rows, ["", "PSNR dB", "SSIM", "FLIP", "higher PSNR on"]
 
 
-def _named(split) -> set[tuple[str, int]]:
-    """The samples of ``split`` as ``(store address, sample)``."""
-    return {(split.urls[s], int(k)) for s, k in split.refs.tolist()}
+def split_sources(split) -> set[str]:
+    """The ``source_id`` of every material in ``split``."""
+    out = set()
+    for s, url in enumerate(split.urls):
+        store = Store(url, split.storage_options)
+        records = store.materials()
+        samples = split.refs[split.refs[:, 0] == s, 1].tolist()
+        out |= {records[store.layout.material_of_sample(k)]["source_id"] for k in samples}
+    return out
 
 
-def _same_samples(ckpts, renderers, splits) -> None:
-    """An :class:`EvalError` naming the first model that would be scored on other samples
-    than the first, or against other targets."""
-    ours = _named(splits[0])
-    for ckpt, renderer, split in zip(ckpts[1:], renderers[1:], splits[1:], strict=True):
-        theirs = _named(split)
-        if theirs != ours:
-            raise EvalError(
-                f"{ckpt}: holds out other samples than {ckpts[0]} ({len(theirs & ours)} in "
-                f"common of {len(theirs)} and {len(ours)}: other stores, --holdout-seed or "
-                "--holdout-fraction); compare them --on a store neither trained on"
-            )
+def _comparable(ckpts, renderers, split, stores, on) -> None:
+    """An :class:`EvalError` naming the first model after the first that trained on a
+    material of ``split`` (the first's held-out samples; the ``--on`` stores were checked
+    by :func:`test_split`), or that renders against another tonemap."""
+    scored = None
+    for ckpt, renderer in zip(ckpts[1:], renderers[1:], strict=True):
         if renderer.tonemap != renderers[0].tonemap:
             other, base = (f"{t.curve} at exposure {t.exposure:g}"
                            for t in (renderer.tonemap, renderers[0].tonemap))  # fmt: skip
             raise EvalError(
                 f"{ckpt}: trained against another tonemap than {ckpts[0]} ({other}, not "
                 f"{base}): their scores do not compare"
+            )
+        if on:
+            continue
+        if not trained_on_is_checked(renderer):
+            raise NoCatalog(
+                f"{ckpt}: the model names no stores of its run (exported --no-catalog), so the "
+                f"materials it trained on are unknown: compare --on a store none trained on"
+            )
+        scored = split_sources(split) if scored is None else scored
+        seen = sorted(scored & trained_sources(renderer, stores))
+        if seen:
+            raise EvalError(
+                f"{ckpt}: trained on {len(seen)} of the {len(scored)} materials {ckpts[0]} "
+                f"holds out (e.g. {seen[0]}): compare runs that hold out the same materials "
+                "(--holdout-seed, --holdout-fraction), or --on a store none trained on"
             )

@@ -118,7 +118,7 @@ def test_split(renderer: MapsRenderer, stores: list[str] | None, on: list[str] |
             "materials are unknown: evaluate it --on a store of other materials"
         )
     if on:
-        trained = _trained_sources(renderer, stores) if trained_on_is_checked(renderer) else set()
+        trained = trained_sources(renderer, stores) if trained_on_is_checked(renderer) else set()
         for url in on:
             store = Store(url)
             if store.layout.resolution != renderer.config.resolution:
@@ -190,10 +190,14 @@ def _run_stores(catalog: Catalog) -> list[Store]:
     return out
 
 
-def _trained_sources(renderer: MapsRenderer, stores: list[str] | None) -> set[str]:
-    """Source ids of the materials the run trained on, its stores at ``stores`` when given."""
+def trained_sources(renderer: MapsRenderer, stores: list[str] | None) -> set[str]:
+    """Source ids of the materials the run trained on, as its catalog names them, or read
+    from its stores (at ``stores`` when given) for a catalog kept without them."""
+    catalog = Catalog.from_dict(renderer.catalog)
+    if catalog.records_sources:
+        return catalog.material_sources()[0]
     catalog = _catalog(renderer, stores)
-    return catalog.material_sources(None if catalog.records_sources else _run_stores(catalog))[0]
+    return catalog.material_sources(_run_stores(catalog))[0]
 
 
 def evaluate(
