@@ -56,7 +56,8 @@ class Catalog:
     heldout: list[list[int]]  # held-out material indices per store
     resolution: int
     # the ``source_id`` of every material the network trains on (with those of the run it
-    # is fine-tuned from) and of every one it holds out; ``None`` in catalogs kept without
+    # is fine-tuned from) and of every one it holds out; ``None`` in a catalog that does not
+    # name them (a checkpoint's from an older shaderball: read from its stores)
     trained_sources: list[str] | None = None
     held_sources: list[str] | None = None
     # materials found more than once (by ``source_id``) when the snapshot was taken; not kept

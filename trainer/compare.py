@@ -232,7 +232,10 @@ def _comparable(ckpts, renderers, split, stores, on) -> None:
                 f"materials it trained on are unknown: compare --on a store none trained on"
             )
         scored = split_sources(split) if scored is None else scored
-        seen = sorted(scored & trained_sources(renderer, stores))
+        try:
+            seen = sorted(scored & trained_sources(renderer, stores))
+        except EvalError as exc:
+            raise EvalError(f"{ckpt}: {exc}") from None
         if seen:
             raise EvalError(
                 f"{ckpt}: trained on {len(seen)} of the {len(scored)} materials {ckpts[0]} "
