@@ -170,9 +170,6 @@ def test_a_taken_port_or_an_unknown_host_is_one_line(tmp_path):
     ]
 
 
-FINE_TUNED = "/data/runs/r0/checkpoints/best.pt"  # shown as r0/best.pt
-
-
 def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     runs = tmp_path / "runs" / "r1"
     runs.mkdir(parents=True)
@@ -187,12 +184,13 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     (runs / "val.jsonl").write_text("\n".join(json.dumps(x) for x in scores) + "\n{torn")
     Image.new("RGB", (8, 8), (200, 30, 30)).save(runs / "val.png")
     other = tmp_path / "runs" / "r2"  # a second scored run: the page compares the two
+    init = runs / "checkpoints" / "step-00000030.pt"  # r2 is fine-tuned from r1's
     other.mkdir()
     config = {"store": ["/data/set.zarr"], "loss": "l1", "lr": 0.001, "lr_schedule": "constant",
               "ema_decay": 0.0, "max_steps": None}  # fmt: skip
     (runs / "config.json").write_text(json.dumps(config))
     (other / "config.json").write_text(
-        json.dumps({**config, "lr_schedule": "cosine", "ema_decay": 0.999, "init": FINE_TUNED})
+        json.dumps({**config, "lr_schedule": "cosine", "ema_decay": 0.999, "init": str(init)})
     )
     averaged = [{**x, "psnr": x["psnr"] - 1, "trained_psnr": x["psnr"] - 3} for x in scores]
     (other / "val.jsonl").write_text(  # an averaged run: its trained weights are scored too
@@ -258,7 +256,7 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert heads == ["run", "fine-tuned from", "schedule", "weight average"]
     assert re.findall(r"<td>([^<]*)</td>", differ) == [
         f"{tmp_path / 'runs'}/r1", "-", "constant", "-",
-        f"{tmp_path / 'runs'}/r2", "r0/best.pt", "cosine", "0.999",
+        f"{tmp_path / 'runs'}/r2", "r1/step-00000030.pt", "cosine", "0.999",
     ]  # fmt: skip
     # runs that score other held-out samples are flagged, and the table names their samples
     assert 'id="mixed"' not in runs_page and 'id="mixed"' in mixed_page
@@ -269,6 +267,11 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     # runs of the same samples get the command that compares them sample by sample
     command = f"trainer eval --checkpoint {runs} --checkpoint {other}"
     assert f"<code>{command}</code>" in runs_page and "compare-command" not in mixed_page
+    # a fine-tuned run gets the commands that compare it with the network it starts from
+    gained = f"trainer eval --checkpoint {other} --checkpoint {init}"
+    forgot = f"trainer eval --checkpoint {init} --checkpoint {other}"
+    assert f"<code>{gained}</code>" in mixed_page and f"<code>{forgot}</code>" in mixed_page
+    assert mixed_page.count('class="tuned-command"') == 1
 
 
 @pytest.mark.slow
@@ -349,7 +352,7 @@ def test_the_progress_history_stays_bounded_over_a_long_job():
 def test_the_compare_command_names_runs_of_the_same_samples_that_have_checkpoints(
     tmp_path, monkeypatch
 ):
-    from farm.dashboard.runs import HELDOUT, compare_command, run_summary
+    from farm.dashboard.runs import HELDOUT, compare_command, finetune_commands, run_summary
 
     def run(path, held="3f2a", ckpts=("step-1.pt",), val=({"psnr": 1},)):
         return {"path": path, "settings": {HELDOUT: held} if held else {},
@@ -362,6 +365,14 @@ def test_the_compare_command_names_runs_of_the_same_samples_that_have_checkpoint
     for other in (run("b", held="9b1c"), run("b", held=None), run("b", ckpts=())):
         assert compare_command([run("a"), other]) is None
     assert compare_command([run("a"), unscored]) is None
+    tuned = {**run("t"), "init": str(tmp_path), "label": "t"}
+    assert finetune_commands([run("a"), tuned]) == [{
+        "label": "t",
+        "gained": f"trainer eval --checkpoint t --checkpoint {tmp_path}",
+        "forgot": f"trainer eval --checkpoint {tmp_path} --checkpoint t",
+    }]  # fmt: skip
+    for gone in ({"init": str(tmp_path / "gone")}, {"val": []}, {"checkpoints": []}):
+        assert finetune_commands([{**tuned, **gone}]) == []
     monkeypatch.chdir(tmp_path)  # a dashboard given --runs relative names its runs absolutely
     assert run_summary("0/a", Path("runs/a"))["path"] == str(tmp_path / "runs" / "a")
 

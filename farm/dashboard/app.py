@@ -198,7 +198,8 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         differ = runs.differing([r for r in rows if r["settings"]])
         sets = {r["settings"].get(runs.HELDOUT) for r in rows if r["val"]}
         page = dict(compare=compare, differ=differ, mixed=compare is not None and len(sets) > 1,
-                    command=runs.compare_command(rows))  # fmt: skip
+                    command=runs.compare_command(rows),
+                    tuned=runs.finetune_commands(rows))  # fmt: skip
         return html(text=pages.render("runs", runs=rows, secret=secret, title="runs", **page))
 
     async def run_file(request):

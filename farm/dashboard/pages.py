@@ -122,7 +122,10 @@ RUNS = """{% extends "base" %}{% block main %}
 --holdout-fraction, --holdout-seed or --val-samples; "-": a run that does not name them): compare
 their curves with that in mind.</p>{% endif %}{% if command %}<p id="compare-command">They score
 the same held-out samples: compare their latest checkpoints sample by sample, with 95 %
-intervals, by <code>{{ command }}</code></p>{% endif %}
+intervals, by <code>{{ command }}</code></p>{% endif %}{% for t in tuned %}<p class="tuned-command">
+{{ t.label }} is fine-tuned. What it gained, on its held-out samples:<br><code>{{ t.gained }}</code>
+<br>What it forgot, on those of the network it starts from:<br><code>{{ t.forgot }}</code></p>{%
+endfor %}
 {% if differ %}<h2>Settings that differ</h2><table><tr><th>run</th>{% for k in differ
 %}<th>{{ k }}</th>{% endfor %}</tr>{% for r in runs %}<tr><td>{{
 r.label }}</td>{% for k in differ %}<td>{{ r.settings.get(k)|setting }}</td>{% endfor %}</tr>{%

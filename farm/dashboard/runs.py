@@ -130,6 +130,23 @@ def compare_command(runs: list[dict]) -> str | None:
     return "trainer eval " + " ".join(f"--checkpoint {shlex.quote(r['path'])}" for r in scored)
 
 
+def finetune_commands(runs: list[dict]) -> list[dict]:
+    """For each scored run with checkpoints that is fine-tuned from a network still where it
+    says: the ``trainer eval`` commands that measure what fine-tuning gained (on the run's
+    held-out samples) and what it forgot (on those of the network it starts from)."""
+    out = []
+    for r in runs:
+        if not (r.get("init") and r["val"] and r["checkpoints"] and os.path.exists(r["init"])):
+            continue
+        tuned, first = shlex.quote(r["path"]), shlex.quote(r["init"])
+        out.append({
+            "label": r["label"],
+            "gained": f"trainer eval --checkpoint {tuned} --checkpoint {first}",
+            "forgot": f"trainer eval --checkpoint {first} --checkpoint {tuned}",
+        })  # fmt: skip
+    return out
+
+
 def thin(rows: list, limit: int = CURVE_POINTS) -> list:
     if len(rows) <= limit:
         return rows
@@ -150,7 +167,8 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
             ev = json.loads((run / "eval.json").read_text())
         except json.JSONDecodeError:
             ev = None
-    shown = settings(read_config(run))
+    config = read_config(run)
+    shown = settings(config)
     if val and "heldout_set" in val[-1]:
         shown[HELDOUT] = val[-1]["heldout_set"]
     return {
@@ -158,6 +176,7 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
         "label": label or name,
         "path": os.path.abspath(run),  # so that the compare command works from any folder
         "settings": shown,
+        "init": config.get("init"),  # the network it is fine-tuned from: a run or checkpoint
         "step": last.get("step"),
         "epoch": last.get("epoch"),
         "loss": last.get("loss"),
