@@ -35,13 +35,13 @@ def holdout_count(fraction: float, materials: list) -> int:
     return max(0, min(count, len(materials) - 1))
 
 
-def identities(stores: list[Store]) -> dict[str, list[tuple[int, int]]]:
+def identities(stores: list[Store], commits: list[dict]) -> dict[str, list[tuple[int, int]]]:
     """Each committed material's ``source_id`` → its copies, as ``(store, material)``
-    (``store`` an index into ``stores``)."""
+    (``store`` an index into ``stores``; ``commits`` each store's :meth:`Store.commits`)."""
     copies: dict[str, list[tuple[int, int]]] = {}
-    for i, s in enumerate(stores):
-        records = s.materials()
-        for shard in s.committed_shards():
+    for i, (s, committed) in enumerate(zip(stores, commits, strict=True)):
+        records = s.materials(committed)
+        for shard in sorted(committed):
             for m in s.layout.shard_materials(shard):
                 copies.setdefault(records[m]["source_id"], []).append((i, m))
     return copies
@@ -85,10 +85,11 @@ class Catalog:
         if not 0 <= holdout_fraction < 1:
             raise ValueError(f"holdout fraction must be in [0, 1), not {holdout_fraction}")
         stores = [Store(u, storage_options) for u in urls]
-        for s in stores:
-            if not s.committed_shards():
+        commits = [s.commits() for s in stores]  # read once: a farm may be committing more
+        for s, committed in zip(stores, commits, strict=True):
+            if not committed:
                 raise StoreError(f"{s.url}: the store has no committed samples to train on")
-        copies = identities(stores)
+        copies = identities(stores, commits)
         trained, kept = keep or (set(), set())
         unseen = sorted(copies.keys() - trained - kept)
         held = kept | set(draw_heldout(unseen, holdout_count(holdout_fraction, unseen), seed))
@@ -98,7 +99,7 @@ class Catalog:
                 heldout[store].add(material)
         return cls(
             urls=[s.url for s in stores],
-            shards=[s.committed_shards() for s in stores],
+            shards=[sorted(c) for c in commits],
             heldout=[sorted(h) for h in heldout],
             resolution=stores[0].layout.resolution,
             trained_sources=sorted(trained | (copies.keys() - held)),
@@ -115,9 +116,10 @@ class Catalog:
     def material_sources(self, stores: list[Store] | None = None) -> tuple[set[str], set[str]]:
         """The ``source_id`` of every material the snapshot trains on and of every one it
         holds out: as recorded, or for a catalog kept without them read from its stores
-        opened where they are now (``stores``, in order)."""
+        opened where they are now (``stores``, in order; at its ``urls`` when not given)."""
         if self.records_sources:
             return set(self.trained_sources), set(self.held_sources)
+        stores = [Store(u) for u in self.urls] if stores is None else stores
         trained, held = set(), set()
         for store, shards, heldout in zip(stores, self.shards, self.heldout, strict=True):
             records = store.materials()

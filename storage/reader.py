@@ -159,9 +159,11 @@ class Store:
             raise StoreError(str(exc)) from None
         return suv
 
-    def materials(self) -> dict[int, dict]:
-        """Committed materials' records (``kind``, ``source_id``, ``spec``), by index."""
-        return {m["index"]: m for rec in self.commits().values() for m in rec["materials"]}
+    def materials(self, commits: dict[int, dict] | None = None) -> dict[int, dict]:
+        """Committed materials' records (``kind``, ``source_id``, ``spec``), by index (of
+        ``commits``, the store's :meth:`commits`, read now when not given)."""
+        commits = self.commits() if commits is None else commits
+        return {m["index"]: m for rec in commits.values() for m in rec["materials"]}
 
     # ---- data -----------------------------------------------------------------------------
 

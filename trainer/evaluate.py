@@ -194,7 +194,7 @@ def trained_sources(renderer: MapsRenderer, stores: list[str] | None) -> set[str
     """Source ids of the materials the run trained on, as its catalog names them, or read
     from its stores (at ``stores`` when given) for a catalog kept without them."""
     catalog = Catalog.from_dict(renderer.catalog)
-    if catalog.records_sources:
+    if catalog.records_sources:  # read no store, wherever they are
         return catalog.material_sources()[0]
     catalog = _catalog(renderer, stores)
     return catalog.material_sources(_run_stores(catalog))[0]

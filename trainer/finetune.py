@@ -24,7 +24,6 @@ from __future__ import annotations
 import dataclasses
 
 from storage.catalog import Catalog
-from storage.reader import Store
 from trainer import checkpoint
 from trainer.config import TrainConfig, absolute_store
 
@@ -60,9 +59,8 @@ def kept_materials(init: dict | None) -> tuple[set[str], set[str]] | None:
     if init is None:
         return None
     was = Catalog.from_dict(init["catalog"])
-    if was.records_sources:
-        return was.material_sources()
-    return was.material_sources([Store(absolute_store(url)) for url in was.urls])
+    was.urls = [absolute_store(url) for url in was.urls]
+    return was.material_sources()
 
 
 def mismatch(init: dict, path: str, catalog: Catalog) -> str | None:
