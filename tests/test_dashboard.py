@@ -90,8 +90,15 @@ def sets(tmp_path_factory) -> Path:
     return root
 
 
-def test_pages_errors_and_paths_that_leave_the_roots(sets):
-    with Server(sets) as s:
+def test_pages_errors_and_paths_that_leave_the_roots(sets, tmp_path):
+    for run in ("runs/kept", "away"):  # a run folder, and a link in it to one outside it
+        (tmp_path / run).mkdir(parents=True)
+        (tmp_path / run / "config.json").write_text("{}")
+        (tmp_path / run / "eval.png").write_bytes(b"\x89PNG")
+    os.symlink(tmp_path / "away", tmp_path / "runs" / "away")
+    with Server(sets, "--runs", tmp_path / "runs") as s:
+        code, body = s.get("/runs")
+        assert code == 200 and b"runs/kept <small>" in body and b"away" not in body
         code, body = s.get("/")
         page = body.decode()
         assert code == 200 and f'href="/job/0/a.zarr">{sets}/a.zarr</a>' in page  # as given
@@ -106,7 +113,8 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets):
         assert s.get("/thumb/0/a.zarr?sample=9")[0] == 404  # shard 2 is not committed
         for path in ("/job/0/../../etc", "/job/0/%2e%2e/%2e%2e/etc", "/job/0/%2E%2E%2Fx",
                      "/job/0//etc", "/job/0/escape", "/job/7/a.zarr", "/thumb/0/escape?sample=0",
-                     "/runfile/0/..?file=eval.png", "/job/0/..%2f..%2fetc"):  # fmt: skip
+                     "/runfile/0/..?file=eval.png", "/job/0/..%2f..%2fetc",
+                     "/runfile/0/away?file=eval.png"):  # fmt: skip
             assert raw_get(s.port, path) in (400, 404), path
         # a POST needs the page's secret: another site's form cannot cancel a job
         assert s.get("/cancel/0/a.zarr", method="POST")[0] == 403
@@ -349,22 +357,28 @@ def test_the_progress_history_stays_bounded_over_a_long_job():
     assert times == sorted(times) and times[len(times) // 2] > 2000  # spread over the life
 
 
-def test_the_compare_command_names_runs_of_the_same_samples_that_have_checkpoints(
+def test_the_compare_commands_name_runs_of_the_same_samples_that_have_checkpoints(
     tmp_path, monkeypatch
 ):
-    from farm.dashboard.runs import HELDOUT, compare_command, finetune_commands, run_summary
+    from farm.dashboard.runs import HELDOUT, compare_commands, finetune_commands, run_summary
 
     def run(path, held="3f2a", ckpts=("step-1.pt",), val=({"psnr": 1},)):
-        return {"path": path, "settings": {HELDOUT: held} if held else {},
+        return {"path": path, "label": path.upper(), "settings": {HELDOUT: held} if held else {},
                 "checkpoints": list(ckpts), "val": list(val)}  # fmt: skip
 
     unscored = run("c", val=())  # left out: nothing to compare it on
-    assert compare_command([run("a"), run("b d"), unscored]) == (
-        "trainer eval --checkpoint a --checkpoint 'b d'"
-    )
+    assert compare_commands([run("a"), run("b d"), unscored]) == [
+        {"labels": ["A", "B D"], "command": "trainer eval --checkpoint a --checkpoint 'b d'"}
+    ]
     for other in (run("b", held="9b1c"), run("b", held=None), run("b", ckpts=())):
-        assert compare_command([run("a"), other]) is None
-    assert compare_command([run("a"), unscored]) is None
+        assert compare_commands([run("a"), other]) == []
+    assert compare_commands([run("a"), unscored]) == []
+    # each set of runs that score the same samples gets its own command, in page order
+    mixed = [run("a"), run("x", held="9b1c"), run("b"), run("y", held="9b1c"), run("z", "77")]
+    assert [c["command"] for c in compare_commands(mixed)] == [
+        "trainer eval --checkpoint a --checkpoint b",
+        "trainer eval --checkpoint x --checkpoint y",
+    ]
     tuned = {**run("t"), "init": str(tmp_path), "label": "t"}
     assert finetune_commands([run("a"), tuned]) == [{
         "label": "t",

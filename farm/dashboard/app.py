@@ -84,8 +84,11 @@ class Dashboard:
         for i, base in enumerate(self.run_dirs):
             for rel in runs.find_runs(base):
                 name = str(i) if rel == "." else f"{i}/{rel}"
-                label = jobs.label(str(base), rel)
-                out.append(runs.run_summary(name, self.run_path(name), label))
+                try:
+                    path = self.run_path(name)
+                except Refused:  # a symlink that leads outside the folder: not served
+                    continue
+                out.append(runs.run_summary(name, path, jobs.label(str(base), rel)))
         return out
 
     def frame_seconds(self, row: dict):
@@ -198,7 +201,7 @@ def make_app(dash: Dashboard, token: str | None) -> web.Application:
         differ = runs.differing([r for r in rows if r["settings"]])
         sets = {r["settings"].get(runs.HELDOUT) for r in rows if r["val"]}
         page = dict(compare=compare, differ=differ, mixed=compare is not None and len(sets) > 1,
-                    command=runs.compare_command(rows),
+                    commands=runs.compare_commands(rows),
                     tuned=runs.finetune_commands(rows))  # fmt: skip
         return html(text=pages.render("runs", runs=rows, secret=secret, title="runs", **page))
 

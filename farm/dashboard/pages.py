@@ -120,9 +120,11 @@ RUNS = """{% extends "base" %}{% block main %}
 {% if compare %}<h2>Held-out PSNR of every run (dB)</h2>{{ compare }}{% endif %}{% if mixed %}
 <p class="err" id="mixed">These runs do not all score the same held-out samples (another store,
 --holdout-fraction, --holdout-seed or --val-samples; "-": a run that does not name them): compare
-their curves with that in mind.</p>{% endif %}{% if command %}<p id="compare-command">They score
-the same held-out samples: compare their latest checkpoints sample by sample, with 95 %
-intervals, by <code>{{ command }}</code></p>{% endif %}{% for t in tuned %}<p class="tuned-command">
+their curves with that in mind.</p>{% endif %}{% for c in commands %}
+<p class="compare-command">{{ c.labels|join(", ") }} score the same held-out samples: compare
+their latest checkpoints sample by sample, with 95 % intervals, by <code>{{ c.command }}</code>
+</p>{% endfor %}
+{% for t in tuned %}<p class="tuned-command">
 {{ t.label }} is fine-tuned. What it gained, on its held-out samples:<br><code>{{ t.gained }}</code>
 <br>What it forgot, on those of the network it starts from:<br><code>{{ t.forgot }}</code></p>{%
 endfor %}

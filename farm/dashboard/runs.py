@@ -114,20 +114,24 @@ def differing(runs: list[dict]) -> list[str]:
     return [k for k in labels if len({repr(r["settings"].get(k)) for r in runs}) > 1]
 
 
-def compare_command(runs: list[dict]) -> str | None:
-    """The ``trainer eval`` command that scores the scored ``runs`` sample by sample, each
-    against the first, with intervals: for two or more that all name the same held-out
-    samples (:data:`HELDOUT`) and have checkpoints; ``None`` otherwise."""
-    scored = [r for r in runs if r["val"]]
-    sets = {r["settings"].get(HELDOUT) for r in scored}
-    if (
-        len(scored) < 2
-        or len(sets) > 1
-        or None in sets
-        or not all(r["checkpoints"] for r in scored)
-    ):
-        return None
-    return "trainer eval " + " ".join(f"--checkpoint {shlex.quote(r['path'])}" for r in scored)
+def compare_commands(runs: list[dict]) -> list[dict]:
+    """The ``trainer eval`` commands that score scored ``runs`` sample by sample, each against
+    the first, with intervals: one for each set of two or more runs with checkpoints that name
+    the same held-out samples (:data:`HELDOUT`), in page order, as ``{"labels", "command"}``."""
+    groups: dict[str, list[dict]] = {}
+    for r in runs:
+        held = r["settings"].get(HELDOUT)
+        if r["val"] and r["checkpoints"] and held is not None:
+            groups.setdefault(held, []).append(r)
+    return [
+        {
+            "labels": [r.get("label", r["path"]) for r in group],
+            "command": "trainer eval "
+            + " ".join(f"--checkpoint {shlex.quote(r['path'])}" for r in group),
+        }
+        for group in groups.values()
+        if len(group) > 1
+    ]
 
 
 def finetune_commands(runs: list[dict]) -> list[dict]:
