@@ -116,6 +116,12 @@ def zarr_python_read(url: str, layout: Layout) -> float:
 
 
 def timed_pool(init, initargs, fn, parts, processes):
+    """Samples/s of ``fn`` over ``parts`` in ``processes`` processes, their start included.
+
+    Forked, as the MDS and WebDataset DataLoaders below are (the Linux default), so that every
+    format's time is its reading, not a spawned worker's imports (seconds, against a pass of
+    about 2 s here); the trainer spawns its workers (``trainer.data.WORKER_START``) and pays
+    that once a run."""
     t0 = time.perf_counter()
     if processes == 1:
         init(*initargs)
