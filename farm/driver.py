@@ -33,6 +33,7 @@ from typing import NamedTuple
 
 from tqdm import tqdm
 
+from farm import sizing
 from farm.actor import RenderWorker
 from farm.assembly import ShardAssembly
 from farm.cancel import cancel_requested, clear_cancel
@@ -54,6 +55,13 @@ STATE_EVERY_S = 2.0
 SCREEN_UV_TRIES = 3
 #: tasks a worker may hold (:mod:`farm.scheduler`, pipelining)
 PIPELINE = 2
+#: how often a job without ``--workers`` reads the cluster's size (:mod:`farm.sizing`)
+GROW_EVERY_S = 5.0
+
+
+def commit_slots(workers: int) -> int:
+    """Commits that may run at once for a job of ``workers`` workers."""
+    return max(2, workers // 8)
 
 
 class FarmError(RuntimeError):
@@ -200,10 +208,11 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
     job.state.dashboard = connect(cfg.address, cfg.ray_dashboard)
     stop_on_sigterm()
     echo(f"ray dashboard: {job.state.dashboard or 'off'}")
-    workers = cfg.workers or max(
-        1, int(ray.cluster_resources().get("CPU", 1)) // cfg.cpus_per_worker
+    fit = sizing.fits(ray.cluster_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
+    workers = sizing.initial(
+        cfg.workers, fit, sum(len(job.layout.shard_materials(s)) for s in job.todo)
     )
-    loop = Loop(job, lease, progress, actor_cls, max_commits=max(2, workers // 8))
+    loop = Loop(job, lease, progress, actor_cls, max_commits=commit_slots(workers))
     try:
         loop.start(workers, t_start)
         while not loop.finished:
@@ -211,6 +220,7 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
             for ref in loop.wait():
                 loop.handle(ref)
             loop.check_placement()
+            loop.grow(every=GROW_EVERY_S)
             loop.expire()
             loop.save(every=STATE_EVERY_S)
         if loop.cancelled:
@@ -269,7 +279,7 @@ class Loop:
         self.first: set[str] = set()
         self.startup_s: float | None = None  # until the first workers answer
         self.t_start = 0.0
-        self.last_live = self.last_save = now()
+        self.last_live = self.last_save = self.last_grow = now()
         self.uv_ref: tuple[object, str] | None = None  # (ref, worker) of the screen UV render
         self.uv_tries = 0
         remaining = sum(len(layout.shard_samples(s)) for s in job.todo)
@@ -511,6 +521,24 @@ class Loop:
                 f"{cfg.gpus_per_worker} GPU(s)"
             )
             raise FarmError(f"no live worker for {cfg.placement_timeout_s:.0f} s: {why}")
+
+    def grow(self, every: float) -> None:
+        """Without ``--workers``: start workers on what the cluster gained since the last
+        look, ``every`` seconds at most (:mod:`farm.sizing`)."""
+        import ray
+
+        if self.cfg.workers or self.cancelled or now() - self.last_grow < every:
+            return
+        self.last_grow = now()
+        cfg, starting = self.cfg, len(self.pool.starting)
+        fit = sizing.fits(ray.cluster_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
+        placed = len(self.pool.actors) - starting
+        more = sizing.to_start(fit, placed, starting, len(self.sched.queue))
+        if more:
+            self.bar.write(f"the cluster holds {fit} workers: starting {more} more")
+            for _ in range(more):
+                self.pool.start()
+            self.max_commits = max(self.max_commits, commit_slots(placed + more))
 
     def expire(self) -> None:
         """Kill the workers whose running task is past the guard; the task then fails (a

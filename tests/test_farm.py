@@ -405,6 +405,50 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
         cluster.shutdown()
 
 
+def test_a_job_without_workers_given_grows_onto_a_node_that_joins(tmp_path, monkeypatch):
+    """A one-CPU cluster, then a second node joins mid-job, as a scaled-up worker group's pod
+    or an autoscaler's node would. The head's worker waits (``wait_for``) until a worker on
+    the new node holds a task (``hold_while``'s file): the job cannot end unless the farm
+    started one there."""
+    from ray.cluster_utils import Cluster
+
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    monkeypatch.delenv(FAULTS_ENV, raising=False)
+    hold = tmp_path / "hold"
+    hold.touch()
+    held = Path(f"{hold}.held")
+    loopback = {"node_ip_address": "127.0.0.1"}
+    head_env = {FAULTS_ENV: json.dumps({"wait_for": str(held)})}
+    cluster = Cluster(
+        initialize_head=True, head_node_args={"num_cpus": 1, "env_vars": head_env, **loopback}
+    )
+    out = tmp_path / "set.zarr"
+    try:
+        cluster.wait_for_nodes()
+        proc = farm("submit", "-m", "uniform:6", *TINY, "--no-ray-dashboard", "-o", out,
+                    "--address", cluster.address, wait=False)  # fmt: skip
+        try:
+            state = out / "farm" / "job.json"
+            wait_until(lambda: state.exists() and any(
+                w["status"] == "busy" for w in job(out)["workers"].values()
+            ), 120, "the head's worker never got a task")  # fmt: skip
+            assert len(job(out)["workers"]) == 1  # what a one-CPU cluster holds
+            node_env = {FAULTS_ENV: json.dumps({"hold_while": str(hold)})}
+            cluster.add_node(num_cpus=1, env_vars=node_env, **loopback)
+            wait_until(held.exists, 120, "no worker started on the node that joined")
+            hold.unlink()
+            stdout, stderr = proc.communicate(timeout=240)
+        finally:
+            proc.kill()
+        assert proc.returncode == 0, stderr[-3000:]
+        assert "the cluster holds 2 workers: starting 1 more" in stdout + stderr
+        assert_exactly_once(out, 6)
+        workers = list(job(out)["workers"].values())
+        assert len(workers) == 2 and all(w["materials"] for w in workers), workers
+    finally:
+        cluster.shutdown()
+
+
 @pytest.mark.exclusive  # `ray stop --force` stops every Ray on the machine
 def test_killed_driver_resumes_where_it_stopped(tmp_path):
     out = tmp_path / "set.zarr"

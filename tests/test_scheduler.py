@@ -1,4 +1,5 @@
-"""The farm's scheduling policy and shard assembly alone: no Ray, a fake clock, made-up workers."""
+"""The farm's scheduling and sizing policies and shard assembly alone: no Ray, a fake clock, made-up
+workers."""
 
 from __future__ import annotations
 
@@ -193,3 +194,26 @@ def test_shard_assembly_returns_a_whole_shard_in_material_order_and_drops_dead_o
     assert shards.add(2, {"m": 2}) is None and 1 not in shards.waiting
     assert shards.add(5, {"m": 5}) is None
     assert shards.waiting == {2: {5: {"m": 5}}}
+
+
+def test_a_job_is_sized_to_the_cluster_and_its_materials():
+    from farm.sizing import fits, initial
+
+    assert fits({"CPU": 64.0, "GPU": 8.0}, 4, 0) == 16
+    assert fits({"CPU": 64.0, "GPU": 8.0}, 4, 1) == 8  # the GPUs bound GPU workers
+    assert fits({"CPU": 64.0}, 1, 1) == 1  # no GPU yet: one worker, which waits for one
+    assert fits({"CPU": 0.0}, 1, 0) == 1  # a head with no CPUs: one worker waits for a node
+    assert fits({"CPU": 7.0}, 2, 0) == 3
+    assert initial(None, 16, 3) == 3  # no Blender for a material that is not there
+    assert initial(None, 16, 40) == 16
+    assert initial(5, 16, 3) == 5  # --workers is what it says
+
+
+def test_a_job_grows_onto_what_the_cluster_gains_while_tasks_are_queued():
+    from farm.sizing import to_start
+
+    assert to_start(fit=8, placed=4, starting=0, queued=100) == 4  # a node of 4 CPUs joined
+    assert to_start(fit=8, placed=4, starting=1, queued=100) == 0  # one still waits for room
+    assert to_start(fit=8, placed=4, starting=0, queued=2) == 2  # the queue keeps 2 busy
+    assert to_start(fit=8, placed=4, starting=0, queued=0) == 0  # the job's last tasks run
+    assert to_start(fit=2, placed=4, starting=0, queued=100) == 0  # never shrinks
