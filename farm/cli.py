@@ -225,6 +225,14 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
     help="Seconds allowed per sun before the render counts as failed.",
 )
 @click.option(
+    "--placement-timeout",
+    default=300.0,
+    show_default=True,
+    type=click.FloatRange(1),
+    help="Seconds the job waits with no live worker (none placed yet, or every one gone) "
+    "before it stops; raise it for an autoscaler that starts GPU nodes from zero.",
+)
+@click.option(
     "--recycle-after",
     default=500,
     show_default=True,
@@ -291,7 +299,9 @@ def submit(out, **options):
     _echo_summary(summary)
 
 
-def _submit_config(out, sources, task_timeout, fixed_sun, fixed_turbidity, **options):
+def _submit_config(
+    out, sources, task_timeout, placement_timeout, fixed_sun, fixed_turbidity, **options
+):
     """``farm submit``'s options → its ``JobConfig``; a refused setting ends in one line."""
     from farm.driver import FarmError
     from farm.plan import JobConfig
@@ -301,6 +311,7 @@ def _submit_config(out, sources, task_timeout, fixed_sun, fixed_turbidity, **opt
         sources=tuple(sources),
         out=out,
         task_timeout_s=task_timeout,
+        placement_timeout_s=placement_timeout,
         fixed_sun=_fixed_sun(fixed_sun, fixed_turbidity),
         **options,
     )

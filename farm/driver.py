@@ -228,6 +228,9 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
         else:
             job.state.status = "failed" if loop.sched.final or loop.failed_commits else "done"
         render_end = time.perf_counter() - t_start
+    except FarmError as exc:  # the job cannot go on (no worker could be placed): it failed
+        job.state.status, job.state.stop_error = "failed", str(exc)
+        raise
     except BaseException:
         job.state.status = "interrupted"
         raise

@@ -68,6 +68,7 @@ class JobState:
     dashboard: str | None = None
     history: list[list[float]] = field(default_factory=list)  # [time, frames done], bounded
     screen_uv_error: str | None = None  # why the store's screen UV layout could not be made
+    stop_error: str | None = None  # why a failed job stopped before its end (no worker placed)
 
     def to_json(self) -> bytes:
         data = asdict(self)

@@ -31,6 +31,12 @@ def format_status(st: dict) -> str:
         f"shards    {st['shards_committed']}/{st['shards_total']} committed"
         + (f", failed: {st['shards_failed']}" if st["shards_failed"] else ""),
     ]
+    if st.get("stop_error"):
+        lines.append(f"stopped   {st['stop_error']}")
+    if st.get("screen_uv_error"):
+        lines.append(
+            f"screen UV layout not made: {st['screen_uv_error']} (farm screen-uv makes it)"
+        )
     if status == "running" and st.get("dashboard"):
         lines.append(f"ray       {st['dashboard']} (the Ray dashboard, while the job runs)")
     if st["failures"] or st.get("commit_failures"):

@@ -96,9 +96,14 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets, tmp_path):
         (tmp_path / run / "config.json").write_text("{}")
         (tmp_path / run / "eval.png").write_bytes(b"\x89PNG")
     os.symlink(tmp_path / "away", tmp_path / "runs" / "away")
-    with Server(sets, "--runs", tmp_path / "runs") as s:
+    stopped = synthetic_job(tmp_path / "stopped.zarr", status="failed")
+    stopped.stop_error = "no live worker for 300 s: Ray could not place a worker needing ..."
+    stopped.save(Backend(str(tmp_path / "stopped.zarr")))
+    with Server(sets, tmp_path / "stopped.zarr", "--runs", tmp_path / "runs") as s:
         code, body = s.get("/runs")
         assert code == 200 and b"runs/kept <small>" in body and b"away" not in body
+        page = s.get("/job/1")[1].decode()  # a failed job says why it stopped
+        assert '<p class="err" id="stop-error">stopped: no live worker for 300 s' in page
         code, body = s.get("/")
         page = body.decode()
         assert code == 200 and f'href="/job/0/a.zarr">{sets}/a.zarr</a>' in page  # as given

@@ -176,6 +176,23 @@ def test_status_names_the_ray_dashboard_only_while_the_job_runs():
     assert format_status({**st, "workers": {"w0": old}}).splitlines()[-1].split()[6] == "0"
 
 
+def test_a_job_no_worker_can_be_placed_for_stops_failed_and_says_why(tmp_path):
+    """A GPU worker on a machine with no GPU: Ray never places it. After --placement-timeout
+    the job stops in one line, and its state, ``farm status`` and the dashboard say why."""
+    out = tmp_path / "set.zarr"
+    r = farm("submit", "-m", "uniform:2", *TINY, "--gpus-per-worker", "1",
+             "--placement-timeout", "3", "--no-ray-dashboard", "-o", out)  # fmt: skip
+    why = "no live worker for 3 s: Ray could not place a worker needing 1 CPU(s) and 1 GPU(s)"
+    assert r.returncode == 1 and r.stderr.strip().splitlines()[-1] == f"Error: {why}", r.stderr
+    st = job(out)
+    assert st["status"] == "failed" and st["stop_error"] == why
+    assert f"stopped   {why}" in farm("status", out).stdout
+    from farm.status import format_status
+
+    uv = format_status({**st, "screen_uv_error": "RenderError: boom"})
+    assert "screen UV layout not made: RenderError: boom (farm screen-uv makes it)" in uv
+
+
 def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):
     out = tmp_path / "set.zarr"
     args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "-o", out]

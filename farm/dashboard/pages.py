@@ -90,6 +90,9 @@ JOB_LIVE = """<div id="live" data-live="{{ 1 if row.status == 'running' else 0 }
 <p>{% if state %}driver {{ state.driver }} · started {{ state.started|when }} · updated
 {{ state.updated|when }}{% endif %}{% if state and state.dashboard %} ·
 <a href="{{ state.dashboard }}">Ray dashboard</a>{% endif %}</p>
+{% if state and state.stop_error %}<p class="err" id="stop-error">stopped: {{ state.stop_error }}
+</p>{% endif %}{% if state and state.screen_uv_error %}<p class="err">the store's screen UV layout
+was not made: {{ state.screen_uv_error }} (<code>farm screen-uv</code> makes it)</p>{% endif %}
 <h2>Frames per second</h2>{{ chart }}
 <h2>Shards</h2>{{ shard_map }}
 <h2>Newest renders</h2><div class="thumbs" id="thumbs">{% for s in thumbs %}
