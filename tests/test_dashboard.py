@@ -98,12 +98,19 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets, tmp_path):
     os.symlink(tmp_path / "away", tmp_path / "runs" / "away")
     stopped = synthetic_job(tmp_path / "stopped.zarr", status="failed")
     stopped.stop_error = "no live worker for 300 s: Ray could not place a worker needing ..."
+    stopped.workers["w2"] = WorkerStats("w2", "starting")
     stopped.save(Backend(str(tmp_path / "stopped.zarr")))
-    with Server(sets, tmp_path / "stopped.zarr", "--runs", tmp_path / "runs") as s:
+    growing = synthetic_job(tmp_path / "growing.zarr")
+    growing.workers["w2"] = WorkerStats("w2", "starting")  # Ray has not placed it yet
+    growing.save(Backend(str(tmp_path / "growing.zarr")))
+    roots = (tmp_path / "stopped.zarr", tmp_path / "growing.zarr")
+    with Server(sets, *roots, "--runs", tmp_path / "runs") as s:
         code, body = s.get("/runs")
         assert code == 200 and b"runs/kept <small>" in body and b"away" not in body
         page = s.get("/job/1")[1].decode()  # a failed job says why it stopped
         assert '<p class="err" id="stop-error">stopped: no live worker for 300 s' in page
+        assert 'id="waiting"' not in page  # a stopped job waits for nothing
+        assert '<small id="waiting"> +1 starting</small>' in s.get("/job/2")[1].decode()
         code, body = s.get("/")
         page = body.decode()
         assert code == 200 and f'href="/job/0/a.zarr">{sets}/a.zarr</a>' in page  # as given

@@ -132,6 +132,9 @@ def job_row(name: str, url: str, label: str | None = None) -> dict:
         eta_s=state["eta_s"] if state["effective_status"] == "running" else None,
         failed=sum(1 for f in state["failures"].values() if f["final"]),
         workers=len(live),
+        waiting=sum(w["status"] == "starting" for w in state["workers"].values())
+        if state["effective_status"] == "running"
+        else 0,
         age_s=time.time() - state["started"],
         started=state["started"],
         state=state,

@@ -22,6 +22,7 @@ th{background:#eef1f5} .num{text-align:right;font-variant-numeric:tabular-nums}
 .s-cancelled,.s-interrupted{color:#8a6d00} .err{color:#c62828} .stale{color:#c62828}
 .cards{display:flex;gap:12px;flex-wrap:wrap} .card{background:#fff;padding:8px 14px;
 border:1px solid #e3e6eb;border-radius:6px} .card b{display:block;font-size:20px}
+.card b small{font-size:13px;font-weight:normal;color:#555}
 .thumbs img{width:128px;height:128px;margin:0 6px 6px 0;border:1px solid #ccd;image-rendering:auto}
 button{background:#c62828;color:#fff;border:0;padding:6px 14px;border-radius:4px;cursor:pointer}
 .grid{display:flex;gap:24px;flex-wrap:wrap} svg text{font-size:11px;fill:#555}
@@ -86,7 +87,9 @@ JOB_LIVE = """<div id="live" data-live="{{ 1 if row.status == 'running' else 0 }
 <div class="card">ETA<b>{{ row.eta_s|dur }}</b></div>
 <div class="card">shards<b id="shards">{{ committed }}/{{ row.shards_total }}</b></div>
 <div class="card">failed materials<b id="failed">{{ row.failed }}</b></div>
-<div class="card">workers<b>{{ row.workers }}</b></div></div>
+<div class="card" title="placed and alive; starting: not placed by Ray yet (Blender
+loading, or no room: a node still joining)">workers<b>{{ row.workers }}{% if row.waiting %}
+<small id="waiting"> +{{ row.waiting }} starting</small>{% endif %}</b></div></div>
 <p>{% if state %}driver {{ state.driver }} · started {{ state.started|when }} · updated
 {{ state.updated|when }}{% endif %}{% if state and state.dashboard %} ·
 <a href="{{ state.dashboard }}">Ray dashboard</a>{% endif %}</p>
