@@ -125,7 +125,7 @@ def compare_commands(runs: list[dict]) -> list[dict]:
             groups.setdefault(held, []).append(r)
     return [
         {
-            "labels": [r.get("label", r["path"]) for r in group],
+            "labels": [r["label"] for r in group],
             "command": "trainer eval "
             + " ".join(f"--checkpoint {shlex.quote(r['path'])}" for r in group),
         }
