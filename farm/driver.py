@@ -208,7 +208,7 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
     job.state.dashboard = connect(cfg.address, cfg.ray_dashboard)
     stop_on_sigterm()
     echo(f"ray dashboard: {job.state.dashboard or 'off'}")
-    fit = sizing.fits(ray.cluster_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
+    fit = sizing.fits(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
     workers = sizing.initial(
         cfg.workers, fit, sum(len(job.layout.shard_materials(s)) for s in job.todo)
     )
@@ -534,8 +534,9 @@ class Loop:
             return
         self.last_grow = now()
         cfg, starting = self.cfg, len(self.pool.starting)
-        fit = sizing.fits(ray.cluster_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
         placed = len(self.pool.actors) - starting
+        free = sizing.room(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
+        fit = placed + free  # this job's workers hold their resources: not in the free ones
         more = sizing.to_start(fit, placed, starting, len(self.sched.queue))
         if more:
             self.bar.write(f"the cluster holds {fit} workers: starting {more} more")

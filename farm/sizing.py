@@ -6,6 +6,9 @@ as nodes join: a worker group scaled up by hand, an autoscaler's node, a machine
 ``ray start --address``. The driver reads the cluster's resources every few seconds and starts
 what :func:`to_start` says. It never stops a worker to shrink: a node that leaves takes its
 workers with it, and the driver replaces each dead one, which waits for room.
+
+Room is what is free (Ray's ``available_resources()``), not the cluster's size: CPUs that
+another Ray job holds on a shared cluster are not this job's to count on.
 """
 
 from __future__ import annotations
@@ -13,13 +16,19 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 
-def fits(resources: Mapping[str, float], cpus_per_worker: int, gpus_per_worker: float) -> int:
-    """The workers that ``resources`` (Ray's ``cluster_resources()``) hold, at least 1: CPUs
-    over ``cpus_per_worker``, and GPUs over ``gpus_per_worker`` when a worker needs any."""
+def room(resources: Mapping[str, float], cpus_per_worker: int, gpus_per_worker: float) -> int:
+    """The workers that ``resources`` hold (0 when none fits): CPUs over ``cpus_per_worker``,
+    and GPUs over ``gpus_per_worker`` when a worker needs any."""
     n = int(resources.get("CPU", 0) // max(cpus_per_worker, 1))
     if gpus_per_worker:
         n = min(n, int(resources.get("GPU", 0) // gpus_per_worker))
-    return max(1, n)
+    return max(0, n)
+
+
+def fits(resources: Mapping[str, float], cpus_per_worker: int, gpus_per_worker: float) -> int:
+    """The workers a job with none yet starts toward: the :func:`room` in ``resources`` (Ray's
+    ``available_resources()``), at least 1, which waits for room when there is none."""
+    return max(1, room(resources, cpus_per_worker, gpus_per_worker))
 
 
 def initial(fixed: int | None, fit: int, tasks: int) -> int:

@@ -422,11 +422,25 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
         cluster.shutdown()
 
 
+HOLD_ONE_CPU = """
+import sys
+from farm.pool import ray_environment
+ray_environment(sys.argv[1])
+import ray
+ray.init(address=sys.argv[1], _node_ip_address="127.0.0.1", log_to_driver=False)
+holder = ray.remote(num_cpus=1)(type("Holder", (), {"ping": lambda self: 1})).remote()
+ray.get(holder.ping.remote())
+print("held", flush=True)
+sys.stdin.read()
+"""
+
+
 def test_a_job_without_workers_given_grows_onto_a_node_that_joins(tmp_path, monkeypatch):
-    """A one-CPU cluster, then a second node joins mid-job, as a scaled-up worker group's pod
-    or an autoscaler's node would. The head's worker waits (``wait_for``) until a worker on
-    the new node holds a task (``hold_while``'s file): the job cannot end unless the farm
-    started one there."""
+    """A two-CPU head where another Ray job holds one CPU, then a second node joins mid-job,
+    as a scaled-up worker group's pod or an autoscaler's node would. The farm starts one
+    worker, not one for each of the head's CPUs. That worker waits (``wait_for``) until a
+    worker on the new node holds a task (``hold_while``'s file): the job cannot end unless
+    the farm started one there."""
     from ray.cluster_utils import Cluster
 
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
@@ -437,11 +451,14 @@ def test_a_job_without_workers_given_grows_onto_a_node_that_joins(tmp_path, monk
     loopback = {"node_ip_address": "127.0.0.1"}
     head_env = {FAULTS_ENV: json.dumps({"wait_for": str(held)})}
     cluster = Cluster(
-        initialize_head=True, head_node_args={"num_cpus": 1, "env_vars": head_env, **loopback}
+        initialize_head=True, head_node_args={"num_cpus": 2, "env_vars": head_env, **loopback}
     )
     out = tmp_path / "set.zarr"
+    other = subprocess.Popen([sys.executable, "-c", HOLD_ONE_CPU, cluster.address],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
     try:
         cluster.wait_for_nodes()
+        assert other.stdout.readline().strip() == "held"  # another job holds one CPU
         proc = farm("submit", "-m", "uniform:6", *TINY, "--no-ray-dashboard", "-o", out,
                     "--address", cluster.address, wait=False)  # fmt: skip
         try:
@@ -449,7 +466,7 @@ def test_a_job_without_workers_given_grows_onto_a_node_that_joins(tmp_path, monk
             wait_until(lambda: state.exists() and any(
                 w["status"] == "busy" for w in job(out)["workers"].values()
             ), 120, "the head's worker never got a task")  # fmt: skip
-            assert len(job(out)["workers"]) == 1  # what a one-CPU cluster holds
+            assert len(job(out)["workers"]) == 1  # the one CPU the other job leaves free
             node_env = {FAULTS_ENV: json.dumps({"hold_while": str(hold)})}
             cluster.add_node(num_cpus=1, env_vars=node_env, **loopback)
             wait_until(held.exists, 120, "no worker started on the node that joined")
@@ -463,6 +480,7 @@ def test_a_job_without_workers_given_grows_onto_a_node_that_joins(tmp_path, monk
         workers = list(job(out)["workers"].values())
         assert len(workers) == 2 and all(w["materials"] for w in workers), workers
     finally:
+        other.kill()
         cluster.shutdown()
 
 
