@@ -182,9 +182,10 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
     "--workers",
     type=click.IntRange(1),
     default=None,
-    help="Blender workers [default: what the cluster's free resources hold (CPUs / "
-    "--cpus-per-worker, GPUs / --gpus-per-worker), no more than the materials left, growing "
-    "as nodes join].",
+    help="Blender workers, no more than the materials left; those Ray cannot place wait for "
+    "room, and an autoscaling cluster adds nodes for them [default: what the cluster's free "
+    "resources hold (CPUs / --cpus-per-worker, GPUs / --gpus-per-worker), growing as nodes "
+    "join].",
 )
 @click.option(
     "--cpus-per-worker",

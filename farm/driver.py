@@ -208,10 +208,13 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
     job.state.dashboard = connect(cfg.address, cfg.ray_dashboard)
     stop_on_sigterm()
     echo(f"ray dashboard: {job.state.dashboard or 'off'}")
-    fit = sizing.fits(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
+    room = sizing.room(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
     workers = sizing.initial(
-        cfg.workers, fit, sum(len(job.layout.shard_materials(s)) for s in job.todo)
+        cfg.workers, max(1, room), sum(len(job.layout.shard_materials(s)) for s in job.todo)
     )
+    if workers > room:
+        echo(f"{workers} workers, room for {room} now: the others wait for room "
+             "(an autoscaling cluster adds nodes for them)")  # fmt: skip
     loop = Loop(job, lease, progress, actor_cls, max_commits=commit_slots(workers))
     try:
         loop.start(workers, t_start)

@@ -1,14 +1,18 @@
 """How many render workers a job runs, as plain decisions: no Ray, no clock.
 
-With ``--workers N`` a job runs N workers; those Ray cannot place yet wait for room (an
-autoscaler adds nodes for them). Without it the job sizes itself to the cluster and follows it
-as nodes join: a worker group scaled up by hand, an autoscaler's node, a machine started with
-``ray start --address``. The driver reads the cluster's resources every few seconds and starts
-what :func:`to_start` says. It never stops a worker to shrink: a node that leaves takes its
-workers with it, and the driver replaces each dead one, which waits for room.
+With ``--workers N`` a job runs N workers, no more than its materials. Those Ray cannot place
+yet wait for room, and on an autoscaling cluster they are the demand the autoscaler adds nodes
+for: ``--workers`` is how large a job asks such a cluster to grow.
 
-Room is what is free (Ray's ``available_resources()``), not the cluster's size: CPUs that
-another Ray job holds on a shared cluster are not this job's to count on.
+Without it the job sizes itself to the room the cluster has and follows it as nodes join: a
+worker group scaled up by hand, an autoscaler's node, a machine started with ``ray start
+--address``. The driver reads the cluster's free resources every few seconds and starts what
+:func:`to_start` says. Room is what is free (Ray's ``available_resources()``), not the
+cluster's size: CPUs that another Ray job holds on a shared cluster are not this job's. Such a
+job asks an autoscaler for one node at most (its one worker that waits when nothing is free).
+
+It never stops a worker to shrink: a node that leaves takes its workers with it, and the
+driver replaces each dead one, which waits for room.
 """
 
 from __future__ import annotations
@@ -25,16 +29,12 @@ def room(resources: Mapping[str, float], cpus_per_worker: int, gpus_per_worker: 
     return max(0, n)
 
 
-def fits(resources: Mapping[str, float], cpus_per_worker: int, gpus_per_worker: float) -> int:
-    """The workers a job with none yet starts toward: the :func:`room` in ``resources`` (Ray's
-    ``available_resources()``), at least 1, which waits for room when there is none."""
-    return max(1, room(resources, cpus_per_worker, gpus_per_worker))
-
-
-def initial(fixed: int | None, fit: int, tasks: int) -> int:
+def initial(fixed: int | None, room: int, tasks: int) -> int:
     """The workers a job starts with: ``fixed`` (``--workers``) when given, else those the
-    cluster ``fit``s, but no more than its ``tasks`` (materials to render) can keep busy."""
-    return fixed if fixed else max(1, min(fit, tasks))
+    cluster has ``room`` for (at least 1, which waits when there is none), but no more than
+    its ``tasks`` (materials to render) can keep busy: on an autoscaling cluster a worker that
+    waits for room is a node the autoscaler adds."""
+    return max(1, min(fixed or room, tasks))
 
 
 def to_start(fit: int, placed: int, starting: int, queued: int) -> int:

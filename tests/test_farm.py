@@ -484,6 +484,28 @@ def test_a_job_without_workers_given_grows_onto_a_node_that_joins(tmp_path, monk
         cluster.shutdown()
 
 
+def test_workers_waiting_for_room_make_an_autoscaling_cluster_add_nodes(tmp_path):
+    """A cluster whose head has no CPUs, with Ray's autoscaler (``tests.ray_autoscaler``, set
+    up as KubeRay's, with a CPU and a GPU node type). ``--workers 3`` on 2 materials starts 2
+    workers (no node for a third that would have nothing to do); none fits anywhere until the
+    autoscaler, seeing them wait, adds a CPU node for each, and the job renders everything on
+    them."""
+    from tests.ray_autoscaler import autoscaling_cluster
+
+    out = tmp_path / "set.zarr"
+    with autoscaling_cluster(node_cpus=1, max_nodes=3) as (address, monitor_log):
+        r = farm("submit", "-m", "uniform:2", *TINY, "--workers", "3", "--no-ray-dashboard",
+                 "--placement-timeout", "120", "--address", address, "-o", out)  # fmt: skip
+        added = re.findall(r"Adding (\d+) node\(s\) of type (\w+)", monitor_log.read_text())
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert_exactly_once(out, 2)
+    assert sum(int(n) for n, _ in added) == 2, added  # one node for each waiting worker
+    assert {kind for _, kind in added} == {"cpu"}, added  # no GPU node for CPU workers
+    assert "2 workers, room for 0 now: the others wait for room (an autoscaling" in r.stdout
+    workers = job(out)["workers"].values()
+    assert len(workers) == 2 and sum(w["materials"] for w in workers) == 2, workers
+
+
 @pytest.mark.exclusive  # `ray stop --force` stops every Ray on the machine
 def test_killed_driver_resumes_where_it_stopped(tmp_path):
     out = tmp_path / "set.zarr"

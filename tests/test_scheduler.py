@@ -197,18 +197,19 @@ def test_shard_assembly_returns_a_whole_shard_in_material_order_and_drops_dead_o
 
 
 def test_a_job_is_sized_to_the_cluster_and_its_materials():
-    from farm.sizing import fits, initial, room
+    from farm.sizing import initial, room
 
-    assert fits({"CPU": 64.0, "GPU": 8.0}, 4, 0) == 16
-    assert fits({"CPU": 64.0, "GPU": 8.0}, 4, 1) == 8  # the GPUs bound GPU workers
-    assert fits({"CPU": 64.0}, 1, 1) == 1  # no GPU yet: one worker, which waits for one
-    assert fits({"CPU": 0.0}, 1, 0) == 1  # a head with no CPUs: one worker waits for a node
-    assert fits({"CPU": 7.0}, 2, 0) == 3
-    assert room({"CPU": 0.0}, 1, 0) == 0  # what a growing job adds: nothing when none is free
+    assert room({"CPU": 64.0, "GPU": 8.0}, 4, 0) == 16
+    assert room({"CPU": 64.0, "GPU": 8.0}, 4, 1) == 8  # the GPUs bound GPU workers
+    assert room({"CPU": 64.0}, 1, 1) == 0  # no GPU yet
+    assert room({"CPU": 0.0}, 1, 0) == 0  # a head with no CPUs
+    assert room({"CPU": 7.0}, 2, 0) == 3
     assert room({"CPU": 9.0, "GPU": 2.0}, 4, 1) == 2
     assert initial(None, 16, 3) == 3  # no Blender for a material that is not there
     assert initial(None, 16, 40) == 16
-    assert initial(5, 16, 3) == 5  # --workers is what it says
+    assert initial(None, 0, 40) == 1  # no room: one worker, which waits for a node
+    assert initial(5, 16, 40) == 5  # --workers is what it says, beyond the room there is
+    assert initial(5, 16, 3) == 3  # but starts no Blender (nor autoscaled node) for nothing
 
 
 def test_a_job_grows_onto_what_the_cluster_gains_while_tasks_are_queued():

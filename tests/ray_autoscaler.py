@@ -1,0 +1,114 @@
+"""A Ray cluster on 127.0.0.1 with Ray's own autoscaler, for the tests.
+
+The head has no CPUs and runs Ray's autoscaler (``ray start --autoscaling-config``) with its
+``fake_multinode`` node provider: a node the autoscaler launches is a real raylet process on
+this machine instead of a VM or a pod. The provider is set up as KubeRay's autoscaler sets up
+its own (no node updaters, no launch config check, nodes launched in the foreground), so a
+job sees what it would see on a KubeRay cluster with ``enableInTreeAutoscaling``: workers that
+wait for room make the autoscaler add nodes, up to ``max_nodes``.
+
+The head runs in a session of its own and everything it started, the nodes the autoscaler
+launched included, is stopped with that session: no ``ray stop``, which would stop every Ray
+on the machine.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from tests.conftest import free_port
+
+BIN = Path(sys.executable).parent
+NO_SETUP = (  # the autoscaler's cluster-launcher keys, which a KubeRay cluster leaves empty
+    "initialization_commands", "setup_commands", "head_setup_commands",
+    "worker_setup_commands", "head_start_ray_commands", "worker_start_ray_commands",
+    "cluster_synced_files",
+)  # fmt: skip
+
+
+def config(address: str, node_cpus: int, max_nodes: int) -> dict:
+    """The autoscaler's cluster config: a head with no CPUs, a ``cpu`` node type of
+    ``node_cpus`` and a ``gpu`` one of as many CPUs and a GPU (declared: Ray takes a node's
+    word for its GPUs), as k8s/base/raycluster.yaml has a CPU and a GPU worker group."""
+    node = {"node_config": {}, "min_workers": 0, "max_workers": max_nodes}
+    return {
+        "cluster_name": "shaderball-test",
+        "max_workers": 2 * max_nodes,
+        "upscaling_speed": 1.0,
+        "idle_timeout_minutes": 5,
+        "provider": {
+            "type": "fake_multinode",
+            "gcs_address": address,
+            "disable_node_updaters": True,
+            "disable_launch_config_check": True,
+            "foreground_node_launch": True,
+        },
+        "auth": {"ssh_user": "ray"},
+        "head_node_type": "ray.head.default",
+        "available_node_types": {
+            "ray.head.default": {"resources": {"CPU": 0}, "node_config": {}, "max_workers": 0},
+            "cpu": {"resources": {"CPU": node_cpus}, **node},
+            "gpu": {"resources": {"CPU": node_cpus, "GPU": 1}, **node},
+        },
+        "file_mounts": {},
+        "file_mounts_sync_continuously": False,
+        **{key: [] for key in NO_SETUP},
+    }
+
+
+@contextlib.contextmanager
+def autoscaling_cluster(node_cpus: int = 1, max_nodes: int = 2) -> Iterator[tuple[str, Path]]:
+    """Start the cluster; yields its address and the autoscaler's log (``monitor.log``)."""
+    port = free_port()
+    address = f"127.0.0.1:{port}"
+    # short: Ray's socket paths under it must fit in a Unix socket address (107 bytes)
+    temp = Path(tempfile.mkdtemp(prefix="ray-as-", dir="/tmp"))
+    (temp / "autoscaler.json").write_text(json.dumps(config(address, node_cpus, max_nodes)))
+    env = {**os.environ, "RAY_FAKE_CLUSTER": "1", "AUTOSCALER_UPDATE_INTERVAL_S": "1",
+           "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_AUTH_MODE": "disabled",
+           "RAY_worker_niceness": "0"}  # as k8s/base/raycluster.yaml sets it  # fmt: skip
+    head = subprocess.Popen(
+        [BIN / "ray", "start", "--head", "--block", "--port", str(port), "--num-cpus", "0",
+         "--autoscaling-config", temp / "autoscaler.json", "--node-ip-address", "127.0.0.1",
+         "--include-dashboard", "false", "--temp-dir", temp,
+         "--ray-client-server-port", str(free_port()),
+         "--dashboard-agent-listen-port", str(free_port())],
+        env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        _wait_for_head(address, head)
+        yield address, temp / "session_latest" / "logs" / "monitor.log"
+    finally:  # killed, not stopped: Ray's graceful stop of this cluster takes about 30 s
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(head.pid, signal.SIGKILL)
+        head.wait(10)
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+def _wait_for_head(address: str, head: subprocess.Popen, timeout: float = 60) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if head.poll() is not None:
+            raise RuntimeError(f"the autoscaling Ray head exited ({head.returncode})")
+        if _gcs_up(address):
+            return
+        time.sleep(0.5)
+    raise RuntimeError(f"the autoscaling Ray head at {address} did not start in {timeout:.0f} s")
+
+
+def _gcs_up(address: str) -> bool:
+    host, port = address.rsplit(":", 1)
+    with socket.socket() as s:
+        s.settimeout(1)
+        return s.connect_ex((host, int(port))) == 0
