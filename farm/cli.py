@@ -495,18 +495,22 @@ def cancel(store):
 @click.argument("store")
 @click.option("--json", "as_json", is_flag=True, help="Print the job state as JSON.")
 @click.option("--watch", is_flag=True, help="Refresh every 2 s until the job ends.")
-def status(store, as_json, watch):
+@click.option(
+    "--all-workers", is_flag=True, help="List every worker [default: the first 20, and a count]."
+)
+def status(store, as_json, watch, all_workers):
     """Show a farm job's progress, failures and workers, from the state kept with its store.
 
     \b
     Examples:
       farm status out/small.zarr
       farm status out/small.zarr --watch
+      farm status s3://bucket/sets/paper-400.zarr --all-workers
     """
     import time
 
     from farm.state import load_state
-    from farm.status import format_status
+    from farm.status import WORKER_ROWS, format_status
 
     while True:
         state = load_state(store)
@@ -517,7 +521,7 @@ def status(store, as_json, watch):
         else:
             if watch:
                 click.clear()
-            click.echo(format_status(state))
+            click.echo(format_status(state, None if all_workers else WORKER_ROWS))
         if not watch or state["effective_status"] != "running":
             return
         time.sleep(2)

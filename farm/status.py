@@ -6,13 +6,18 @@ import time
 
 from tabulate import tabulate
 
+#: worker rows ``farm status`` prints unless asked for all (a cluster job runs hundreds)
+WORKER_ROWS = 20
+
 
 def _ago(t: float) -> str:
     s = max(0, time.time() - t)
     return f"{s:.0f} s ago" if s < 120 else f"{s / 60:.0f} min ago"
 
 
-def format_status(st: dict) -> str:
+def format_status(st: dict, worker_rows: int | None = WORKER_ROWS) -> str:
+    """The job, its failures, a count of its workers by status and a table of the first
+    ``worker_rows`` of them (``None``: all)."""
     done = st["frames_done"] + st["frames_skipped"]
     total = st["frames_total"]
     eta = f"{st['eta_s']:.0f} s" if st.get("eta_s") else "-"
@@ -50,6 +55,7 @@ def format_status(st: dict) -> str:
             )
     for shard, error in sorted(st.get("commit_failures", {}).items(), key=lambda kv: int(kv[0])):
         lines.append(f"  shard {shard:>9}  FAILED   commit: {error}")
+    lines.append(_worker_counts(st["workers"].values()))
     workers = [
         (w["worker"], w["status"], w["frames"], w["mean_frame_s"], w["failures"], w["recycled"])
         + (w.get("recalled", 0), _ago(w["last_seen"]))  # recalled: absent from older states
@@ -57,5 +63,16 @@ def format_status(st: dict) -> str:
     ]
     header = ["worker", "status", "frames", "s/frame", "fails", "recycled", "recalled",
               "last seen"]  # fmt: skip
-    lines.append(tabulate(workers, header, floatfmt=".2f"))
+    lines.append(tabulate(workers[:worker_rows], header, floatfmt=".2f"))
+    if worker_rows is not None and len(workers) > worker_rows:
+        lines.append(f"... {len(workers) - worker_rows} more (farm status --all-workers)")
     return "\n".join(lines)
+
+
+def _worker_counts(workers) -> str:
+    """``workers  12: 8 busy, 2 idle, 2 starting`` (statuses in the order first seen)."""
+    counts: dict[str, int] = {}
+    for w in workers:
+        counts[w["status"]] = counts.get(w["status"], 0) + 1
+    by_status = ", ".join(f"{n} {status}" for status, n in counts.items())
+    return f"workers   {sum(counts.values())}" + (f": {by_status}" if by_status else "")

@@ -176,6 +176,26 @@ def test_status_names_the_ray_dashboard_only_while_the_job_runs():
     assert format_status({**st, "workers": {"w0": old}}).splitlines()[-1].split()[6] == "0"
 
 
+def test_status_counts_a_cluster_jobs_workers_and_lists_the_first_twenty():
+    from farm.status import format_status
+
+    st = {"status": "running", "driver": "vm:1", "updated": time.time(), "store": "s.zarr",
+          "frames_done": 4, "frames_skipped": 0, "frames_total": 8, "frames_per_s": 1.0,
+          "eta_s": 4.0, "shards_committed": 1, "shards_total": 2, "shards_failed": [],
+          "failures": {}, "workers": {}}  # fmt: skip
+    assert "workers   0\n" in format_status(st)
+    statuses = ["busy"] * 20 + ["idle"] * 5 + ["starting"] * 4 + ["dead"]
+    st["workers"] = {f"w{i}": {"worker": f"w{i}", "status": s, "frames": 0, "mean_frame_s": 0.0,
+                               "failures": 0, "recycled": 0, "last_seen": time.time()}
+                     for i, s in enumerate(statuses)}  # fmt: skip
+    lines = format_status(st).splitlines()
+    assert "workers   30: 20 busy, 5 idle, 4 starting, 1 dead" in lines
+    assert [ln.split()[0] for ln in lines[-21:-1]] == [f"w{i}" for i in range(20)]
+    assert lines[-1] == "... 10 more (farm status --all-workers)"
+    every = format_status(st, None).splitlines()
+    assert every[-1].split()[:2] == ["w29", "dead"] and "more" not in every[-2]
+
+
 def test_a_job_no_worker_can_be_placed_for_stops_failed_and_says_why(tmp_path):
     """A GPU worker on a machine with no GPU: Ray never places it. After --placement-timeout
     the job stops in one line, and its state, ``farm status`` and the dashboard say why."""
