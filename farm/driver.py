@@ -210,7 +210,7 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
     echo(f"ray dashboard: {job.state.dashboard or 'off'}")
     room = sizing.room(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
     workers = sizing.initial(
-        cfg.workers, max(1, room), sum(len(job.layout.shard_materials(s)) for s in job.todo)
+        cfg.workers, room, sum(len(job.layout.shard_materials(s)) for s in job.todo)
     )
     if workers > room:
         echo(f"{workers} workers, room for {room} now: the others wait for room "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections import Counter
 
 from tabulate import tabulate
 
@@ -70,9 +71,7 @@ def format_status(st: dict, worker_rows: int | None = WORKER_ROWS) -> str:
 
 
 def _worker_counts(workers) -> str:
-    """``workers  12: 8 busy, 2 idle, 2 starting`` (statuses in the order first seen)."""
-    counts: dict[str, int] = {}
-    for w in workers:
-        counts[w["status"]] = counts.get(w["status"], 0) + 1
+    """``workers   12: 8 busy, 2 idle, 2 starting`` (statuses in the order first seen)."""
+    counts = Counter(w["status"] for w in workers)
     by_status = ", ".join(f"{n} {status}" for status, n in counts.items())
-    return f"workers   {sum(counts.values())}" + (f": {by_status}" if by_status else "")
+    return f"workers   {counts.total()}" + (f": {by_status}" if by_status else "")
