@@ -206,6 +206,7 @@ def test_a_job_no_worker_can_be_placed_for_stops_failed_and_says_why(tmp_path):
     assert r.returncode == 1 and r.stderr.strip().splitlines()[-1] == f"Error: {why}", r.stderr
     st = job(out)
     assert st["status"] == "failed" and st["stop_error"] == why
+    assert [w["status"] for w in st["workers"].values()] == ["unplaced"]
     assert f"stopped   {why}" in farm("status", out).stdout
     from farm.status import format_status
 
