@@ -55,8 +55,8 @@ STATE_EVERY_S = 2.0
 SCREEN_UV_TRIES = 3
 #: tasks a worker may hold (:mod:`farm.scheduler`, pipelining)
 PIPELINE = 2
-#: how often a job without ``--workers`` reads the cluster's size (:mod:`farm.sizing`)
-GROW_EVERY_S = 5.0
+#: how often a job looks at its workers against the cluster and the queue (:mod:`farm.sizing`)
+RESIZE_EVERY_S = 5.0
 
 
 def commit_slots(workers: int) -> int:
@@ -223,7 +223,7 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
             for ref in loop.wait():
                 loop.handle(ref)
             loop.check_placement()
-            loop.grow(every=GROW_EVERY_S)
+            loop.resize(every=RESIZE_EVERY_S)
             loop.expire()
             loop.save(every=STATE_EVERY_S)
         if loop.cancelled:
@@ -285,7 +285,7 @@ class Loop:
         self.first: set[str] = set()
         self.startup_s: float | None = None  # until the first workers answer
         self.t_start = 0.0
-        self.last_live = self.last_save = self.last_grow = now()
+        self.last_live = self.last_save = self.last_resize = now()
         self.uv_ref: tuple[object, str] | None = None  # (ref, worker) of the screen UV render
         self.uv_tries = 0
         remaining = sum(len(layout.shard_samples(s)) for s in job.todo)
@@ -528,14 +528,31 @@ class Loop:
             )
             raise FarmError(f"no live worker for {cfg.placement_timeout_s:.0f} s: {why}")
 
-    def grow(self, every: float) -> None:
-        """Without ``--workers``: start workers on what the cluster gained since the last
-        look, ``every`` seconds at most (:mod:`farm.sizing`)."""
+    def resize(self, every: float) -> None:
+        """``every`` seconds at most: give up the workers waiting for room that the queue
+        would not keep busy, and without ``--workers`` start workers on what the cluster
+        gained since the last look (:mod:`farm.sizing`)."""
+        if self.cancelled or now() - self.last_resize < every:
+            return
+        self.last_resize = now()
+        self.trim()
+        if not self.cfg.workers:
+            self.grow()
+
+    def trim(self) -> None:
+        """On an autoscaling cluster each waiting worker is a node asked for: at a job's tail
+        (or when a dead worker's replacement is no longer needed) that node is not needed."""
+        queued = len(self.sched.queue)
+        surplus = sizing.surplus(len(self.pool.starting), queued)
+        if surplus:
+            self.pool.give_up(surplus)
+            self.bar.write(f"{queued} tasks queued: giving up {surplus} of the workers "
+                           "waiting for room")  # fmt: skip
+
+    def grow(self) -> None:
+        """Start workers on what the cluster gained since the last look."""
         import ray
 
-        if self.cfg.workers or self.cancelled or now() - self.last_grow < every:
-            return
-        self.last_grow = now()
         cfg, starting = self.cfg, len(self.pool.starting)
         placed = len(self.pool.actors) - starting
         free = sizing.room(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)

@@ -144,6 +144,13 @@ class WorkerPool:
         self.state.workers[wid].status = status
         self.state.workers[wid].current = None
 
+    def give_up(self, count: int) -> None:
+        """Kill the ``count`` newest workers that have not answered (waiting for room, or
+        still loading): they end ``unplaced``."""
+        for ref, wid in list(self.starting.items())[-count:] if count else []:
+            del self.starting[ref]
+            self.remove(wid, "unplaced")
+
     def stop_all(self, wait_s: float) -> None:
         """The job is over: every actor is asked to close its Blender, all at once, and
         given ``wait_s`` seconds in all (a busy one closes only after its render), then

@@ -11,8 +11,9 @@ worker group scaled up by hand, an autoscaler's node, a machine started with ``r
 cluster's size: CPUs that another Ray job holds on a shared cluster are not this job's. Such a
 job asks an autoscaler for one node at most (its one worker that waits when nothing is free).
 
-It never stops a worker to shrink: a node that leaves takes its workers with it, and the
-driver replaces each dead one, which waits for room.
+It never stops a placed worker to shrink: a node that leaves takes its workers with it, and
+the driver replaces each dead one, which waits for room. Workers still waiting for room beyond
+what the queue can keep busy are given up (:func:`surplus`).
 """
 
 from __future__ import annotations
@@ -47,3 +48,10 @@ def to_start(fit: int, placed: int, starting: int, queued: int) -> int:
     if starting:
         return 0
     return max(0, min(fit - placed, queued))
+
+
+def surplus(starting: int, queued: int) -> int:
+    """Workers still waiting for room (``starting``) to give up: those beyond what the
+    ``queued`` tasks, which no worker holds, could keep busy. On an autoscaling cluster each
+    waiting worker is a node asked for, and at a job's tail none of those is needed."""
+    return max(0, starting - queued)

@@ -214,6 +214,34 @@ def test_a_job_no_worker_can_be_placed_for_stops_failed_and_says_why(tmp_path):
     assert "screen UV layout not made: RenderError: boom (farm screen-uv makes it)" in uv
 
 
+def test_a_worker_waiting_for_room_is_given_up_when_the_queue_runs_dry(tmp_path, monkeypatch):
+    """``--workers 2`` on a one-CPU cluster: the second worker waits for room. Once the first
+    holds every task left, the waiting one is given up (on an autoscaling cluster it is a node
+    asked for) and ends ``unplaced``; the job renders everything and takes no 15 s waiting
+    for it to close."""
+    from ray.cluster_utils import Cluster
+
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    head = {
+        "num_cpus": 1,
+        "node_ip_address": "127.0.0.1",
+        "env_vars": {FAULTS_ENV: json.dumps({"slow_s": 3})},
+    }  # the faults reach the workers through their node
+    cluster = Cluster(initialize_head=True, head_node_args=head)
+    out = tmp_path / "set.zarr"
+    try:
+        cluster.wait_for_nodes()
+        r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2", "--no-ray-dashboard",
+                 "--address", cluster.address, "-o", out)  # fmt: skip
+    finally:
+        cluster.shutdown()
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "2 workers, room for 1 now: the others wait for room" in r.stdout
+    assert "0 tasks queued: giving up 1 of the workers waiting for room" in r.stdout + r.stderr
+    assert_exactly_once(out, 3)
+    assert [w["status"] for w in job(out)["workers"].values()] == ["stopped", "unplaced"]
+
+
 def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):
     out = tmp_path / "set.zarr"
     args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "-o", out]

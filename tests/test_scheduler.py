@@ -220,3 +220,11 @@ def test_a_job_grows_onto_what_the_cluster_gains_while_tasks_are_queued():
     assert to_start(fit=8, placed=4, starting=0, queued=2) == 2  # the queue keeps 2 busy
     assert to_start(fit=8, placed=4, starting=0, queued=0) == 0  # the job's last tasks run
     assert to_start(fit=2, placed=4, starting=0, queued=100) == 0  # never shrinks
+
+
+def test_workers_waiting_for_room_beyond_the_queue_are_given_up():
+    from farm.sizing import surplus
+
+    assert surplus(starting=3, queued=10) == 0  # each may yet get a task
+    assert surplus(starting=3, queued=1) == 2  # the tail: one node asked for is enough
+    assert surplus(starting=0, queued=0) == 0
