@@ -7,9 +7,9 @@ its own (no node updaters, no launch config check, nodes launched in the foregro
 job sees what it would see on a KubeRay cluster with ``enableInTreeAutoscaling``: workers that
 wait for room make the autoscaler add nodes, up to ``max_nodes``.
 
-The head runs in a session of its own and everything it started, the nodes the autoscaler
-launched included, is stopped with that session: no ``ray stop``, which would stop every Ray
-on the machine.
+The head runs in a process group of its own, and everything it started, the nodes the
+autoscaler launched included, is killed with that group: no ``ray stop``, which would stop
+every Ray on the machine.
 """
 
 from __future__ import annotations
