@@ -540,8 +540,8 @@ class Loop:
             self.grow()
 
     def trim(self) -> None:
-        """On an autoscaling cluster each waiting worker is a node asked for: at a job's tail
-        (or when a dead worker's replacement is no longer needed) that node is not needed."""
+        """Give up the workers waiting for room beyond what the queued tasks could keep busy
+        (:func:`farm.sizing.surplus`): on an autoscaling cluster each is a node asked for."""
         queued = len(self.sched.queue)
         surplus = sizing.surplus(len(self.pool.starting), queued)
         if surplus:

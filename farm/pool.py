@@ -155,13 +155,13 @@ class WorkerPool:
         """The job is over: every actor is asked to close its Blender, all at once, and
         given ``wait_s`` seconds in all (a busy one closes only after its render), then
         killed. One that never answered (Ray found it no room, or it was still loading) is
-        killed at once, without being waited for, and ends ``unplaced``."""
-        unplaced = set(self.starting.values())
-        closing = [a.close.remote() for w, a in self.actors.items() if w not in unplaced]
+        given up at once (:meth:`give_up`), without being waited for."""
+        self.give_up(len(self.starting))
+        closing = [actor.close.remote() for actor in self.actors.values()]
         with contextlib.suppress(Exception):  # dead or stuck: the kill ends it
             self.ray.wait(closing, num_returns=len(closing), timeout=wait_s)
         for wid in list(self.actors):
-            self.remove(wid, "unplaced" if wid in unplaced else "stopped")
+            self.remove(wid, "stopped")
 
     def usable(self) -> list[str]:
         """Workers that are placed, alive and not being removed, in start order."""

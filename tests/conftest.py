@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import subprocess
 import sys
@@ -78,6 +79,17 @@ def s3_env(endpoint: str, **extra: str) -> dict[str, str]:
     }
 
 
+def wait_for_port(port: int, proc: subprocess.Popen, timeout: float) -> bool:
+    """Whether 127.0.0.1:``port`` answers within ``timeout`` seconds while ``proc`` runs."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        with contextlib.suppress(OSError):
+            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            return True
+        time.sleep(0.2)
+    return False
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -95,14 +107,7 @@ def s3():
         stderr=subprocess.DEVNULL,
     )
     endpoint = f"http://127.0.0.1:{port}"
-    deadline = time.time() + 30
-    while time.time() < deadline:
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-            break
-        except OSError:
-            time.sleep(0.2)
-    else:
+    if not wait_for_port(port, proc, 30):
         proc.kill()
         pytest.fail("moto_server did not start")
     import boto3

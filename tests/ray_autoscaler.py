@@ -19,15 +19,13 @@ import json
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_for_port
 
 BIN = Path(sys.executable).parent
 NO_SETUP = (  # the autoscaler's cluster-launcher keys, which a KubeRay cluster leaves empty
@@ -87,28 +85,11 @@ def autoscaling_cluster(node_cpus: int = 1, max_nodes: int = 2) -> Iterator[tupl
         env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     try:
-        _wait_for_head(address, head)
+        if not wait_for_port(port, head, 60):
+            raise RuntimeError(f"the autoscaling Ray head at {address} did not start")
         yield address, temp / "session_latest" / "logs" / "monitor.log"
     finally:  # killed, not stopped: Ray's graceful stop of this cluster takes about 30 s
         with contextlib.suppress(ProcessLookupError):
             os.killpg(head.pid, signal.SIGKILL)
         head.wait(10)
         shutil.rmtree(temp, ignore_errors=True)
-
-
-def _wait_for_head(address: str, head: subprocess.Popen, timeout: float = 60) -> None:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if head.poll() is not None:
-            raise RuntimeError(f"the autoscaling Ray head exited ({head.returncode})")
-        if _gcs_up(address):
-            return
-        time.sleep(0.5)
-    raise RuntimeError(f"the autoscaling Ray head at {address} did not start in {timeout:.0f} s")
-
-
-def _gcs_up(address: str) -> bool:
-    host, port = address.rsplit(":", 1)
-    with socket.socket() as s:
-        s.settimeout(1)
-        return s.connect_ex((host, int(port))) == 0

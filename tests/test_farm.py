@@ -216,16 +216,17 @@ def test_a_job_no_worker_can_be_placed_for_stops_failed_and_says_why(tmp_path):
 
 def test_a_worker_waiting_for_room_is_given_up_when_the_queue_runs_dry(tmp_path, monkeypatch):
     """``--workers 2`` on a one-CPU cluster: the second worker waits for room. Once the first
-    holds every task left, the waiting one is given up (on an autoscaling cluster it is a node
-    asked for) and ends ``unplaced``; the job renders everything and takes no 15 s waiting
-    for it to close."""
+    holds every task left (the last one slowed 8 s), the waiting one is given up (on an
+    autoscaling cluster it is a node asked for) and ends ``unplaced``; the job renders
+    everything and takes no 15 s waiting for it to close."""
     from ray.cluster_utils import Cluster
 
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
     head = {
         "num_cpus": 1,
         "node_ip_address": "127.0.0.1",
-        "env_vars": {FAULTS_ENV: json.dumps({"slow_s": 3})},
+        # the last material is slow: the queue stays empty for longer than a resize period
+        "env_vars": {FAULTS_ENV: json.dumps({"slow_materials": {"2": 8}})},
     }  # the faults reach the workers through their node
     cluster = Cluster(initialize_head=True, head_node_args=head)
     out = tmp_path / "set.zarr"
