@@ -240,7 +240,8 @@ def test_a_worker_waiting_for_room_is_given_up_when_the_queue_runs_dry(tmp_path,
     assert "2 workers, room for 1 now: the others wait for room" in r.stdout
     assert "0 tasks queued: giving up 1 of the workers waiting for room" in r.stdout + r.stderr
     assert_exactly_once(out, 3)
-    assert [w["status"] for w in job(out)["workers"].values()] == ["stopped", "unplaced"]
+    # Ray may place either of the two workers first
+    assert sorted(w["status"] for w in job(out)["workers"].values()) == ["stopped", "unplaced"]
 
 
 def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):
