@@ -341,6 +341,9 @@ def _echo_summary(summary) -> None:
     if summary.cancelled:
         click.echo("cancelled: every whole shard is committed; run the same command to resume")
         return
+    if summary.failed_attempts and summary.ok:
+        click.echo(f"retried   {summary.failed_attempts} failed attempt(s), every material "
+                   f"rendered on a retry (farm status {summary.store} lists them)")  # fmt: skip
     if not summary.ok:
         for m, err in sorted(summary.failed_materials.items()):
             click.echo(f"FAILED    material {m}: {err}", err=True)

@@ -116,6 +116,7 @@ class Summary:
     render_end_s: float  # from the start to the last result (before workers and Ray stop)
     failed_commits: dict[int, str] = field(default_factory=dict)  # shard -> error
     cancelled: bool = False  # stopped by farm cancel; the same command resumes
+    failed_attempts: int = 0  # every failed try, the retried ones included
 
     @property
     def ok(self) -> bool:
@@ -253,6 +254,7 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
         render_end_s=render_end,
         failed_commits=dict(loop.failed_commits),
         cancelled=loop.cancelled,
+        failed_attempts=loop.sched.total_failures(),
     )
 
 
@@ -370,6 +372,7 @@ class Loop:
         w.last_seen, w.current = now(), None
         if ref in self.recalled:  # skipped (revoked) or run all the same: dropped
             self.recalled.discard(ref)
+            self.pool.read_errors(ref, arrays)
             self.sched.dropped(wid, m, now())
             self.settle(wid)
             return
@@ -385,6 +388,7 @@ class Loop:
             self.failed(wid, m, error)
             return
         except RayTaskError as exc:
+            self.pool.read_errors(arrays)
             cause = exc.cause if getattr(exc, "cause", None) else exc
             self.failed(wid, m, f"{type(cause).__name__}: {str(cause).splitlines()[0]}")
             self.settle(wid)
@@ -530,19 +534,40 @@ class Loop:
 
     def resize(self, every: float) -> None:
         """``every`` seconds at most: give up the workers waiting for room that the queue
-        would not keep busy, and without ``--workers`` start workers on what the cluster
-        gained since the last look (:mod:`farm.sizing`)."""
+        would not keep busy, release the idle ones at the job's tail, and start workers on
+        what the cluster gained since the last look (with ``--workers N``: up to N again)
+        (:mod:`farm.sizing`)."""
         if self.cancelled or now() - self.last_resize < every:
             return
         self.last_resize = now()
         self.trim()
-        if not self.cfg.workers:
-            self.grow()
+        self.release()
+        self.grow()
+
+    def idle(self) -> list[str]:
+        """Placed workers that hold nothing (not even a recalled run) and are not rendering
+        the screen UV layout."""
+        uv_worker = self.uv_ref[1] if self.uv_ref is not None else None
+        return [w for w in self.pool.usable() if not self.sched.assigned.get(w) and w != uv_worker]
+
+    def release(self) -> None:
+        """Let the idle workers go at the job's tail (:func:`farm.sizing.release`): their
+        Blenders end, and on an autoscaling cluster their nodes can go. Their results are
+        safe: Ray keeps a node that holds objects the driver still refers to."""
+        idle, queued = self.idle(), len(self.sched.queue)
+        running = sum(self.sched.running(w) is not None for w in self.sched.assigned)
+        n = sizing.release(len(idle), queued, running)
+        for wid in idle[:n]:
+            self.pool.remove(wid, "released")
+        if n:
+            self.bar.write(f"{queued} tasks queued, {running} running: releasing {n} idle "
+                           f"worker{'s' if n > 1 else ''} ({', '.join(idle[:n])})")  # fmt: skip
 
     def trim(self) -> None:
-        """Give up the workers waiting for room beyond what the queued tasks could keep busy
+        """Give up the workers waiting for room beyond what the queued tasks, and those
+        waiting behind another at a busy worker, could keep busy
         (:func:`farm.sizing.surplus`): on an autoscaling cluster each is a node asked for."""
-        queued = len(self.sched.queue)
+        queued = len(self.sched.queue) + self.sched.waiting()
         surplus = sizing.surplus(len(self.pool.starting), queued)
         if surplus:
             self.pool.give_up(surplus)
@@ -550,19 +575,28 @@ class Loop:
                            "waiting for room")  # fmt: skip
 
     def grow(self) -> None:
-        """Start workers on what the cluster gained since the last look."""
+        """Start workers on what the cluster gained since the last look, or with ``--workers
+        N`` up to N again, for the queued tasks that the idle workers will not take."""
         import ray
 
         cfg, starting = self.cfg, len(self.pool.starting)
-        placed = len(self.pool.actors) - starting
-        free = sizing.room(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
-        fit = placed + free  # this job's workers hold their resources: not in the free ones
-        more = sizing.to_start(fit, placed, starting, len(self.sched.queue))
-        if more:
+        placed, queued = len(self.pool.actors) - starting, len(self.sched.queue)
+        if cfg.workers:
+            fit = cfg.workers
+        else:  # this job's workers hold their resources: not in the free ones
+            free = sizing.room(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
+            fit = placed + free
+        more = sizing.to_start(fit, placed, starting, queued, idle=len(self.idle()))
+        if not more:
+            return
+        if cfg.workers:
+            self.bar.write(f"{queued} tasks queued: starting {more} workers again "
+                           f"(--workers {cfg.workers})")  # fmt: skip
+        else:
             self.bar.write(f"the cluster holds {fit} workers: starting {more} more")
-            for _ in range(more):
-                self.pool.start()
-            self.max_commits = max(self.max_commits, commit_slots(placed + more))
+        for _ in range(more):
+            self.pool.start()
+        self.max_commits = max(self.max_commits, commit_slots(placed + more))
 
     def expire(self) -> None:
         """Kill the workers whose running task is past the guard; the task then fails (a

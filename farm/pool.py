@@ -173,6 +173,18 @@ class WorkerPool:
         render = self.actors[wid].render.options(num_returns=2)
         return tuple(render.remote(task, timeout_s, ticket))
 
+    def read_errors(self, *refs) -> None:
+        """Read the errors that ``refs``, the results of one ended task in order, hold, so
+        that Ray does not print each, traceback and all, as an "Unhandled error" when its ref
+        goes: the job reports failures its own way. Stops at the first that holds a value: a
+        task whose report is fine succeeded, and its arrays (megabytes) never come here."""
+        for ref in refs:
+            try:
+                self.ray.get(ref, timeout=0)
+            except Exception:  # noqa: BLE001 - an error, now read
+                continue
+            return
+
     def revoke(self, wid: str, ticket: int) -> None:
         """Have worker ``wid`` skip the task of ``ticket`` when it comes to it
         (:class:`farm.actor.Revocable`; answered while the worker renders). Not

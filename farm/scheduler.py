@@ -95,6 +95,11 @@ class Scheduler:
         """Workers that hold recalled marks and nothing else (their runs are dropped)."""
         return [w for w, held in self.assigned.items() if held and not self._live(w)]
 
+    def waiting(self) -> int:
+        """Tasks waiting behind another at a busy worker: what a worker that comes up takes
+        (:meth:`recall`)."""
+        return sum(max(0, len(self._live(w)) - 1) for w in self.assigned)
+
     def running(self, worker: str) -> int | None:
         held = self._live(worker)
         return held[0].task if held else None

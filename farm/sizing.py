@@ -11,9 +11,13 @@ worker group scaled up by hand, an autoscaler's node, a machine started with ``r
 cluster's size: CPUs that another Ray job holds on a shared cluster are not this job's. Such a
 job asks an autoscaler for one node at most (its one worker that waits when nothing is free).
 
-It never stops a placed worker to shrink: a node that leaves takes its workers with it, and
-the driver replaces each dead one, which waits for room. Workers still waiting for room beyond
-what the queue can keep busy are given up (:func:`surplus`).
+It never stops a worker that has work to shrink: a node that leaves takes its workers with
+it, and the driver replaces each dead one, which waits for room. Workers still waiting for room
+beyond what the queue can keep busy are given up (:func:`surplus`), and at a job's tail the
+placed workers left with nothing to do are released (:func:`release`), so that an autoscaler
+can take their nodes back while the last tasks run. With ``--workers N`` a job that lost
+workers so (a retry, or results lost with a node, filling the queue again) starts them again,
+up to N (:func:`to_start`).
 """
 
 from __future__ import annotations
@@ -38,20 +42,32 @@ def initial(fixed: int | None, room: int, tasks: int) -> int:
     return max(1, min(fixed or room, tasks))
 
 
-def to_start(fit: int, placed: int, starting: int, queued: int) -> int:
-    """Workers to start now toward the ``fit`` of a cluster that holds ``placed`` workers, with
-    ``starting`` ones not placed yet and ``queued`` tasks that no worker holds.
+def to_start(fit: int, placed: int, starting: int, queued: int, idle: int = 0) -> int:
+    """Workers to start now toward ``fit`` (what the cluster holds, or ``--workers``) for a job
+    that has ``placed`` workers, ``idle`` of them holding nothing, ``starting`` ones not placed
+    yet and ``queued`` tasks that no worker holds.
 
     None while a worker is still starting: Ray has not found it room yet (a node still
     joining, resources taken by another job), and more would only wait beside it. None beyond
-    what the queue can keep busy: a job's last tasks do not start Blenders."""
+    what the queue can keep busy, less what the idle workers will take (a retry waiting out
+    its backoff): a job's last tasks do not start Blenders."""
     if starting:
         return 0
-    return max(0, min(fit - placed, queued))
+    return max(0, min(fit - placed, queued - idle))
 
 
 def surplus(starting: int, queued: int) -> int:
     """Workers still waiting for room (``starting``) to give up: those beyond what the
-    ``queued`` tasks, which no worker holds, could keep busy. On an autoscaling cluster each
+    ``queued`` tasks could keep busy (those no worker holds, and those waiting behind another
+    at a busy worker, which a worker that comes up takes). On an autoscaling cluster each
     waiting worker is a node asked for, and at a job's tail none of those is needed."""
     return max(0, starting - queued)
+
+
+def release(idle: int, queued: int, running: int) -> int:
+    """Placed workers holding nothing (``idle``) to let go: every one while no task is
+    ``queued`` and other workers still have tasks ``running`` (a job's tail: on an
+    autoscaling cluster each is a node that can go while the last renders finish, which can
+    take minutes); none otherwise. A queued task, a retry waiting out its backoff included, is
+    theirs to take, and when no task runs the job is ending and every worker stops anyway."""
+    return idle if not queued and running else 0

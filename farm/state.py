@@ -30,7 +30,8 @@ def now() -> float:
 @dataclass
 class WorkerStats:
     worker: str
-    status: str = "starting"  # starting | idle | busy | dead | blocklisted | stopped | unplaced
+    # starting | idle | busy | dead | blocklisted | released | stopped | unplaced
+    status: str = "starting"
     host: str = ""
     pid: int = 0
     nice: int = 0  # the worker's (and its Blender's) niceness: 0 unless the cluster says else

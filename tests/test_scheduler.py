@@ -108,6 +108,7 @@ def test_timeouts_count_from_when_a_task_starts_running():
 def test_an_idle_worker_recalls_a_task_waiting_at_a_busy_one():
     s = sched(3)
     assert s.dispatch(["a"], ["a", "b"], 0.0) == [("a", 0), ("a", 1)]  # b starts late
+    assert s.waiting() == 1  # 1 waits behind 0: b takes it if it comes up with nothing else
     assert s.dispatch(["a", "b"], ["a", "b"], 1.0) == [("b", 2)]
     assert s.recall(["a", "b"], ["a", "b"], 1.0) == []  # b is busy, a holds a running task
     s.completed("b", 2, 2.0)
@@ -115,6 +116,7 @@ def test_an_idle_worker_recalls_a_task_waiting_at_a_busy_one():
     assert list(s.queue) == [1] and s.running("a") == 0
     assert s.dispatch(["a", "b"], ["a", "b"], 2.0) == [("b", 1)]  # a is full: its mark counts
     assert s.recall(["a", "b"], ["a", "b"], 2.5) == []  # nothing waits anywhere now
+    assert s.waiting() == 0  # a's mark of 1 is not a task that waits
     s.completed("b", 1, 3.0)
     s.completed("a", 0, 4.0)
     assert s.finished and s.only_marks() == ["a"]  # a's run of 1 is not waited for
@@ -220,6 +222,8 @@ def test_a_job_grows_onto_what_the_cluster_gains_while_tasks_are_queued():
     assert to_start(fit=8, placed=4, starting=0, queued=2) == 2  # the queue keeps 2 busy
     assert to_start(fit=8, placed=4, starting=0, queued=0) == 0  # the job's last tasks run
     assert to_start(fit=2, placed=4, starting=0, queued=100) == 0  # never shrinks
+    assert to_start(fit=8, placed=4, starting=0, queued=3, idle=1) == 2  # one is the idle one's
+    assert to_start(fit=8, placed=4, starting=0, queued=1, idle=2) == 0  # a retry's backoff
 
 
 def test_workers_waiting_for_room_beyond_the_queue_are_given_up():
@@ -228,3 +232,12 @@ def test_workers_waiting_for_room_beyond_the_queue_are_given_up():
     assert surplus(starting=3, queued=10) == 0  # each may yet get a task
     assert surplus(starting=3, queued=1) == 2  # the tail: one node asked for is enough
     assert surplus(starting=0, queued=0) == 0
+
+
+def test_idle_workers_are_released_at_a_jobs_tail_only():
+    from farm.sizing import release
+
+    assert release(idle=3, queued=0, running=2) == 3  # the tail: their nodes can go
+    assert release(idle=3, queued=1, running=2) == 0  # a queued task (or a retry's) is theirs
+    assert release(idle=3, queued=0, running=0) == 0  # the job is ending: every one stops
+    assert release(idle=0, queued=0, running=2) == 0
