@@ -552,16 +552,18 @@ class Loop:
 
     def release(self) -> None:
         """Let the idle workers go at the job's tail (:func:`farm.sizing.release`): their
-        Blenders end, and on an autoscaling cluster their nodes can go. Their results are
-        safe: Ray keeps a node that holds objects the driver still refers to."""
+        Blenders end, and on an autoscaling cluster their nodes can go. A node that holds
+        results waiting for their shard's commit is not idle to Ray's autoscaler
+        (docs/farm.md); were it taken all the same, :meth:`committed` renders them again."""
         idle, queued = self.idle(), len(self.sched.queue)
         running = sum(self.sched.running(w) is not None for w in self.sched.assigned)
         n = sizing.release(len(idle), queued, running)
         for wid in idle[:n]:
             self.pool.remove(wid, "released")
         if n:
+            names = ", ".join(idle[:5]) + (f" and {n - 5} more" if n > 5 else "")
             self.bar.write(f"{queued} tasks queued, {running} running: releasing {n} idle "
-                           f"worker{'s' if n > 1 else ''} ({', '.join(idle[:n])})")  # fmt: skip
+                           f"worker{'s' if n > 1 else ''} ({names})")  # fmt: skip
 
     def trim(self) -> None:
         """Give up the workers waiting for room beyond what the queued tasks, and those
