@@ -245,21 +245,23 @@ def test_a_worker_waiting_for_room_is_given_up_when_the_queue_runs_dry(tmp_path,
 
 
 def test_an_idle_worker_is_released_at_the_tail_and_a_retry_after_it_still_runs(tmp_path):
-    """``--workers 2``, 3 materials, the last slowed 8 s and failing its first try: while it
-    renders, the worker left with nothing is released (its node could go); the retry runs on
-    the worker left, and the job ends with every sample once."""
+    """``--workers 2``, 3 materials, the last slowed 10 s and failing a worker's first try:
+    while it renders, the worker left with nothing is released (its node could go); the retry
+    runs on the worker left (or, if the release came only during the retry, on the other one,
+    whose first try fails too), and the job ends with every sample once."""
     out = tmp_path / "set.zarr"
-    faults = {"slow_materials": {"2": 8}, "flaky_materials": [2]}
+    faults = {"slow_materials": {"2": 10}, "flaky_materials": [2]}
     r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2", "--no-ray-dashboard",
              "-o", out, faults=faults)  # fmt: skip
     assert r.returncode == 0, r.stderr[-3000:]
     assert "0 tasks queued, 1 running: releasing 1 idle worker (w" in r.stdout + r.stderr
-    assert "retried   1 failed attempt(s), every material rendered on a retry" in r.stdout
-    assert "Unhandled error" not in r.stderr  # the failed try's results were read
-    assert_exactly_once(out, 3)
     st = job(out)
+    tries = st["failures"]["2"]["attempts"]
+    assert st["failures"]["2"]["recovered"] and tries in (1, 2), st["failures"]
+    assert f"retried   {tries} failed attempt(s), every material rendered on a retry" in r.stdout
+    assert "Unhandled error" not in r.stderr  # the failed tries' results were read
+    assert_exactly_once(out, 3)
     assert sorted(w["status"] for w in st["workers"].values()) == ["released", "stopped"]
-    assert st["failures"]["2"]["recovered"] and st["failures"]["2"]["attempts"] == 1
 
 
 def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):
