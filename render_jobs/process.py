@@ -3,8 +3,9 @@
 The parent never imports ``bpy``. The child builds the scene once, then serves requests (a
 material under its suns, or the scene's screen UV layout) until closed, and leaves with
 ``os._exit`` (bpy deadlocks at normal interpreter exit). Blender's stdout chatter goes to
-``log_path`` (or /dev/null). The parent owns the child's scratch folder (in /dev/shm: EXRs
-and texture PNGs) and removes it when the child ends, even when it was killed. A request
+``log_path`` (or /dev/null). The parent owns the child's scratch folder (in /dev/shm: EXRs,
+texture PNGs and Blender's own session folder) and removes it when the child ends, even when
+it was killed. A request
 that raises in the child comes back as :class:`RenderError` or :class:`MaterialError` with
 the child's message; a child that dies (segfault, OOM kill) raises :class:`RenderError`
 naming its exit code, and the next request starts a fresh child. On Linux the child dies with
@@ -88,6 +89,10 @@ def _serve(conn, settings: dict, log_path: str | None, scratch: str, parent: int
     """The child's life: load Blender, then answer requests until told to stop."""
     _die_with_parent(parent)
     os.environ["SHADERBALL_BLENDER_WORKER"] = "1"
+    # Blender makes its session folder (``blender_XXXXXX``) under $TMPDIR when bpy loads and
+    # removes it only at a normal exit, which ``os._exit`` skips: in the scratch folder, the
+    # parent removes it with the rest.
+    os.environ["TMPDIR"] = scratch
     log = os.open(log_path or os.devnull, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(log, 1)
     code = 0

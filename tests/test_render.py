@@ -146,6 +146,20 @@ def test_killed_worker_raises_and_restarts(grey_maps):
     assert not os.path.exists(scratch)
 
 
+def test_a_worker_leaves_nothing_in_the_temp_folder(tmp_path, monkeypatch, grey_maps):
+    """Blender's session folder (``blender_XXXXXX``, made when bpy loads) goes with the
+    scratch folder, whether the child exits or is killed: a farm node starts many."""
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    with RenderProcess(TINY) as w:
+        render(w, grey_maps, [RIGHT])
+        assert [p.name for p in Path(w.scratch).glob("blender_*")]
+        os.kill(w.pid, signal.SIGKILL)
+        with pytest.raises(RenderError, match="died"):
+            render(w, grey_maps, [RIGHT])
+        render(w, grey_maps, [RIGHT])
+    assert os.listdir(tmp_path) == []
+
+
 def test_script_without_main_guard_gets_a_clear_error(tmp_path):
     """The spawned child imports the calling script again; without a main guard it cannot
     start and the parent says why, instead of a bare 'died'."""
