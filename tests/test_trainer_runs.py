@@ -70,6 +70,17 @@ def run_group(cmd: list[str], env: dict | None = None, timeout: float = 300):
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
 
 
+def private_tmp(tmp_path: Path, env: dict | None = None) -> tuple[dict, Path]:
+    """An environment whose $TMPDIR is a fresh folder, to see what a launch leaves there."""
+    tmp = tmp_path / "tmpdir"
+    tmp.mkdir()
+    return {**(env or os.environ), "TMPDIR": str(tmp)}, tmp
+
+
+def torchelastic_left(tmp: Path) -> list[str]:
+    return [p.name for p in tmp.glob("torchelastic_*")]
+
+
 def sample_lines(run: Path, rank: int = 0) -> list[str]:
     return (run / "samples" / f"rank-{rank}.txt").read_text().splitlines()
 
@@ -1013,10 +1024,11 @@ def test_torchrun_restart_resumes_from_the_last_checkpoint(tiny_store, tmp_path)
     cmd = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
     cmd += ["--max-restarts", "1"]
     cmd += argv(tiny_store, out, epochs=2, checkpoint_every=2, log_samples=True)
-    env = {**os.environ, "SHADERBALL_TRAIN_CRASH_AT": "5"}
+    env, tmp = private_tmp(tmp_path, {**os.environ, "SHADERBALL_TRAIN_CRASH_AT": "5"})
     r = run_group(cmd, env=env, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "from step 4" in r.stdout  # the restarted attempt resumed
+    assert torchelastic_left(tmp) == []  # torchrun's log folder went with the job
     state = checkpoint.load(out)
     split = Catalog.from_dict(state["catalog"]).split("train")
     assert state["epoch"] == 2 and state["step"] == 2 * steps_per_epoch(len(split), 2, 2)
@@ -1040,14 +1052,13 @@ def test_launch_checks_inputs_before_torchrun_and_a_failed_rank_is_one_line(tiny
     assert r.returncode == 1 and r.stderr.splitlines()[-1].startswith("Error: "), r.stderr
     assert "none.zarr: not a shard store" in r.stderr and "Traceback" not in r.stderr
     assert "ChildFailedError" not in r.stderr and not out.exists()
-    r = run_group(
-        [*launch, *argv(tiny_store, out, epochs=1)],
-        env={**os.environ, "SHADERBALL_TRAIN_CRASH_AT": "1"},
-    )
+    env, tmp = private_tmp(tmp_path, {**os.environ, "SHADERBALL_TRAIN_CRASH_AT": "1"})
+    r = run_group([*launch, *argv(tiny_store, out, epochs=1)], env=env)
     last = r.stderr.strip().splitlines()[-1]
     assert r.returncode == 1 and last.startswith(
         "Error: rank 0 of the torchrun job failed with exit code 3"
     ), r.stderr[-3000:]
+    assert torchelastic_left(tmp) == []
     # the other rank may print its own error (its peer is gone), prefixed "[rank1]:"; the
     # launcher prints none
     assert not any(line.startswith("Traceback") for line in r.stderr.splitlines())
@@ -1057,9 +1068,11 @@ def test_launch_checks_inputs_before_torchrun_and_a_failed_rank_is_one_line(tiny
 def test_sigterm_to_the_launcher_stops_every_rank(tiny_store, tmp_path):
     cmd = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
     cmd += argv(tiny_store, tmp_path / "run", epochs=500)
+    env, tmp = private_tmp(tmp_path)
     proc = subprocess.Popen(
-        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
-    )
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        env=env,
+    )  # fmt: skip
     try:
         deadline = time.time() + 120
         ranks = []
@@ -1074,6 +1087,7 @@ def test_sigterm_to_the_launcher_stops_every_rank(tiny_store, tmp_path):
         assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
         gone, alive = psutil.wait_procs(ranks, timeout=10)
         assert not alive
+        assert torchelastic_left(tmp) == []
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import shlex
 import sys
+import tempfile
 from dataclasses import dataclass
 
 import torch
@@ -102,13 +103,19 @@ def run_torchrun(argv: list[str]) -> None:
     as ``python -m torch.distributed.run`` would: its elastic agent starts and watches the
     ranks, and stops them on SIGINT / SIGTERM (this process then exits 128 + the signal). A
     failed job raises :class:`RankFailed` naming the first failed rank, in place of torchrun's
-    traceback; the rank printed its own error."""
+    traceback; the rank printed its own error.
+
+    The agent's log folder (the ranks' error files) is a temporary folder removed when the
+    job ends, however it ends: torchrun makes one per job under $TMPDIR and leaves it."""
     from torch.distributed.elastic.multiprocessing.api import SignalException
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
     from torch.distributed.run import parse_args, run
 
+    args = parse_args(argv[3:])  # after "python -m torch.distributed.run"
     try:
-        run(parse_args(argv[3:]))  # after "python -m torch.distributed.run"
+        with tempfile.TemporaryDirectory(prefix="torchelastic_") as logs:
+            args.log_dir = args.log_dir or logs
+            run(args)
     except SignalException as exc:  # the agent has stopped the ranks; leave as the signal says
         raise SystemExit(128 + int(exc.sigval)) from None
     except ChildFailedError as exc:
