@@ -30,7 +30,7 @@ from torch.utils.data import DataLoader
 
 from benchmarks.trainstore import DEFAULT, ensure_store, replicate
 from trainer.config import TrainConfig
-from trainer.data import WORKER_START, Catalog, ShardStream, Split, loader
+from trainer.data import PREFETCH, WORKER_START, Catalog, ShardStream, Split, loader
 from trainer.perceptual import vgg16_relu3_3
 from trainer.train import train
 
@@ -59,7 +59,7 @@ def epoch_end_wait(
         batches_in = loader(stream, workers)  # as trainer.train makes it
     else:
         batches_in = DataLoader(
-            stream, batch_size=None, num_workers=workers, prefetch_factor=4,
+            stream, batch_size=None, num_workers=workers, prefetch_factor=PREFETCH,
             persistent_workers=True, multiprocessing_context=WORKER_START,
         )  # fmt: skip
     waits, images, t0 = [], 0, None

@@ -13,7 +13,7 @@ from PIL import Image
 from tabulate import tabulate
 from tqdm import tqdm
 
-from storage.cli_group import Commands, check_picture_name
+from storage.cli_group import Commands, check_picture_name, human_bytes
 from storage.errors import StoreError
 
 
@@ -37,14 +37,6 @@ def _sample(store, index: int):
         ) from None
 
 
-def _human(n: float) -> str:
-    for unit in ("B", "KB", "MB", "GB", "TB"):
-        if abs(n) < 1024 or unit == "TB":
-            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
-        n /= 1024
-    return str(n)
-
-
 @click.group(cls=Commands, context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
     """Inspect shaderball shard stores (local folders or s3:// URLs)."""
@@ -66,7 +58,7 @@ def ls_cmd(store, as_json):
     if as_json:
         click.echo(json.dumps(rows, indent=1))
         return
-    table = [(r["shard"], r["samples"], _human(r["bytes"]), r["state"]) for r in rows]
+    table = [(r["shard"], r["samples"], human_bytes(r["bytes"]), r["state"]) for r in rows]
     click.echo(tabulate(table, ["shard", "samples", "bytes", "state"], colalign=("right",) * 3))
 
 
@@ -97,8 +89,8 @@ def info(store, as_json):
         f"samples      {data['samples']['committed']}/{data['samples']['total']} committed",
         "materials    "
         + (", ".join(f"{k} {v}" for k, v in data["materials_by_kind"].items()) or "none"),
-        f"bytes        {_human(b['stored'])} stored, {_human(b['raw'])} raw ({ratio}), "
-        f"{_human(b['disk'])} on disk",
+        f"bytes        {human_bytes(b['stored'])} stored, {human_bytes(b['raw'])} raw ({ratio}), "
+        f"{human_bytes(b['disk'])} on disk",
         "screen UV    " + _screen_uv_line(data["screen_uv"]),
         *_settings_lines(data["settings"]),
         "software     " + ", ".join(f"{k} {v}" for k, v in data["software"].items()),
@@ -125,7 +117,7 @@ def _screen_uv_line(suv: dict | None) -> str:
     if "error" in suv:
         return f"UNUSABLE: {suv['error']}"
     s = suv["supersample"]
-    return f"{s}x{s} sub-samples a pixel ({_human(suv['bytes'])})"
+    return f"{s}x{s} sub-samples a pixel ({human_bytes(suv['bytes'])})"
 
 
 @main.command()

@@ -27,6 +27,15 @@ class Commands(click.Group):
             raise click.ClickException(str(exc)) from None
 
 
+def human_bytes(n: float) -> str:
+    """``n`` bytes as a CLI prints them: ``512 B``, ``1.5 KB``, ``64.0 MB`` (powers of 1024)."""
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if abs(n) < 1024 or unit == "TB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1024
+    return str(n)
+
+
 def check_picture_name(path, option: str, animated: bool = False) -> None:
     """A usage error naming ``option``, before any work, when ``path`` (``None``: none given)
     names no picture format the CLIs write (:func:`storage.image_files.image_format`)."""

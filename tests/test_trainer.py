@@ -480,3 +480,19 @@ def test_comparison_labels_name_the_weights_only_where_paths_repeat():
     assert labels(["a", "a", "b"], ["average", "trained", "trained"]) == [
         "a (average)", "a (trained)", "b",
     ]  # fmt: skip
+
+
+def test_shared_memory_need_and_the_one_line_when_it_is_short(tmp_path):
+    from trainer.shm import batch_bytes, check, loader_bytes, shortfall
+
+    one = batch_bytes(400, 6)
+    assert one == 6 * (400 * 400 * 17 + 24)
+    # each of 2 workers keeps 4 batches ahead, the rank trains on one more; 8 ranks
+    assert loader_bytes(400, 6, 2, 8) == 8 * 9 * one
+    assert loader_bytes(400, 6, 0, 8) == 0  # no workers: batches stay in the rank
+    assert shortfall(2**20, ranks=1, workers=2, free=2**20) is None
+    why = shortfall(loader_bytes(400, 6, 2, 8), ranks=8, workers=2, free=64 * 2**20)
+    assert why.startswith("/dev/shm has 64.0 MB free, and the data loaders of 8 rank(s) ")
+    assert "1.1 GB" in why and "--workers" in why and "\n" not in why
+    assert check(64, 2, 2, 1, where=tmp_path) is None  # a real folder with room
+    assert check(64, 2, 2, 1, where=tmp_path / "none") is None  # no such folder: no check

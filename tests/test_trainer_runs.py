@@ -8,6 +8,7 @@ import dataclasses
 import json
 import os
 import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -1065,6 +1066,63 @@ def test_launch_checks_inputs_before_torchrun_and_a_failed_rank_is_one_line(tiny
     assert "ChildFailedError" not in r.stderr
 
 
+def test_a_loader_worker_that_cannot_send_a_batch_stops_the_run_in_one_line(tiny_store, tmp_path):
+    """A DataLoader worker that cannot hand a batch over (as when /dev/shm is full) exits,
+    and the run stops in one line, where torch alone would wait for the batch forever."""
+    env = {**os.environ, "SHADERBALL_TRAIN_UNSENDABLE": "1"}
+    out = tmp_path / "lost"
+    cmd = [sys.executable, "-m", "trainer.cli", "train", *argv(tiny_store, out, workers=2)]
+    r = run_group(cmd, env=env, timeout=120)
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 1 and re.match(
+        r"Error: DataLoader worker \(pid(\(s\))? [\d, ]+\) exited unexpectedly.* \(its error is ",
+        last,
+    ), r.stderr[-3000:]
+    assert "cannot pickle" in r.stderr and "could not send a batch: exiting" in r.stderr
+    assert "done:" not in r.stdout
+
+
+@pytest.mark.parametrize(
+    "epochs, says",
+    [
+        (1, r"ended epoch 1 after \d+ of this rank's \d+ batches"),
+        (2, r"out of step \(a batch of epoch 2 in epoch 1\)"),
+    ],
+)
+def test_an_epoch_short_of_a_batch_stops_the_run(tiny_store, tmp_path, monkeypatch, epochs, says):
+    """Batches lost on the way (a loader that skips its second) stop the run: the last epoch
+    ends short, or an earlier one gets the next epoch's batch."""
+    real = train_module.loader
+
+    class SkipsOne:
+        def __init__(self, stream, workers, pin_memory=False):
+            self.stream = stream
+
+        def __iter__(self):
+            return (b for k, b in enumerate(real(self.stream, 0)) if k != 1)
+
+    monkeypatch.setattr(train_module, "loader", SkipsOne)
+    with pytest.raises(train_module.LoaderError, match=says):
+        train(config(tiny_store, tmp_path / "run", epochs=epochs))
+
+
+def test_launch_refuses_a_dev_shm_too_small_for_the_loaders(tiny_store, tmp_path):
+    """Under a 1 MB /dev/shm (a private mount, where this machine allows one) the launcher
+    stops in one line before any rank starts, and a lone `trainer train` does too."""
+    probe = subprocess.run(["unshare", "-m", "true"], capture_output=True)
+    if probe.returncode != 0:
+        pytest.skip(f"no private mount namespace here: {probe.stderr.decode().strip()}")
+    out = tmp_path / "run"
+    for command in ("launch", "train"):
+        cmd = [sys.executable, "-m", "trainer.cli", command, *argv(tiny_store, out, workers=2)]
+        script = "mount -t tmpfs -o size=1m tmpfs /dev/shm && exec " + shlex.join(cmd)
+        r = run_group(["unshare", "-m", "sh", "-c", script])
+        last = r.stderr.strip().splitlines()[-1]
+        assert r.returncode == 1 and last.startswith("Error: /dev/shm has 1.0 MB free"), r.stderr
+        assert "--workers" in last and "Traceback" not in r.stderr
+        assert not out.exists()
+
+
 def test_sigterm_to_the_launcher_stops_every_rank(tiny_store, tmp_path):
     cmd = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
     cmd += argv(tiny_store, tmp_path / "run", epochs=500)
@@ -1127,3 +1185,13 @@ def test_the_zsolnai_feher_baseline_trains_saves_loads_and_evaluates(tiny_store,
         assert export(renderer, tmp_path / f"zf{opset}.onnx", opset).max_difference < 1e-4
         session = ort.InferenceSession(str(tmp_path / f"zf{opset}.onnx"))
         assert [i.name for i in session.get_inputs()] == ["maps", "sun", "turbidity"]
+
+
+def test_the_shared_memory_check_counts_a_batch_as_the_loader_makes_it(tiny_store):
+    from trainer.data import SampleReader
+    from trainer.shm import batch_bytes
+
+    split = Catalog.snapshot([tiny_store.url], 0, 0.25, None).split("train")
+    batch = SampleReader(split).batch(np.arange(3))
+    sent = sum(t.numel() * t.element_size() for t in batch.values())
+    assert sent == batch_bytes(tiny_store.layout.resolution, 3)

@@ -40,11 +40,14 @@ def _train_errors(fn, cfg):
     from storage.errors import StoreError
     from trainer.checkpoint import CheckpointError
     from trainer.perceptual import MissingWeightsError
-    from trainer.train import RunError, TrainingDiverged
+    from trainer.train import LoaderError, RunError, TrainingDiverged
 
+    known = (
+        StoreError, CheckpointError, MissingWeightsError, RunError, TrainingDiverged, LoaderError
+    )  # fmt: skip
     try:
         return fn(cfg)
-    except (StoreError, CheckpointError, MissingWeightsError, RunError, TrainingDiverged) as exc:
+    except known as exc:
         _fail(exc)
 
 
@@ -200,7 +203,8 @@ def launch(
         click.echo(f"on another node: {line}", err=True)
     if dry_run:
         return
-    _train_errors(preflight, cfg)  # bad input ends here, in one line, before any rank starts
+    # bad input ends here, in one line, before any rank starts
+    _train_errors(lambda c: preflight(c, ranks=lc.procs()), cfg)
     try:
         run_torchrun(argv)
     except RankFailed as exc:

@@ -27,6 +27,9 @@ the training loop handles that with DDP's ``join``. The loader state in a checkp
 
 from __future__ import annotations
 
+import os
+import sys
+
 import numpy as np
 import torch
 from torch.utils.data import DataLoader, IterableDataset, get_worker_info
@@ -34,6 +37,7 @@ from torch.utils.data import DataLoader, IterableDataset, get_worker_info
 from storage.catalog import Catalog, Split
 from storage.errors import StoreError
 from storage.reader import Store
+from trainer import faults
 from trainer.targets import light_vector
 
 __all__ = ["Catalog", "SampleReader", "ShardStream", "Split", "epoch_order", "rank_batches"]
@@ -174,7 +178,7 @@ class ShardStream(IterableDataset):
         for epoch in range(first, first + 1 if self.epochs is None else self.epochs):
             mine = self.batches(epoch, position if epoch == first else 0)
             for b in worker_batches(len(mine), workers, (worker - made) % workers):
-                yield {**self.reader.batch(mine[b]), "epoch": epoch}
+                yield faults.unsendable({**self.reader.batch(mine[b]), "epoch": epoch}, b)
             made += len(mine)
 
 
@@ -185,15 +189,41 @@ class ShardStream(IterableDataset):
 #: every epoch.
 WORKER_START = "spawn"
 
+#: batches each DataLoader worker prepares ahead
+PREFETCH = 4
+
 
 def loader(stream: ShardStream, workers: int, pin_memory: bool = False) -> DataLoader:
     """The trainer's DataLoader over ``stream``: ``workers`` spawned processes (0: read in
-    this process), four batches ahead each."""
+    this process), four batches ahead each, each ending at once when it cannot send a batch
+    (:func:`die_on_unsendable`)."""
     return DataLoader(
         stream,
         batch_size=None,
         num_workers=workers,
         pin_memory=pin_memory,
-        prefetch_factor=4 if workers else None,
+        prefetch_factor=PREFETCH if workers else None,
         multiprocessing_context=WORKER_START if workers else None,
+        worker_init_fn=die_on_unsendable if workers else None,
     )
+
+
+def die_on_unsendable(worker_id: int) -> None:  # in a DataLoader worker, before its first batch
+    """Make a batch this worker cannot send end the worker.
+
+    A worker's batches go to its rank through a ``multiprocessing`` queue, whose feeder
+    thread pickles them (torch moves the tensors to ``/dev/shm`` there). When that fails (a
+    full ``/dev/shm``), the queue's default prints the error and drops the batch; the rank
+    then waits for it forever, or ends the epoch without it. Through the hook the queue
+    offers for this (``_on_queue_feeder_error``, which ``concurrent.futures`` overrides too),
+    the worker prints the error and exits, and torch's DataLoader raises in the rank
+    ("DataLoader worker ... exited unexpectedly")."""
+    import multiprocessing.queues
+    import traceback
+
+    def die(exc: BaseException, obj) -> None:
+        traceback.print_exception(exc)
+        print(f"DataLoader worker {worker_id} could not send a batch: exiting", file=sys.stderr)
+        os._exit(1)
+
+    multiprocessing.queues.Queue._on_queue_feeder_error = staticmethod(die)

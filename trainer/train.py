@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from storage.errors import StoreError
 from storage.schema import untrainable
-from trainer import checkpoint, faults, finetune
+from trainer import checkpoint, faults, finetune, shm
 from trainer.config import TrainConfig, absolute_store
 from trainer.data import Catalog, ShardStream, loader, steps_left
 from trainer.ema import WeightAverage
@@ -59,6 +59,16 @@ class RunError(ValueError):
     """The run cannot start as asked (run folder, stores, resolution)."""
 
 
+class LoaderError(RuntimeError):
+    """The data loader lost batches, or a worker died."""
+
+
+WORKER_ERROR = (
+    "its error is above; when it says no space left on device, a batch did not fit in "
+    f"{shm.SHM}: docs/training.md, 'Shared memory'"
+)
+
+
 def train(cfg: TrainConfig) -> dict:
     """Train as ``cfg`` says; returns rank 0's summary (steps, images, seconds, checkpoint)."""
     # ---- distribution and device ------------------------------------------------------------
@@ -76,6 +86,10 @@ def train(cfg: TrainConfig) -> dict:
         _init_process_group("nccl" if use_cuda else "gloo", rank, world)
     try:
         return _train(cfg, Rank(rank, world, device, distributed))
+    except RuntimeError as exc:  # torch raises it wherever the loop is when a worker dies
+        if not str(exc).startswith("DataLoader worker"):
+            raise
+        raise LoaderError(f"{exc} ({WORKER_ERROR})") from None
     finally:
         if distributed:
             dist.destroy_process_group()
@@ -151,17 +165,24 @@ class Trainee:
         return self.model if self.ema is None else self.ema.model
 
 
-def preflight(cfg: TrainConfig) -> None:
+def preflight(cfg: TrainConfig, ranks: int = 1) -> None:
     """Every check the ranks would make before training, made once here (no process group):
     the stores open and have committed samples at a usable resolution, the run folder can be
-    used (or resumed), the VGG weights load. Raises as :func:`train` would, the inputs named
-    on the command line (run folder, stores) before the weights."""
+    used (or resumed), the VGG weights load, and the data loaders of the ``ranks`` ranks on
+    this node fit in its shared memory (:mod:`trainer.shm`). Raises as :func:`train` would,
+    the inputs named on the command line (run folder, stores) before the weights."""
     state, found = _resume_state(cfg, Path(cfg.out))
     init = finetune.init_state(cfg, state)
     cpu = Rank(0, 1, torch.device("cpu"), False)
-    _catalog(finetune.with_network(cfg, init), cpu, state, found, init)
+    catalog = _catalog(finetune.with_network(cfg, init), cpu, state, found, init)
     if cfg.loss == "l1+vgg":
         load_vgg(cfg.vgg_weights)
+    _check_shared_memory(cfg, catalog, ranks)
+
+
+def _check_shared_memory(cfg: TrainConfig, catalog: Catalog, ranks: int) -> None:
+    if why := shm.check(catalog.resolution, cfg.batch_size, cfg.workers, ranks):
+        raise RunError(why)
 
 
 def _train(cfg: TrainConfig, rk: Rank) -> dict:
@@ -171,6 +192,8 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     cfg = finetune.with_network(cfg, init)
     vgg = load_vgg(cfg.vgg_weights) if cfg.loss == "l1+vgg" else None  # fail before any work
     catalog = _catalog(cfg, rk, state, found, init)
+    if not rk.distributed:  # under torchrun, `trainer launch` checked for every rank at once
+        _check_shared_memory(cfg, catalog, 1)
     t = _build(cfg, rk, catalog, state, vgg, init)
     faults.install(t.opt, t.step, rk.master)
     split = catalog.split("train")
@@ -206,7 +229,9 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         bar = tqdm(total=total, desc=f"epoch {t.epoch + 1}/{cfg.epochs}", disable=not rk.master)
         log.new_window()
         with contextlib.closing(bar):  # the bar ends its line even on errors
+            start = t.step
             images += _epoch(cfg, rk, t, itertools.islice(batches, mine), len(split), log, bar)
+        _check_epoch_whole(cfg, t, t.step - start, mine)
         log.validate(t, bar)  # the epoch's weights, unless the last step just scored them
         if not _at_max_steps(cfg, t):
             t.epoch, t.position = t.epoch + 1, 0
@@ -223,6 +248,16 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         "val": log.last_val,
         "best": t.best,
     }
+
+
+def _check_epoch_whole(cfg: TrainConfig, t: Trainee, trained: int, mine: int) -> None:
+    """Raise :class:`LoaderError` when the epoch ended on fewer of this rank's batches than
+    it has, short of ``--max-steps``."""
+    if trained < mine and not _at_max_steps(cfg, t):
+        raise LoaderError(
+            f"the data loader ended epoch {t.epoch + 1} after {trained} of this rank's "
+            f"{mine} batches: a worker lost the others ({WORKER_ERROR})"
+        )
 
 
 def _start_notes(cfg: TrainConfig, t: Trainee, catalog: Catalog, init, found, was) -> list[str]:
@@ -277,8 +312,9 @@ def _epoch(cfg: TrainConfig, rk: Rank, t: Trainee, batches, split_size: int, log
     with join:
         for batch, waited in _timed(batches):
             if batch["epoch"] != t.epoch:
-                raise RuntimeError(
-                    f"the loader is out of step: epoch {batch['epoch']} in {t.epoch}"
+                raise LoaderError(
+                    f"the data loader is out of step (a batch of epoch {batch['epoch'] + 1} "
+                    f"in epoch {t.epoch + 1}): a worker lost batches ({WORKER_ERROR})"
                 )
             loss = train_step(cfg, rk, t, batch)
             if t.ema is not None:
