@@ -122,6 +122,29 @@ def test_every_container_that_reaches_the_store_gets_the_s3_client_retries(overl
                      ("Deployment", "dashboard")}  # fmt: skip
 
 
+@pytest.mark.parametrize("overlay", ["dev", "prod"])
+def test_the_training_pods_shared_memory_holds_the_loaders_batches(overlay):
+    """A pod's own /dev/shm is 64 MB; the TrainJob mounts a memory emptyDir there, as large
+    as the loaders of every GPU's rank need at the paper's 400² (trainer/shm.py)."""
+    from trainer.config import TrainConfig
+    from trainer.shm import loader_bytes
+
+    job = next(d for d in rendered(overlay) if d["kind"] == "TrainJob")
+    pod = job["spec"]["runtimePatches"][0]["trainingRuntimeSpec"]["template"]["spec"]
+    pod = pod["replicatedJobs"][0]["template"]["spec"]["template"]["spec"]
+    mount = next(m for m in pod["containers"][0]["volumeMounts"] if m["mountPath"] == "/dev/shm")
+    volume = next(v for v in pod["volumes"] if v["name"] == mount["name"])
+    assert volume["emptyDir"]["medium"] == "Memory"
+    size = volume["emptyDir"]["sizeLimit"]
+    assert size.endswith("Gi")
+    command = job["spec"]["trainer"]["command"]
+    option = dict(zip(command, command[1:], strict=False))  # each flag and what follows
+    batch = int(option.get("--batch-size", TrainConfig.batch_size))
+    workers = int(option.get("--workers", TrainConfig.workers))
+    gpus = int(job["spec"]["trainer"]["resourcesPerNode"]["limits"].get("nvidia.com/gpu", 1))
+    assert loader_bytes(400, batch, workers, gpus) <= int(size[:-2]) * 2**30
+
+
 def test_a_misspelled_field_fails_the_check():
     docs = {d["kind"]: d for d in rendered("dev")}
     bad = copy.deepcopy(docs["RayCluster"])
