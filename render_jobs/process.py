@@ -3,12 +3,12 @@
 The parent never imports ``bpy``. The child builds the scene once, then serves requests (a
 material under its suns, or the scene's screen UV layout) until closed, and leaves with
 ``os._exit`` (bpy deadlocks at normal interpreter exit). Blender's stdout chatter goes to
-``log_path`` (or /dev/null). The parent owns the child's scratch folder (in /dev/shm: EXRs,
-texture PNGs and Blender's own session folder) and removes it when the child ends, even when
-it was killed. A request
-that raises in the child comes back as :class:`RenderError` or :class:`MaterialError` with
-the child's message; a child that dies (segfault, OOM kill) raises :class:`RenderError`
-naming its exit code, and the next request starts a fresh child. On Linux the child dies with
+``log_path`` (or /dev/null). The parent owns the child's scratch folder (in /dev/shm when
+it has room: EXRs, texture PNGs and Blender's own session folder) and removes it when the
+child ends, even when it was killed. A request that raises in the child comes back as
+:class:`RenderError` or :class:`MaterialError` with the child's message; a child that dies
+(segfault, OOM kill) raises :class:`RenderError` naming its exit code, and the next request
+starts a fresh child. On Linux the child dies with
 its parent (a Ray actor killed mid-render leaves no Blender rendering on).
 """
 
@@ -33,6 +33,10 @@ from render_jobs.specs import RenderSettings, Sun
 
 READY_TIMEOUT_S = 300.0
 SCRATCH_PREFIX = "shaderball-worker-"
+#: free space /dev/shm needs to take a child's scratch folder: its material's four 8-bit
+#: texture PNGs and a sun's EXR (1.9 MB after a procedural material at 1,024² maps, 400²;
+#: scanned 2K textures take several MB each), with room for other workers and Ray
+SCRATCH_ROOM = 256 * 2**20
 
 
 def sweep_stale_scratch(folder: str) -> None:
@@ -43,6 +47,15 @@ def sweep_stale_scratch(folder: str) -> None:
         pid = entry.name[len(SCRATCH_PREFIX) :].split("-", 1)[0]
         if pid.isdigit() and not os.path.exists(f"/proc/{pid}"):
             shutil.rmtree(entry.path, ignore_errors=True)
+
+
+def scratch_parent(shm: str = "/dev/shm") -> str | None:
+    """Where a child's scratch folder goes: ``shm`` (memory) when it has
+    :data:`SCRATCH_ROOM` free, else the temp folder (None). A container's own ``/dev/shm``
+    is 64 MB (Docker's default), which a few workers' texture files and EXRs can fill."""
+    if not os.path.isdir(shm):
+        return None
+    return shm if shutil.disk_usage(shm).free >= SCRATCH_ROOM else None
 
 
 @contextlib.contextmanager
@@ -153,7 +166,7 @@ class RenderProcess:
     def start(self) -> RenderProcess:
         ctx = mp.get_context("spawn")
         parent, child = ctx.Pipe()
-        shm = "/dev/shm" if os.path.isdir("/dev/shm") else None
+        shm = scratch_parent()
         sweep_stale_scratch(shm or tempfile.gettempdir())
         self._scratch = tempfile.mkdtemp(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-", dir=shm)
         self._proc = ctx.Process(

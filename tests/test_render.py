@@ -292,3 +292,21 @@ def test_texture_swaps_never_alias(worker):
     np.testing.assert_allclose(again.maps.specular[:, ball].mean(1), 0.073, atol=0.005)
     np.testing.assert_allclose(again.maps.roughness[:, ball].mean(1), 0.2, atol=0.005)
     assert again.maps.normal[0, ball].mean() > 0.55  # tilted towards +x, not flat (0.5)
+
+
+def test_scratch_goes_to_memory_only_where_it_has_room(tmp_path):
+    from render_jobs.process import SCRATCH_ROOM, scratch_parent
+
+    small = tmp_path / "small"  # a tmpfs a little under the room the scratch needs
+    small.mkdir()
+    r = subprocess.run(
+        ["unshare", "-m", "sh", "-c", f"mount -t tmpfs -o size={SCRATCH_ROOM // 2} tmpfs {small}"
+         f" && {sys.executable} -c 'from render_jobs.process import scratch_parent as p; "
+         f"print(p(\"{small}\"))'"],
+        capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1],
+    )  # fmt: skip
+    if r.returncode != 0 and "unshare" in r.stderr:
+        pytest.skip(f"no private mount namespace here: {r.stderr.strip()}")
+    assert r.stdout.strip() == "None", r.stderr  # the temp folder instead
+    assert scratch_parent(str(tmp_path)) == str(tmp_path)  # a disk with room
+    assert scratch_parent(str(tmp_path / "none")) is None
