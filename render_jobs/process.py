@@ -8,8 +8,8 @@ it has room: EXRs, texture PNGs and Blender's own session folder) and removes it
 child ends, even when it was killed. A request that raises in the child comes back as
 :class:`RenderError` or :class:`MaterialError` with the child's message; a child that dies
 (segfault, OOM kill) raises :class:`RenderError` naming its exit code, and the next request
-starts a fresh child. On Linux the child dies with
-its parent (a Ray actor killed mid-render leaves no Blender rendering on).
+starts a fresh child. On Linux the child dies with its parent (a Ray actor killed mid-render
+leaves no Blender rendering on).
 """
 
 from __future__ import annotations

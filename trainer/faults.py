@@ -7,8 +7,9 @@ rank. Unset (production), :func:`install` does nothing.
 
 ``SHADERBALL_TRAIN_UNSENDABLE=K``: a DataLoader worker cannot send the batch numbered ``K``
 (from 0) of each epoch's batches on its rank, as when ``/dev/shm`` is full: the batch holds
-a value that cannot be pickled, so the worker's queue thread prints the error and drops it.
-Unset, :func:`unsendable` returns its batch as it is.
+a value that cannot be pickled, so the worker's queue thread fails to send it
+(:func:`trainer.data.die_on_unsendable`). Unset, :func:`unsendable` returns its batch as it
+is.
 """
 
 from __future__ import annotations
