@@ -51,6 +51,9 @@ def config(address: str, node_cpus: int, max_nodes: int) -> dict:
             "disable_node_updaters": True,
             "disable_launch_config_check": True,
             "foreground_node_launch": True,
+            # without it the provider starts one node for a launch of several, which the
+            # autoscaler counts as all started: a job asking for 2 nodes got 1
+            "launch_multiple": True,
         },
         "auth": {"ssh_user": "ray"},
         "head_node_type": "ray.head.default",

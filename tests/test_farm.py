@@ -555,14 +555,17 @@ def test_a_job_without_workers_given_grows_onto_a_node_that_joins(tmp_path, monk
         cluster.shutdown()
 
 
-def test_workers_waiting_for_room_make_an_autoscaling_cluster_add_nodes(tmp_path):
+def test_workers_waiting_for_room_make_an_autoscaling_cluster_add_nodes(tmp_path, monkeypatch):
     """A cluster whose head has no CPUs, with Ray's autoscaler (``tests.ray_autoscaler``, set
     up as KubeRay's, with a CPU and a GPU node type). ``--workers 3`` on 2 materials starts 2
     workers (no node for a third that would have nothing to do); none fits anywhere until the
-    autoscaler, seeing them wait, adds CPU nodes, and the job renders everything on them."""
+    autoscaler, seeing them wait, adds CPU nodes, one for each, and the job renders everything
+    on them (each material takes 3 s: time for the second node to come up)."""
     from tests.ray_autoscaler import autoscaling_cluster
 
     out = tmp_path / "set.zarr"
+    # the nodes' environment is the head's: the actors on them read the fault from there
+    monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps({"slow_s": 3}))
     with autoscaling_cluster(node_cpus=1, max_nodes=3) as (address, monitor_log):
         r = farm("submit", "-m", "uniform:2", *TINY, "--workers", "3", "--no-ray-dashboard",
                  "--placement-timeout", "120", "--address", address, "-o", out)  # fmt: skip
@@ -575,6 +578,7 @@ def test_workers_waiting_for_room_make_an_autoscaling_cluster_add_nodes(tmp_path
     assert "2 workers, room for 0 now: the others wait for room (an autoscaling" in r.stdout
     workers = job(out)["workers"].values()
     assert len(workers) == 2 and sum(w["materials"] for w in workers) == 2, workers
+    assert [w["status"] for w in workers] == ["stopped", "stopped"], workers  # both placed
 
 
 @pytest.mark.exclusive  # `ray stop --force` stops every Ray on the machine
