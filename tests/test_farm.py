@@ -581,6 +581,32 @@ def test_workers_waiting_for_room_make_an_autoscaling_cluster_add_nodes(tmp_path
     assert [w["status"] for w in workers] == ["stopped", "stopped"], workers  # both placed
 
 
+def test_the_node_of_a_worker_released_at_the_tail_is_taken_down_while_the_job_renders(
+    tmp_path, monkeypatch
+):
+    """``--workers 2`` on 3 materials, each 2 s and the last 20 s more, on the autoscaling
+    cluster with a 3 s idle timeout: the worker left idle at the tail is released, and the
+    autoscaler takes its node down while the other still renders the last material."""
+    from tests.ray_autoscaler import autoscaling_cluster
+
+    out = tmp_path / "set.zarr"
+    faults = {"slow_s": 2, "slow_materials": {"2": 20}}
+    monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps(faults))  # the nodes read it
+    with autoscaling_cluster(node_cpus=1, max_nodes=2, idle_timeout_s=3) as (address, log):
+        r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2", "--no-ray-dashboard",
+                 "--placement-timeout", "120", "--address", address, "-o", out)  # fmt: skip
+        ended = time.time()
+        monitor = log.read_text()
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "0 tasks queued, 1 running: releasing 1 idle worker (w" in r.stdout
+    assert sorted(w["status"] for w in job(out)["workers"].values()) == ["released", "stopped"]
+    assert_exactly_once(out, 3)
+    removed = re.search(r"^(\S+ \S+),\d+\s.*Removing 1 nodes of type cpu \(idle\)", monitor, re.M)
+    assert removed, monitor[-3000:]
+    at = time.mktime(time.strptime(removed.group(1), "%Y-%m-%d %H:%M:%S"))
+    assert at < ended - 2, (removed.group(0), time.ctime(ended))  # before the last render ended
+
+
 @pytest.mark.exclusive  # `ray stop --force` stops every Ray on the machine
 def test_killed_driver_resumes_where_it_stopped(tmp_path):
     out = tmp_path / "set.zarr"
