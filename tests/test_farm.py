@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -632,6 +633,60 @@ def test_a_released_workers_node_holding_uncommitted_results_is_kept(tmp_path, m
         ("released", 1), ("stopped", 1)
     ]  # fmt: skip
     assert_exactly_once(out, 2)
+
+
+def kill_other_nodes_than_the_one_rendering() -> int:
+    """Kill (SIGKILL) the raylets, and what they started, of the autoscaler's nodes except the
+    one running a render actor's task; how many nodes were killed."""
+    procs = list(psutil.process_iter(["name"]))
+    busy = [p for p in procs if "RenderWorker.render" in (p.info["name"] or "")]
+    keep = set()
+    for p in busy:
+        with contextlib.suppress(psutil.NoSuchProcess):  # a process that ended meanwhile
+            keep |= {a.pid for a in p.parents()}
+    raylets = [p for p in procs if p.info["name"] == "raylet"]
+    rendering = next(r for r in raylets if r.pid in keep)  # its parent launched every node
+    victims = [r for r in raylets if r.ppid() == rendering.ppid() and r is not rendering]
+    for raylet in victims:
+        for proc in [*raylet.children(recursive=True), raylet]:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                proc.kill()
+    return len(victims)
+
+
+def test_results_lost_with_a_node_are_rendered_again_and_workers_start_again(tmp_path, monkeypatch):
+    """8 materials in one shard at 128² (their arrays in the object store of their worker's
+    node), the last 12 s slower, ``--workers 2``: the worker idle at the tail is released, then
+    its node dies (killed here, as a node lost to a preemption) with the results waiting for
+    the shard's commit. The commit finds them lost, the shard's materials are queued again,
+    more than the worker left takes at once, so the job starts a worker again (up to its
+    --workers), and it ends with every sample once."""
+    from tests.ray_autoscaler import autoscaling_cluster
+
+    out = tmp_path / "set.zarr"
+    faults = {"slow_s": 0.5, "slow_materials": {"7": 12}}
+    monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps(faults))
+    size = ["--suns", "2", "--shard-size", "16", "--resolution", "128", "--samples", "2"]
+    with autoscaling_cluster(node_cpus=1, max_nodes=2) as (address, _):
+        args = ["-m", "uniform:8", *size, "--workers", "2", "--no-ray-dashboard"]
+        args += ["--placement-timeout", "120", "--address", address, "-o", out]
+        proc = farm("submit", *args, wait=False)
+        try:
+            lines = []
+            for line in proc.stdout:
+                lines.append(line)
+                if "releasing 1 idle worker" in line:
+                    assert kill_other_nodes_than_the_one_rendering() == 1
+                    break
+            rest, err = proc.communicate(timeout=240)
+        finally:
+            proc.kill()
+    stdout = "".join(lines) + rest
+    assert proc.returncode == 0, err[-3000:]
+    assert "shard 0: its results were lost" in err
+    assert "tasks queued: starting 1 workers again (--workers 2)" in stdout, stdout
+    assert_exactly_once(out, 8)
+    assert "released" in [w["status"] for w in job(out)["workers"].values()]
 
 
 @pytest.mark.exclusive  # `ray stop --force` stops every Ray on the machine
