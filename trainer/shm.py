@@ -16,16 +16,17 @@ import shutil
 from pathlib import Path
 
 from storage.cli_group import human_bytes
+from storage.schema import PACKED_CHANNELS
 from trainer.data import PREFETCH
 
 SHM = Path("/dev/shm")
 
 
 def batch_bytes(resolution: int, batch: int) -> int:
-    """One batch as the loader sends it (:meth:`trainer.data.SampleReader.batch`): 11 uint8
-    map channels and 3 float16 render channels a pixel, 4 float32 light values and an int64
-    id a sample."""
-    return batch * (resolution * resolution * (11 + 3 * 2) + 4 * 4 + 8)
+    """One batch as the loader sends it (:meth:`trainer.data.SampleReader.batch`): the packed
+    uint8 map channels and 3 float16 render channels a pixel, 4 float32 light values and an
+    int64 id a sample."""
+    return batch * (resolution * resolution * (PACKED_CHANNELS + 3 * 2) + 4 * 4 + 8)
 
 
 def loader_bytes(resolution: int, batch: int, workers: int, ranks: int) -> int:
