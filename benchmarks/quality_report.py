@@ -7,10 +7,17 @@ seeds), which is checked. Times are per frame on this machine: the networks thro
 ``trainer.infer.Renderer`` at batch 1 (all threads), Cycles as one ``RenderProcess`` with all
 threads, the whole render call (scene changes, path tracing, denoising, EXR out and in).
 Measured times are kept in the work folder (``timings.json``) so a report is redone cheaply.
+
+Each scored method keeps its per-sample scores (sorted by test sample, with each sample's
+material; the networks' also as ``scores/NAME.csv`` in the work folder, as ``trainer eval
+--per-sample`` writes them). From them the report gives each mean PSNR its 95 % interval
+and each comparison it draws (ours less another method, on the same samples) its mean
+difference with an interval: a bootstrap over whole materials (``trainer.intervals``).
 """
 
 from __future__ import annotations
 
+import csv
 import datetime as dt
 import json
 import os
@@ -28,10 +35,19 @@ from storage.backend import write_atomic
 from storage.reader import Store
 from trainer.evaluate import Tally, evaluate
 from trainer.infer import Renderer
+from trainer.intervals import (
+    LEVEL,
+    MIN_MATERIALS,
+    RESAMPLES,
+    cluster_mean,
+    excludes_zero,
+    paired_difference,
+)
 from trainer.model import count_parameters
 from trainer.targets import Tonemap, light_vector
 
 PAIRED = ("material_index", "sun_direction", "turbidity", "seed")
+METRICS = ("psnr", "ssim", "flip")
 
 
 class QualityError(RuntimeError):
@@ -56,7 +72,8 @@ def check_pairs(truth: Store, other: Store) -> None:
 
 
 def score_store(truth: Store, other: Store, tonemap: Tonemap, batch: int = 16) -> dict:
-    """A baseline store's renders against the truth's, sample by sample."""
+    """A baseline store's renders against the truth's, sample by sample: the means
+    (:meth:`Tally.summary`) and ``per_sample`` (:func:`per_sample`)."""
     check_pairs(truth, other)
     kinds, tally = _kinds(truth), Tally()
     n = truth.layout.num_samples
@@ -66,7 +83,55 @@ def score_store(truth: Store, other: Store, tonemap: Tonemap, batch: int = 16) -
         pred = tonemap(torch.from_numpy(np.stack([other.render(i) for i in ids])))
         names = [kinds[truth.layout.material_of_sample(i)] for i in ids]
         tally.add(pred, target, names)
-    return tally.summary()
+    materials = [truth.layout.material_of_sample(i) for i in range(n)]
+    return {**tally.summary(), "per_sample": per_sample(range(n), materials, tally.scores["all"])}
+
+
+def per_sample(samples, materials, scores) -> dict:
+    """Per-sample scores as a report row keeps them: ``{"sample", "material", "psnr",
+    "ssim", "flip"}`` lists, sorted by sample; ``scores`` holds a ``(psnr, ssim, flip)`` a
+    sample, in the order of ``samples``."""
+    samples = np.asarray(list(samples), np.int64)
+    order = np.argsort(samples, kind="stable")
+    a = np.asarray(scores, np.float64).reshape(-1, 3)[order]
+    return {
+        "sample": samples[order].tolist(),
+        "material": np.asarray(list(materials), np.int64)[order].tolist(),
+        **{m: a[:, k].tolist() for k, m in enumerate(METRICS)},
+    }
+
+
+def read_sample_table(path: Path) -> dict:
+    """:func:`per_sample` of the first model of a ``trainer eval --per-sample`` CSV file
+    of one store."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if len({r["store"] for r in rows}) > 1:
+        raise QualityError(f"{path}: samples of more than one store")
+    return per_sample(
+        (int(r["sample"]) for r in rows),
+        (int(r["material"]) for r in rows),
+        [[float(r[f"{m}_1"]) for m in METRICS] for r in rows],
+    )
+
+
+def interval(row: dict, metric: str) -> dict | None:
+    """The mean of ``metric`` over a row's samples with its interval
+    (:func:`trainer.intervals.cluster_mean`); None for a row without per-sample scores."""
+    ps = row.get("per_sample")
+    return cluster_mean(ps[metric], ps["material"]) if ps else None
+
+
+def paired(rows: dict, ours: str, other: str) -> dict | None:
+    """``{metric: paired difference}`` of row ``ours`` less row ``other`` on the same
+    samples (:func:`trainer.intervals.paired_difference`); None when either row has no
+    per-sample scores."""
+    a, b = rows[ours].get("per_sample"), rows[other].get("per_sample")
+    if not a or not b:
+        return None
+    if a["sample"] != b["sample"]:
+        raise QualityError(f"{ours} and {other} were scored on other samples")
+    return {m: paired_difference(b[m], a[m], a["material"]) for m in METRICS}
 
 
 # ---- reference renders ------------------------------------------------------------------
@@ -172,9 +237,11 @@ def measure(plan) -> dict:
     rows = {}
 
     def net(name, on):
-        result = evaluate(plan.run(name), on=[plan.store(on)], device="cpu")
+        table = plan.work / "scores" / f"{name}--{on}.csv"
+        table.parent.mkdir(parents=True, exist_ok=True)
+        result = evaluate(plan.run(name), on=[plan.store(on)], device="cpu", per_sample=table)
         ms, params = network_ms(plan.run(name), Store(plan.store(on)))
-        return {**result, "ms": ms, "parameters": params}
+        return {**result, "per_sample": read_sample_table(table), "ms": ms, "parameters": params}
 
     rows["unet"] = net("unet", "test")
     rows["unet-noskips"] = net("unet-noskips", "test")
@@ -213,6 +280,56 @@ def _fmt(m: dict | None, key: str, digits: int) -> str:
 
 def _metrics(m: dict | None) -> str:
     return f"{_fmt(m, 'psnr', 2)} | {_fmt(m, 'ssim', 4)} | {_fmt(m, 'flip', 4)}"
+
+
+def _scores(row: dict) -> str:
+    """A scored row's table cells: PSNR, its interval, SSIM, FLIP."""
+    o = row["overall"]
+    return (f"{_fmt(o, 'psnr', 2)} | {_interval(interval(row, 'psnr'), '.2f')} | "
+            f"{_fmt(o, 'ssim', 4)} | {_fmt(o, 'flip', 4)}")  # fmt: skip
+
+
+def _interval(d: dict | None, fmt: str) -> str:
+    return "—" if d is None or d["low"] is None else f"[{d['low']:{fmt}}, {d['high']:{fmt}}]"
+
+
+def _difference(d: dict, fmt: str) -> str:
+    """A paired difference as a cell: its mean, and its interval where it has one."""
+    ci = "" if d["low"] is None else " " + _interval(d, fmt)
+    return f"{d['mean']:{fmt}}{ci}"
+
+
+LEVEL_TEXT = f"{LEVEL * 100:g} %"
+DIFF_FORMATS = ("+.2f", "+.4f", "+.4f")  # PSNR, SSIM, FLIP
+
+
+def difference_table(rows: dict, ours: str, title: str, others: list[tuple[str, str]]):
+    """Markdown lines: row ``ours`` less each of ``others`` (``(label, key)``) on the same
+    samples, with intervals (:func:`paired`); none when a row has no per-sample scores."""
+    lines = [f"| {title} less | PSNR dB | SSIM | FLIP | ours higher PSNR on |",
+             "|---|---|---|---|---|"]  # fmt: skip
+    for label, key in others:
+        d = paired(rows, ours, key)
+        if d is None:
+            return []
+        cells = [_difference(d[m], f) for m, f in zip(METRICS, DIFF_FORMATS, strict=True)]
+        lines.append(f"| {label} | " + " | ".join(cells) + f" | {d['psnr']['higher']:.0%} |")
+    return lines
+
+
+def intervals_text(rows: dict, ours: str) -> str:
+    """What the intervals are, for the report."""
+    ps = rows[ours]["per_sample"]
+    return (
+        f"Each mean is over {len(ps['sample'])} samples of "
+        f"{len(set(ps['material']))} materials. The intervals are {LEVEL_TEXT} intervals of a "
+        f"bootstrap that resamples whole materials ({RESAMPLES} resamples, seed 0; "
+        "`trainer.intervals`), since a material's suns are not independent draws. Each "
+        "difference below is ours less the other method, sample by sample on the same "
+        "samples; FLIP is lower for the better, so a negative FLIP difference favours ours. "
+        "An interval that holds 0 is a difference this test set cannot show; under "
+        f"{MIN_MATERIALS} materials there are no intervals."
+    )
 
 
 def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
@@ -266,13 +383,12 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
         "EXR). Each time is taken at its step of the run, so days apart for a run that spans "
         "sessions; `make bench-frames` re-times every method side by side in one run.",
         "",
-        "| method | PSNR dB | SSIM | FLIP | ms / frame |",
-        "|---|---|---|---|---|",
+        f"| method | PSNR dB | PSNR {LEVEL_TEXT} interval | SSIM | FLIP | ms / frame |",
+        "|---|---|---|---|---|---|",
     ]
     for label, key in named:
-        m = rows[key]
-        out.append(f"| {label} | {_metrics(m.get('overall', m))} | {m['ms']:.1f} |")
-    out.append(f"| Cycles {s.samples} spp (the ground truth itself) | — | — | — | "
+        out.append(f"| {label} | {_scores(rows[key])} | {rows[key]['ms']:.1f} |")
+    out.append(f"| Cycles {s.samples} spp (the ground truth itself) | — | — | — | — | "
                f"{rows['truth']['ms']:.1f} |")  # fmt: skip
     out += ["", "Where the network wins and where it does not:", ""]
     out += findings(rows, s.baselines, s.reference_spp)
@@ -285,12 +401,17 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
         cells = [f"{_fmt(bk.get(k), 'psnr', 2)} / {_fmt(bk.get(k), 'ssim', 3)} / "
                  f"{_fmt(bk.get(k), 'flip', 3)}" for k in kinds]  # fmt: skip
         out.append(f"| {label} | " + " | ".join(cells) + " |")
+    differences = difference_table(rows, "unet", named[0][0], named[1:])
+    if differences:
+        out += ["", "### How sure the differences are", "", intervals_text(rows, "unet"), "",
+                *differences]  # fmt: skip
     out += [
         "",
         "## Fixed sun, uniform materials (the Zsolnai-Fehér et al. 2018 comparison)",
         "",
-        "| method | PSNR dB | SSIM | FLIP | ms / frame | parameters |",
-        "|---|---|---|---|---|---|",
+        f"| method | PSNR dB | PSNR {LEVEL_TEXT} interval | SSIM | FLIP | ms / frame | "
+        "parameters |",
+        "|---|---|---|---|---|---|---|",
     ]
     fixed_rows = [
         ("Zsolnai-Fehér (assumed layers, `trainer/zf.py`)", "zf-fixed"),
@@ -299,10 +420,14 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
     ]
     for label, key in fixed_rows:
         m = rows[key]
-        out.append(f"| {label} | {_metrics(m['overall'])} | {m['ms']:.1f} | "
+        out.append(f"| {label} | {_scores(m)} | {m['ms']:.1f} | "
                    f"{m['parameters'] / 1e6:.1f} M |")  # fmt: skip
     m = rows["fixed-2spp-oidn"]
-    out.append(f"| Cycles 2 spp + OIDN | {_metrics(m['overall'])} | {m['ms']:.1f} | — |")
+    out.append(f"| Cycles 2 spp + OIDN | {_scores(m)} | {m['ms']:.1f} | — |")
+    others = [fixed_rows[0], fixed_rows[2], ("Cycles 2 spp + OIDN", "fixed-2spp-oidn")]
+    differences = difference_table(rows, "unet-fixed", "ours, trained on the fixed sun,", others)
+    if differences:
+        out += ["", *differences]
     ref = rows["reference"]
     out += [
         "",
@@ -348,7 +473,8 @@ def cycles_baselines(baselines: tuple[int, ...]) -> dict[str, str]:
 
 
 def findings(rows: dict, baselines: tuple[int, ...], reference_spp: int) -> list[str]:
-    """Plain sentences on where the network wins and where it does not, from the numbers."""
+    """Plain sentences on where the network wins and where it does not, from the numbers;
+    each comparison with its paired difference where the rows have per-sample scores."""
     ours = rows["unet"]
     o, ms = ours["overall"], ours["ms"]
     labels = cycles_baselines(baselines)
@@ -364,23 +490,34 @@ def findings(rows: dict, baselines: tuple[int, ...], reference_spp: int) -> list
         ("flip", "FLIP", lambda m: m["flip"] <= o["flip"]),
     ):
         best = _cheapest(rows, keys, good)
+        pick = max if metric == "psnr" else min
         if best is None:
-            top = (max if metric == "psnr" else min)(keys, key=lambda k: rows[k]["overall"][metric])
-            out.append(
+            top = pick(keys, key=lambda k: rows[k]["overall"][metric])
+            line = (
                 f"- {name}: no Cycles setting measured reaches ours ({o[metric]:.4g}); the best, "
-                f"{labels[top]}, scores {rows[top]['overall'][metric]:.4g}."
+                f"{labels[top]}, scores {rows[top]['overall'][metric]:.4g}"
+                f"{_against(rows, top, metric)}."
             )
-            continue
-        b = rows[best]
-        out.append(
-            f"- {name}: ours scores {o[metric]:.4g}; the cheapest Cycles setting at least as "
-            f"good is {labels[best]} ({b['overall'][metric]:.4g}) at {b['ms']:.1f} ms a frame, "
-            f"{b['ms'] / ms:.1f}x ours."
-        )
+        else:
+            b = rows[best]
+            line = (
+                f"- {name}: ours scores {o[metric]:.4g}; the cheapest Cycles setting at least as "
+                f"good is {labels[best]} ({b['overall'][metric]:.4g}) at {b['ms']:.1f} ms a "
+                f"frame, {b['ms'] / ms:.1f}x ours{_against(rows, best, metric)}."
+            )
+        under = [k for k in keys if not good(rows[k]["overall"])]
+        if best is not None and under:
+            near = pick(under, key=lambda k: rows[k]["overall"][metric])
+            line += (
+                f" The closest setting under ours is {labels[near]} "
+                f"({rows[near]['overall'][metric]:.4g}){_against(rows, near, metric)}."
+            )
+        out.append(line)
     zf, same = rows["zf-fixed"], rows["unet-fixed"]
     out.append(
         f"- Fixed sun: ours trained on the same data scores {same['overall']['psnr']:.2f} dB "
-        f"against Zsolnai-Fehér's {zf['overall']['psnr']:.2f} dB, with "
+        f"against Zsolnai-Fehér's {zf['overall']['psnr']:.2f} dB"
+        f"{_against(rows, 'zf-fixed', 'psnr', ours='unet-fixed')}, with "
         f"{same['parameters'] / 1e6:.1f} M parameters against {zf['parameters'] / 1e6:.1f} M."
     )
     ref = rows["reference"]["overall"]
@@ -390,6 +527,22 @@ def findings(rows: dict, baselines: tuple[int, ...], reference_spp: int) -> list
         "method could show against it."
     )
     return out
+
+
+def _against(rows: dict, other: str, metric: str, ours: str = "unet") -> str:
+    """``; ours less it: D [low, high], ...`` for a finding, or nothing without per-sample
+    scores."""
+    d = paired(rows, ours, other)
+    if d is None:
+        return ""
+    d = d[metric]
+    text = f"; ours less it: {_difference(d, DIFF_FORMATS[METRICS.index(metric)])}"
+    text += " dB" if metric == "psnr" else ""
+    if d["low"] is None:
+        return text
+    if excludes_zero(d):
+        return text + " (the interval excludes 0)"
+    return text + " (the interval holds 0: this test set cannot tell them apart)"
 
 
 def _count(store: Store) -> dict[str, int]:

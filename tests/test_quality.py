@@ -13,7 +13,14 @@ import pytest
 from PIL import Image
 
 from benchmarks.quality import SCALES, load_json, save_json
-from benchmarks.quality_report import QualityError, check_pairs, findings
+from benchmarks.quality_report import (
+    QualityError,
+    check_pairs,
+    difference_table,
+    findings,
+    per_sample,
+    read_sample_table,
+)
 from storage.reader import Store
 from storage.schema import Layout
 from storage.writer import create_store, write_shard
@@ -67,6 +74,68 @@ def test_the_findings_name_the_cheapest_cycles_setting_that_matches_the_network(
         "scores 29.5" in "\n".join(findings(rows, (1, 4), 2048))  # fmt: skip
 
 
+def _scored(psnr, flip, ms, parameters=None):
+    """A report row with per-sample scores: 2 suns a material."""
+    n = len(psnr)
+    ps = per_sample(range(n), [i // 2 for i in range(n)], np.c_[psnr, np.full(n, 0.9), flip])
+    overall = {"psnr": float(np.mean(psnr)), "ssim": 0.9, "flip": float(np.mean(flip))}
+    return {"overall": overall, "ms": ms, "parameters": parameters, "per_sample": ps}
+
+
+def test_each_comparison_of_the_findings_has_its_paired_difference_and_interval():
+    """20 samples of 10 materials: a setting better by exactly 1 dB everywhere is resolved; one
+    0.5 dB below ours on average, but 4 dB above or below it material by material, is not."""
+    base = np.random.default_rng(0).normal(30, 2, 20)
+    swing = np.repeat([-4.0, 4.0] * 5, 2)  # whole materials, mean 0
+    flip = np.full(20, 0.10)
+    rows = {
+        "unet": _scored(base, flip, 50.0),
+        "test-1spp": _scored(base - 10, flip + 0.2, 70.0),
+        "test-1spp-oidn": _scored(base - 0.5 + swing, flip - 0.01, 400.0),
+        "test-4spp": _scored(base - 5, flip + 0.1, 200.0),
+        "test-4spp-oidn": _scored(base + 1, flip - 0.05, 600.0),
+        "zf-fixed": _scored(base - 3, flip, 1.0, 40e6),
+        "unet-fixed": _scored(base, flip, 1.0, 4e6),
+        "reference": _row(38.0, 0.02, 0.0),
+    }
+    text = "\n".join(findings(rows, (1, 4), 2048))
+    mean = base.mean()
+    assert f"good is Cycles 4 spp + OIDN ({mean + 1:.4g}) at 600.0 ms a frame, 12.0x ours; " \
+        "ours less it: -1.00 [-1.00, -1.00] dB (the interval excludes 0)." in text  # fmt: skip
+    near = re.search(rf"The closest setting under ours is Cycles 1 spp \+ OIDN \({mean - 0.5:.4g}"
+                     r"\); ours less it: \+0\.50 \[(\S+), (\S+)\] dB \(the interval holds 0: "
+                     r"this test set cannot tell them apart\)\.", text)  # fmt: skip
+    assert near and float(near[1]) < 0 < float(near[2]), text
+    assert "FLIP: ours scores 0.1; the cheapest Cycles setting at least as good is Cycles 1 spp " \
+        "+ OIDN (0.09) at 400.0 ms a frame, 8.0x ours; ours less it: +0.0100 [+0.0100, " \
+        "+0.0100] (the interval excludes 0). The closest setting under ours is Cycles 4 spp " \
+        "(0.2); ours less it: -0.1000" in text  # fmt: skip
+    assert f"against Zsolnai-Fehér's {mean - 3:.2f} dB; ours less it: +3.00 [+3.00, +3.00] " \
+        "dB (the interval excludes 0), with 4.0 M" in text  # fmt: skip
+    table = difference_table(rows, "unet", "ours", [("Cycles 1 spp", "test-1spp")])
+    assert table[0] == "| ours less | PSNR dB | SSIM | FLIP | ours higher PSNR on |"
+    assert table[2] == "| Cycles 1 spp | +10.00 [+10.00, +10.00] | +0.0000 [+0.0000, +0.0000] " \
+        "| -0.2000 [-0.2000, -0.2000] | 100% |"  # fmt: skip
+    # rows of an older results.json, without per-sample scores: no table, no intervals
+    assert difference_table({**rows, "test-1spp": _row(20.0, 0.3, 70.0)}, "unet", "ours",
+                            [("Cycles 1 spp", "test-1spp")]) == []  # fmt: skip
+    rows["zf-fixed"]["per_sample"]["sample"].reverse()
+    with pytest.raises(QualityError, match="unet-fixed and zf-fixed were scored on other samples"):
+        findings(rows, (1, 4), 2048)
+
+
+def test_per_sample_scores_are_kept_in_sample_order_from_an_eval_table(tmp_path):
+    path = tmp_path / "s.csv"
+    rows = ["t.zarr,3,1,21.5,0.5,0.2", "t.zarr,0,0,30,0.9,0.1", "t.zarr,1,0,31,0.95,0.05"]
+    path.write_text("store,sample,material,psnr_1,ssim_1,flip_1\n" + "\n".join(rows) + "\n")
+    ps = read_sample_table(path)
+    assert ps == {"sample": [0, 1, 3], "material": [0, 0, 1], "psnr": [30.0, 31.0, 21.5],
+                  "ssim": [0.9, 0.95, 0.5], "flip": [0.1, 0.05, 0.2]}  # fmt: skip
+    path.write_text(path.read_text() + "u.zarr,0,0,30,0.9,0.1\n")
+    with pytest.raises(QualityError, match="samples of more than one store"):
+        read_sample_table(path)
+
+
 @pytest.mark.slow
 def test_a_work_record_write_that_fails_leaves_the_old_record_and_no_part(tmp_path):
     path = tmp_path / "timings.json"
@@ -110,6 +179,22 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
         numbers = [float(v) for v in re.findall(r"\| (-?\d+\.\d+)", row)]
         assert numbers and all(np.isfinite(numbers)), row
     assert "VGG16" in text and "held-out materials only" in text
+    # 5 test materials: each mean PSNR of the main table has an interval around it, and each
+    # comparison with ours its paired difference with an interval; 2 fixed-sun test
+    # materials: differences without intervals
+    main, fixed = text.split("## Fixed sun")
+    for label in ["ours (U-Net, L1)", *(f"Cycles {spp} spp" for spp in scale.baselines)]:
+        row = next(line for line in main.splitlines() if line.startswith(f"| {label} |"))
+        psnr, ci = row.split(" | ")[1:3]
+        low, high = map(float, re.fullmatch(r"\[(-?\d+\.\d\d), (-?\d+\.\d\d)\]", ci).groups())
+        assert low <= float(psnr) <= high, row
+    assert "| ours (U-Net, L1) less | PSNR dB | SSIM | FLIP | ours higher PSNR on |" in main
+    number, ci = r"[+-]\d+\.\d+", r"[+-]\d+\.\d+ \[[+-]\d+\.\d+, [+-]\d+\.\d+\]"
+    for label in ["ours without skips \\(L1\\)", *(f"Cycles {spp} spp" for spp in scale.baselines)]:
+        assert re.search(rf"^\| {label} \| {ci} \| {ci} \| {ci} \| \d+% \|$", main, re.M), label
+    assert "bootstrap that resamples whole materials" in main
+    assert re.search(rf"^\| Zsolnai-Fehér [^|]*\| {number} \| {number} \| {number} \| \d+% \|$",
+                     fixed, re.M), fixed  # fmt: skip
     grid = Image.open(doc.parent / "img" / "quality-grid.png")
     rows = scale.fixed[1] + scale.test[1]  # fixed-sun uniform rows, then procedural ones
     assert grid.size == (5 * 256, 26 + rows * 256)

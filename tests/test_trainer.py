@@ -443,7 +443,7 @@ def test_a_checkpoint_renders_with_its_average_unless_told_otherwise():
 
 
 def test_paired_differences_resample_whole_materials():
-    from trainer.compare import MIN_MATERIALS, paired_difference
+    from trainer.intervals import MIN_MATERIALS, paired_difference
 
     rng = np.random.default_rng(1)
     base = rng.normal(25, 3, 200)
@@ -471,6 +471,34 @@ def test_paired_differences_resample_whole_materials():
     # materials are (store, material) pairs: material 0 of two stores is two materials
     two = np.array([[0, 0], [0, 0], [1, 0], [1, 0]])
     assert paired_difference(np.zeros(4), np.ones(4), two)["materials"] == 2
+
+
+def test_a_mean_s_interval_resamples_whole_materials():
+    from trainer.intervals import MIN_MATERIALS, cluster_mean, excludes_zero, paired_difference
+
+    rng = np.random.default_rng(2)
+    per_material = rng.normal(26.0, 2.0, 30)
+    values = np.repeat(per_material, 5) + rng.normal(0, 0.1, 150)  # 30 materials x 5 suns
+    groups = np.repeat(np.arange(30), 5)  # materials as plain ints
+    m = cluster_mean(values, groups)
+    half = 1.96 * per_material.std() / np.sqrt(30)
+    assert m["mean"] == pytest.approx(values.mean()) and m["materials"] == 30
+    assert m["low"] < m["mean"] < m["high"]
+    assert (m["high"] - m["low"]) / 2 == pytest.approx(half, rel=0.2)
+    assert excludes_zero(m)  # 26 dB is not 0
+    # a paired difference is the interval of the differences' mean
+    diff = 0.2 + rng.normal(0, 1, 150)
+    d = paired_difference(values, values + diff, groups)
+    assert {k: d[k] for k in ("mean", "low", "high", "materials")} == pytest.approx(
+        cluster_mean(diff, groups)
+    )
+    assert d["higher"] == pytest.approx((diff > 0).mean())
+    few = cluster_mean(values[:20], groups[:20])
+    assert few["materials"] == 4 < MIN_MATERIALS and few["low"] is None
+    assert not excludes_zero(few)
+    assert cluster_mean([], np.zeros(0, np.int64)) == {
+        "mean": None, "materials": 0, "low": None, "high": None
+    }  # fmt: skip
 
 
 def test_comparison_labels_name_the_weights_only_where_paths_repeat():

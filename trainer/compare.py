@@ -4,7 +4,8 @@
 (:func:`trainer.evaluate.score`), so the scores are paired: per sample, B's PSNR less A's.
 The samples of one material (its suns) are not independent draws, so the confidence
 interval of a mean difference resamples whole materials (a cluster bootstrap):
-:func:`paired_difference`. The first checkpoint is the one the others are compared with.
+:func:`trainer.intervals.paired_difference`. The first checkpoint is the one the others are
+compared with.
 
 Models compare only on samples none of them trained on, against the same targets: every
 model is scored on the first one's held-out samples, and each of the others must not have
@@ -35,39 +36,10 @@ from trainer.evaluate import (
     write_sample_table,
 )
 from trainer.infer import load_renderer
+from trainer.intervals import LEVEL, MIN_MATERIALS, paired_difference
 from trainer.validation import samples_digest
 
-#: the bootstrap's resamples and coverage; a fixed seed keeps the printed interval the same
-#: run to run
-RESAMPLES, LEVEL, SEED = 2000, 0.95, 0
-#: fewer materials than this give no interval: a bootstrap over so few says little
-MIN_MATERIALS = 5
 METRICS = ("psnr", "ssim", "flip")
-
-
-def paired_difference(
-    base: np.ndarray, other: np.ndarray, groups: np.ndarray, resamples: int = RESAMPLES
-) -> dict:
-    """Mean of ``other - base`` over paired samples, with the ``LEVEL`` interval of a
-    bootstrap that resamples the samples' ``groups`` (materials) whole, and the share of
-    samples where ``other`` is the higher. The interval is ``None`` under
-    ``MIN_MATERIALS`` groups.
-
-    Hand-written because ``scipy.stats.bootstrap`` resamples single observations, not
-    clusters of them."""
-    d = np.asarray(other, np.float64) - np.asarray(base, np.float64)
-    _, g = np.unique(np.asarray(groups), axis=0, return_inverse=True)
-    g = g.reshape(-1)
-    n = int(g.max()) + 1 if len(g) else 0
-    out = {"mean": float(d.mean()), "higher": float((d > 0).mean()), "materials": n}
-    if n < MIN_MATERIALS:
-        return {**out, "low": None, "high": None}
-    sums, counts = np.bincount(g, d, n), np.bincount(g, None, n)
-    pick = np.random.default_rng(SEED).integers(0, n, (resamples, n))
-    means = sums[pick].sum(1) / counts[pick].sum(1)
-    tail = (1 - LEVEL) / 2 * 100
-    low, high = np.percentile(means, [tail, 100 - tail])
-    return {**out, "low": float(low), "high": float(high)}
 
 
 def labels(names: list[str], weights: list[str]) -> list[str]:
