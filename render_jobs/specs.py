@@ -96,7 +96,8 @@ class Sun(_Serialisable):
         if d.shape != (3,) or not np.all(np.isfinite(d)) or abs(np.linalg.norm(d) - 1) > 1e-4:
             raise ValueError(f"sun direction must be a finite unit 3-vector, got {self.direction}")
         if d[2] <= 0:
-            raise ValueError(f"sun must be above the horizon (z > 0), got {self.direction}")
+            shown = ", ".join(f"{x:.3f}" for x in d)
+            raise ValueError(f"sun must be above the horizon (z > 0), got ({shown})")
         if not 1.0 <= self.turbidity <= 10.0:
             raise ValueError(f"turbidity must lie in [1, 10], got {self.turbidity}")
 

@@ -524,3 +524,25 @@ def test_shared_memory_need_and_the_one_line_when_it_is_short(tmp_path):
     assert "1.1 GB" in why and "--workers" in why and "\n" not in why
     assert check(64, 2, 2, 1, where=tmp_path) is None  # a real folder with room
     assert check(64, 2, 2, 1, where=tmp_path / "none") is None  # no such folder: no check
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "says"),
+    [
+        ("batch_size", 0, "--batch-size must be at least 1, not 0"),
+        ("lr", 0.0, "--lr must be above 0, not 0.0"),
+        ("holdout_fraction", 1.0, r"--holdout-fraction must be in \[0, 1\), not 1.0"),
+        ("roughness_channels", 2, "--roughness-channels must be one of 1, 3, not 2"),
+        ("max_steps", 0, "--max-steps must be at least 1, not 0"),
+        ("loss", "l2", "--loss must be one of l1\\+vgg, l1, not 'l2'"),
+    ],
+)
+def test_a_bad_setting_is_refused_naming_its_flag_and_rule(field, value, says):
+    from dataclasses import fields
+
+    from trainer.config import RULES, TrainConfig
+
+    assert set(RULES) <= {f.name for f in fields(TrainConfig)}
+    TrainConfig(store=("s.zarr",), max_steps=None)  # the defaults pass every rule
+    with pytest.raises(ValueError, match=f"^{says}$"):
+        TrainConfig(store=("s.zarr",), **{field: value})

@@ -36,6 +36,42 @@ def absolute_store(url: str) -> str:
     return url if "://" in url else os.path.abspath(url)
 
 
+def _at_least(n: int) -> tuple:
+    return (lambda v: v >= n, f"at least {n}")
+
+
+def _one_of(names: tuple) -> tuple:
+    return (lambda v: v in names, "one of " + ", ".join(map(str, names)))
+
+
+_UNIT = (lambda v: 0 <= v < 1, "in [0, 1)")
+#: what each :class:`TrainConfig` field must be: a test of its value, and the rule as the
+#: error states it, with the field's flag ("--batch-size must be at least 1, not 0")
+RULES = {
+    "epochs": _at_least(1),
+    "batch_size": _at_least(1),
+    "lr": (lambda v: v > 0, "above 0"),
+    "lr_schedule": _one_of(SCHEDULES),
+    "warmup_steps": _at_least(0),
+    "ema_decay": _UNIT,
+    "width": _at_least(1),
+    "roughness_channels": _one_of((1, 3)),
+    "seed": _at_least(0),
+    "holdout_seed": _at_least(0),
+    "perceptual_weight": _at_least(0),
+    "workers": _at_least(0),
+    "checkpoint_every": _at_least(1),
+    "log_every": _at_least(1),
+    "val_every": _at_least(0),
+    "val_samples": _at_least(0),
+    "keep": _at_least(1),
+    "shuffle_buffer": _at_least(1),
+    "holdout_fraction": _UNIT,
+    "max_steps": (lambda v: v is None or v >= 1, "at least 1"),
+    "loss": _one_of(LOSSES),
+}
+
+
 @dataclass
 class TrainConfig:
     store: tuple[str, ...] = _opt((), "store to train on (path or s3://); repeat for several")
@@ -109,32 +145,10 @@ class TrainConfig:
     def __post_init__(self) -> None:
         self.store = tuple(absolute_store(u) for u in self.store)
         self.init = None if self.init is None else os.path.abspath(self.init)
-        checks = {
-            "epochs": self.epochs >= 1,
-            "batch_size": self.batch_size >= 1,
-            "lr": self.lr > 0,
-            "lr_schedule": self.lr_schedule in SCHEDULES,
-            "warmup_steps": self.warmup_steps >= 0,
-            "ema_decay": 0 <= self.ema_decay < 1,
-            "width": self.width >= 1,
-            "roughness_channels": self.roughness_channels in (1, 3),
-            "seed": self.seed >= 0,
-            "holdout_seed": self.holdout_seed >= 0,
-            "perceptual_weight": self.perceptual_weight >= 0,
-            "workers": self.workers >= 0,
-            "checkpoint_every": self.checkpoint_every >= 1,
-            "log_every": self.log_every >= 1,
-            "val_every": self.val_every >= 0,
-            "val_samples": self.val_samples >= 0,
-            "keep": self.keep >= 1,
-            "shuffle_buffer": self.shuffle_buffer >= 1,
-            "holdout_fraction": 0 <= self.holdout_fraction < 1,
-            "max_steps": self.max_steps is None or self.max_steps >= 1,
-            "loss": self.loss in LOSSES,
-        }
-        for name, ok in checks.items():
-            if not ok:
-                raise ValueError(f"invalid {name}: {getattr(self, name)!r}")
+        for name, (ok, rule) in RULES.items():
+            value = getattr(self, name)
+            if not ok(value):
+                raise ValueError(f"{_flag(name)} must be {rule}, not {value!r}")
         if again := [u for i, u in enumerate(self.store) if u in self.store[:i]]:
             raise ValueError(f"--store {again[0]} is given twice")
 
