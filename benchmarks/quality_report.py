@@ -333,13 +333,8 @@ def intervals_text(rows: dict, ours: str) -> str:
 
 
 def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
-    s = plan.scale
-    train, test = Store(plan.store("train")), Store(plan.store("test"))
-    seconds = load_json(plan.work / "train-seconds.json")
-    steps = {n: rows[n].get("checkpoint_step") for n in rows if "checkpoint_step" in rows[n]}
+    """The report: its sections in order, as markdown."""
     cpu = f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
-    named = [("ours (U-Net, L1)", "unet"), ("ours without skips (L1)", "unet-noskips")]
-    named += [(label, key) for key, label in cycles_baselines(s.baselines).items()]
     out = [
         "# What the renderer is worth",
         "",
@@ -351,6 +346,25 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
         "the networks' tonemapped display space; FLIP is NVIDIA's perceptual difference (0 is "
         "identical, lower is better).",
         "",
+        *_data_section(plan, rows, cpu),
+        "",
+        *_random_suns_section(plan.scale, rows, cpu),
+        "",
+        *_fixed_sun_section(rows),
+        "",
+        *_reference_section(plan.scale, rows["reference"]),
+        "",
+        *_pictures_section(img, doc),
+    ]
+    return "\n".join(out)
+
+
+def _data_section(plan, rows: dict, cpu: str) -> list[str]:
+    s = plan.scale
+    train, test = Store(plan.store("train")), Store(plan.store("test"))
+    seconds = load_json(plan.work / "train-seconds.json")
+    steps = {n: rows[n].get("checkpoint_step") for n in rows if "checkpoint_step" in rows[n]}
+    return [
         "## Data and training",
         "",
         f"- training set: {train.layout.num_materials} materials "
@@ -375,7 +389,14 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
         "`benchmarks/quality.py` and rerun: training resumes from the last checkpoint.",
         "- not trained: the paper's L1 + VGG16 loss. No ImageNet VGG16 weights are available on "
         "these machines; `--loss l1+vgg` works for users who have them (`--vgg-weights`).",
-        "",
+    ]
+
+
+def _random_suns_section(s, rows: dict, cpu: str) -> list[str]:
+    """The main table, the findings, the scores per material kind and the differences."""
+    named = [("ours (U-Net, L1)", "unet"), ("ours without skips (L1)", "unet-noskips")]
+    named += [(label, key) for key, label in cycles_baselines(s.baselines).items()]
+    out = [
         "## Held-out materials, random suns",
         "",
         f"ms / frame on this machine's CPU ({cpu}), batch 1; no GPU was available for this "
@@ -405,8 +426,11 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
     if differences:
         out += ["", "### How sure the differences are", "", intervals_text(rows, "unet"), "",
                 *differences]  # fmt: skip
-    out += [
-        "",
+    return out
+
+
+def _fixed_sun_section(rows: dict) -> list[str]:
+    out = [
         "## Fixed sun, uniform materials (the Zsolnai-Fehér et al. 2018 comparison)",
         "",
         f"| method | PSNR dB | PSNR {LEVEL_TEXT} interval | SSIM | FLIP | ms / frame | "
@@ -426,11 +450,11 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
     out.append(f"| Cycles 2 spp + OIDN | {_scores(m)} | {m['ms']:.1f} | — |")
     others = [fixed_rows[0], fixed_rows[2], ("Cycles 2 spp + OIDN", "fixed-2spp-oidn")]
     differences = difference_table(rows, "unet-fixed", "ours, trained on the fixed sun,", others)
-    if differences:
-        out += ["", *differences]
-    ref = rows["reference"]
-    out += [
-        "",
+    return out + (["", *differences] if differences else [])
+
+
+def _reference_section(s, ref: dict) -> list[str]:
+    out = [
         "## How converged the ground truth is",
         "",
         f"{ref['overall']['n']} test samples rendered again at {s.reference_spp} spp: the "
@@ -442,9 +466,12 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
     ]
     for kind, m in [("all", ref["overall"]), *ref["by_kind"].items()]:
         out.append(f"| ground truth vs {s.reference_spp} spp, {kind} | {m['n']} | {_metrics(m)} |")
+    return out
+
+
+def _pictures_section(img: Path, doc: Path) -> list[str]:
     rel = os.path.relpath(Path(img).resolve(), doc.resolve().parent)
-    out += [
-        "",
+    return [
         "## Pictures",
         "",
         "Uniform materials under the fixed sun (every method), then procedural ones under "
@@ -454,7 +481,6 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
         f"![ground truth, ours, 2 spp + OIDN, Zsolnai-Fehér, error]({rel})",
         "",
     ]
-    return "\n".join(out)
 
 
 def _cheapest(rows: dict, keys: list[str], good) -> str | None:
