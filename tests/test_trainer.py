@@ -546,3 +546,27 @@ def test_a_bad_setting_is_refused_naming_its_flag_and_rule(field, value, says):
     TrainConfig(store=("s.zarr",), max_steps=None)  # the defaults pass every rule
     with pytest.raises(ValueError, match=f"^{says}$"):
         TrainConfig(store=("s.zarr",), **{field: value})
+
+
+def test_an_eval_summary_gives_each_psnr_its_interval_over_materials():
+    from trainer.evaluate import Scored, Tally
+    from trainer.intervals import cluster_mean
+
+    rng = np.random.default_rng(3)
+    tally, materials, kinds = Tally(), [], []
+    for m in range(9):  # 6 procedural materials, 3 uniform, 4 suns each
+        kind = "procedural" if m < 6 else "uniform"
+        for _ in range(4):
+            row = (float(rng.normal(25 + m, 1)), 0.8, 0.2)
+            for key in ("all", kind):
+                tally.scores[key].append(row)
+            materials.append((m % 2, m))  # (store, material)
+            kinds.append(kind)
+    summary = Scored([tally], materials, [], [], kinds).summary()
+    psnr = np.array(tally.scores["all"])[:, 0]
+    whole = cluster_mean(psnr, np.array(materials))
+    o, p, u = summary["overall"], summary["by_kind"]["procedural"], summary["by_kind"]["uniform"]
+    assert o["n"] == 36 and o["materials"] == 9 and p["materials"] == 6 and u["materials"] == 3
+    assert (o["psnr_low"], o["psnr_high"]) == (round(whole["low"], 3), round(whole["high"], 3))
+    assert o["psnr_low"] < o["psnr"] < o["psnr_high"] and p["psnr_low"] < p["psnr"] < p["psnr_high"]
+    assert u["psnr_low"] is None and u["psnr_high"] is None  # 3 materials: under 5

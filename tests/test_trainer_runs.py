@@ -132,6 +132,10 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     result = json.loads(r.output[r.output.index("{") :])
     held = Catalog.from_dict(checkpoint.load(trained)["catalog"]).heldout[0]
     assert result["samples"] == 3 * len(held) == result["overall"]["n"]
+    assert result["overall"]["materials"] == len(held)
+    few = len(held) < 5  # no interval under 5 materials (trainer.intervals.MIN_MATERIALS)
+    o = result["overall"]
+    assert (o["psnr_low"] is None) if few else (o["psnr_low"] <= o["psnr"] <= o["psnr_high"])
     assert sum(m["n"] for m in result["by_kind"].values()) == result["samples"]
     assert 5 < result["overall"]["psnr"] < 60 and 0 < result["overall"]["ssim"] <= 1
     assert 0 < result["overall"]["flip"] < 1  # NVIDIA's FLIP: 0 only for identical images

@@ -308,6 +308,7 @@ def _eval_errors() -> tuple[type, ...]:
 def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, per_sample, as_json):
     """One model's scores, kept beside its run when they are what the run renders."""
     from trainer.evaluate import evaluate
+    from trainer.intervals import MIN_MATERIALS
 
     run_scores = Path(ckpt).is_dir() and not on and weights == "auto"  # what the run renders
     if grid is None and run_scores:
@@ -331,17 +332,28 @@ def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, p
     o = result["overall"]
     runtime = "" if result["runtime"] == "torch" else f" in {result['runtime']}"
     kept = " (the run's moving average)" if result["weights"] == "average" else ""
-    click.echo(f"step {result['checkpoint_step']}{runtime}{kept}: {o['n']} held-out samples")
+    click.echo(
+        f"step {result['checkpoint_step']}{runtime}{kept}: {o['n']} held-out samples of "
+        f"{o['materials']} material(s)"
+    )
     rows = [
-        (kind, m["n"], m["psnr"], m["ssim"], m["flip"])
+        (kind, m["n"], m["materials"], m["psnr"], _psnr_interval(m), m["ssim"], m["flip"])
         for kind, m in [("all", o), *result["by_kind"].items()]
     ]
-    head = ["kind", "n", "PSNR dB", "SSIM", "FLIP (lower is better)"]
-    click.echo(tabulate(rows, head, floatfmt=("", "", ".2f", ".4f", ".4f")))
+    head = ["kind", "n", "materials", "PSNR dB", "95 % interval", "SSIM", "FLIP (lower is better)"]
+    click.echo(tabulate(rows, head, floatfmt=("", "", "", ".2f", "", ".4f", ".4f")))
+    click.echo(
+        "PSNR interval: a bootstrap over materials, as their suns are not independent "
+        f"(none under {MIN_MATERIALS} materials)"
+    )
     if "grid" in result:
         click.echo(f"grid: {result['grid']}")
     if "per_sample" in result:
         click.echo(f"each sample's scores: {result['per_sample']}")
+
+
+def _psnr_interval(m: dict) -> str:
+    return "—" if m["psnr_low"] is None else f"[{m['psnr_low']:.2f}, {m['psnr_high']:.2f}]"
 
 
 def _warn_unchecked(ckpt, result: dict) -> None:

@@ -80,8 +80,8 @@ def compare(
     groups = np.array(scored.materials, np.int64).reshape(-1, 2)
     rows = [np.array(t.scores["all"], np.float64) for t in scored.tallies]
     models = [
-        _model_entry(ckpt, name, renderer, tally, on)
-        for ckpt, name, renderer, tally in zip(ckpts, names, renderers, scored.tallies, strict=True)
+        _model_entry(ckpt, name, renderer, scored.summary(i), on)
+        for i, (ckpt, name, renderer) in enumerate(zip(ckpts, names, renderers, strict=True))
     ]
     for model, row in zip(models[1:], rows[1:], strict=True):
         model["vs_first"] = {
@@ -104,8 +104,9 @@ def compare(
     return result
 
 
-def _model_entry(ckpt, label: str, renderer, tally, on) -> dict:
-    """One model's part of :func:`compare`'s result (before its differences)."""
+def _model_entry(ckpt, label: str, renderer, summary: dict, on) -> dict:
+    """One model's part of :func:`compare`'s result (before its differences): its
+    ``summary`` (:meth:`trainer.evaluate.Scored.summary`) and where it comes from."""
     return {
         "checkpoint": str(ckpt),
         "label": label,
@@ -113,7 +114,7 @@ def _model_entry(ckpt, label: str, renderer, tally, on) -> dict:
         "runtime": renderer.runtime,
         "weights": renderer.weights,
         "on_checked_against_run": trained_on_is_checked(renderer) if on else None,
-        **tally.summary(),
+        **summary,
     }
 
 

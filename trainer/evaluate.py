@@ -11,7 +11,7 @@ with it).
 from __future__ import annotations
 
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,7 @@ from storage.image_files import save_image
 from storage.reader import Store
 from trainer.data import Catalog, SampleReader
 from trainer.infer import MapsRenderer, load_renderer
+from trainer.intervals import cluster_mean
 
 
 class EvalError(ValueError):
@@ -231,7 +232,7 @@ def evaluate(
         "on_checked_against_run": trained_on_is_checked(renderer) if on else None,
         "samples": len(split),
         "on": list(on) if on else None,
-        **scored.tallies[0].summary(),
+        **scored.summary(),
     }
     if grid is not None and scored.shown:
         write_grid(grid, scored.shown)
@@ -245,15 +246,37 @@ def evaluate(
 @dataclass
 class Scored:
     """What :func:`score` measured: a :class:`Tally` per renderer (samples in the split's
-    order), each sample's material as ``(store, material)``, samples spread over the split
-    (:func:`spread`) as ``(target, prediction of each renderer)`` display images for a grid,
-    and the stores it read."""
+    order), each sample's material as ``(store, material)`` and its kind, samples spread over
+    the split (:func:`spread`) as ``(target, prediction of each renderer)`` display images for
+    a grid, and the stores it read."""
 
     tallies: list[Tally]
     materials: list[tuple[int, int]]
     shown: list[tuple[np.ndarray, ...]]
     #: the split's stores as read (their per-shard metadata cached)
     stores: list[Store]
+    kinds: list[str] = field(default_factory=list)
+
+    def summary(self, which: int = 0) -> dict:
+        """Renderer ``which``'s :meth:`Tally.summary`, each row (overall and per kind) with
+        its count of materials and its PSNR's interval over them (``psnr_low``,
+        ``psnr_high``: :func:`trainer.intervals.cluster_mean`, None under
+        ``MIN_MATERIALS``)."""
+        out = self.tallies[which].summary()
+        psnr = np.array(self.tallies[which].scores["all"], np.float64).reshape(-1, 3)[:, 0]
+        groups = np.array(self.materials, np.int64).reshape(-1, 2)
+        kinds = np.array(self.kinds)
+
+        out["overall"].update(_psnr_interval(psnr, groups))
+        for kind, row in out["by_kind"].items():
+            row.update(_psnr_interval(psnr[kinds == kind], groups[kinds == kind]))
+        return out
+
+
+def _psnr_interval(psnr: np.ndarray, groups: np.ndarray) -> dict:
+    m = cluster_mean(psnr, groups)
+    low, high = (None if v is None else round(v, 3) for v in (m["low"], m["high"]))
+    return {"materials": m["materials"], "psnr_low": low, "psnr_high": high}
 
 
 def score(renderers: list[MapsRenderer], split, batch_size: int, grid_count: int) -> Scored:
@@ -261,7 +284,7 @@ def score(renderers: list[MapsRenderer], split, batch_size: int, grid_count: int
     the first renderer's tonemap of the renders (renderers compared must share it)."""
     reader = SampleReader(split)
     kinds = [{m: rec["kind"] for m, rec in s.materials().items()} for s in reader.stores]
-    out = Scored([Tally() for _ in renderers], [], [], reader.stores)
+    out = Scored([Tally() for _ in renderers], [], [], reader.stores, [])
     ids = np.arange(len(split))
     show = set(spread(len(split), grid_count).tolist())
     for lo in tqdm(range(0, len(ids), batch_size), desc="eval", unit="batch"):
@@ -278,6 +301,7 @@ def score(renderers: list[MapsRenderer], split, batch_size: int, grid_count: int
             tally.add(pred, target.to(pred.device), names)
             preds.append(pred.cpu().numpy())
         out.materials += mats
+        out.kinds += names
         for j, i in enumerate(batch["id"].tolist()):
             if i in show:
                 out.shown.append((target[j].numpy(), *(p[j] for p in preds)))
