@@ -3,10 +3,14 @@
 Every ``every``-th request (of the HTTP ``methods`` given; all when none) gets a fault, taking
 turns: a 503 ``SlowDown`` answer (S3's throttling), a connection reset before any answer, and a
 stall of ``stall_s`` (longer than the client's read timeout) before the request goes through
-(``stall_s`` 0: no stalls). A 503 or reset fault hits ``burst`` tries in a row of the same
-request (method, path and query), as S3 throttles one prefix; ``burst`` above ``S3FS_TRIES``
-outlasts the quick retries s3fs makes itself (botocore's are turned off in the tests), so the
-fault reaches this project's retry policy whatever else is in flight. ``limit``: at most that
+(``stall_s`` 0: no stalls). A 503 or reset fault hits the same request (method, path and
+query) for ``burst`` tries in a row and for ``hold_s`` seconds, whichever lasts longer, as S3
+throttles one prefix for a while. The window is what makes a fault outlast the quick retries
+of every client that asks at once: two DataLoader workers open the same array's metadata
+together, and a count of tries alone would be shared between them, each seeing fewer
+failures than s3fs absorbs (``S3FS_TRIES``; botocore's retries are turned off in the tests).
+With both above what s3fs makes itself, the fault reaches this project's retry policy
+whatever else is in flight (:meth:`FlakyProxy.past_client_retries`). ``limit``: at most that
 many requests start a fault (None: no limit), so that an operation of many requests, retried
 whole, ends. Faulting only ``GET`` or ``PUT`` keeps clear of the requests s3fs answers another
 way when they fail (a failed ``HEAD`` falls back to a listing). All other requests are forwarded.
@@ -18,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import threading
+import time
 
 import aiohttp
 import s3fs
@@ -30,6 +35,9 @@ SLOW_DOWN = (
 )
 #: how often s3fs tries a request itself before it raises
 S3FS_TRIES = s3fs.S3FileSystem.retries
+#: seconds from s3fs's first try of a request to its last: it sleeps ``0.1 * 1.7**i`` after
+#: try ``i`` (s3fs.core._error_wrapper)
+S3FS_SPAN_S = sum(min(1.7**i * 0.1, 15) for i in range(S3FS_TRIES - 1))
 DENIED = (
     b'<?xml version="1.0" encoding="UTF-8"?><Error><Code>AccessDenied</Code>'
     b"<Message>Access Denied</Message></Error>"
@@ -46,11 +54,13 @@ class FlakyProxy:
         burst: int = 1,
         limit: int | None = None,
         methods: tuple[str, ...] = (),
+        hold_s: float = 0.0,
     ):
         self.upstream, self.every, self.stall_s, self.deny = upstream, every, stall_s, deny
-        self.burst, self.limit, self.methods = burst, limit, methods
+        self.burst, self.limit, self.methods, self.hold_s = burst, limit, methods, hold_s
         self.matching = self.started = 0  # requests that may fault; faults started
-        self.pending: dict[str, tuple[str, int]] = {}  # request -> (fault, tries left to fault)
+        #: request -> (fault, tries left to fault, time.monotonic() to fault until)
+        self.pending: dict[str, tuple[str, int, float]] = {}
         self.count = itertools.count(1)
         self.faults = {"503": 0, "reset": 0, "stall": 0, "denied": 0}
         self.requests = 0
@@ -64,10 +74,13 @@ class FlakyProxy:
         cls, upstream: str, every: int, method: str, deny: str = ""
     ) -> FlakyProxy:
         """Faults that reach this project's retry policy: one ``method`` request in ``every``
-        fails (503 or reset, no stalls) for more tries than s3fs makes, at most 4 of them."""
+        fails (503 or reset, no stalls) for more tries than s3fs makes, and for twice the
+        time its tries take (so for every client that asks within a second of the first), at
+        most 4 of them."""
         return cls(
-            upstream, every, stall_s=0, deny=deny, burst=S3FS_TRIES + 1, limit=4, methods=(method,)
-        )
+            upstream, every, stall_s=0, deny=deny, burst=S3FS_TRIES + 1, limit=4,
+            methods=(method,), hold_s=2 * S3FS_SPAN_S + 0.5,
+        )  # fmt: skip
 
     @property
     def endpoint(self) -> str:
@@ -103,10 +116,10 @@ class FlakyProxy:
     def _fault(self, method: str, key: str) -> str | None:
         """The fault for a ``method`` request that ``key`` names (None: forward it)."""
         if key in self.pending:
-            kind, left = self.pending.pop(key)
-            if left > 1:
-                self.pending[key] = (kind, left - 1)
-            return kind
+            kind, left, until = self.pending.pop(key)
+            if left > 0 or time.monotonic() < until:
+                self.pending[key] = (kind, left - 1, until)
+                return kind
         if self.methods and method not in self.methods:
             return None
         self.matching += 1
@@ -114,8 +127,8 @@ class FlakyProxy:
             return None
         kinds = ("503", "reset", "stall") if self.stall_s else ("503", "reset")
         kind, self.started = kinds[self.started % len(kinds)], self.started + 1
-        if kind != "stall" and self.burst > 1:
-            self.pending[key] = (kind, self.burst - 1)
+        if kind != "stall" and (self.burst > 1 or self.hold_s > 0):
+            self.pending[key] = (kind, self.burst - 1, time.monotonic() + self.hold_s)
         return kind
 
     async def _handle(self, request: web.Request) -> web.StreamResponse:
