@@ -216,6 +216,11 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     (other / "val.jsonl").write_text(  # an averaged run: its trained weights are scored too
         "\n".join(json.dumps(x) for x in averaged)
     )
+    overall = {"n": 50, "psnr": 24.5, "ssim": 0.8, "flip": 0.2}  # trainer eval's eval.json
+    interval = {"materials": 10, "psnr_low": 23.75, "psnr_high": 25.25}
+    (runs / "eval.json").write_text(json.dumps({"checkpoint_step": 30,
+                                                "overall": {**overall, **interval}}))  # fmt: skip
+    (other / "eval.json").write_text(json.dumps({"checkpoint_step": 30, "overall": overall}))
     for run in (runs, other):  # listed, not read
         (run / "checkpoints").mkdir()
         (run / "checkpoints" / "step-00000030.pt").write_bytes(b"")
@@ -265,6 +270,12 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     i1, i2 = (runs_page.index(f"{tmp_path / 'runs'}/{r} <small>") for r in ("r1", "r2"))
     r1, r2 = runs_page[i1:i2], runs_page[i2:]
     assert "trained weights" not in r1 and r1.count("<polyline") == 4
+    eval_line = re.sub(r"\s+", " ", re.sub(r"<[^>]+>", "", r1[r1.index("eval at step") :]))
+    assert eval_line.startswith("eval at step 30: PSNR 24.50 dB [23.75, 25.25], SSIM 0.8000 on 50 "
+                                "held-out samples of 10 materials")  # fmt: skip
+    eval_line = re.sub(r"\s+", " ", re.sub(r"<[^>]+>", "", r2[r2.index("eval at step") :]))
+    line = "eval at step 30: PSNR 24.50 dB, SSIM 0.8000 on 50 held-out samples"  # no interval
+    assert eval_line.startswith(line) and not eval_line[len(line) :].startswith(" of")
     assert "trained weights' PSNR<b>19.00 dB</b>" in r2 and r2.count("<polyline") == 2
     assert "moving average (renders)" in r2 and '">18.5</text>' in r2  # both lines' range
     # each run's settings, and a table of those that differ between the runs

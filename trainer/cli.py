@@ -334,7 +334,7 @@ def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, p
     kept = " (the run's moving average)" if result["weights"] == "average" else ""
     click.echo(
         f"step {result['checkpoint_step']}{runtime}{kept}: {o['n']} held-out samples of "
-        f"{o['materials']} material(s)"
+        f"{o['materials']} material{'s' if o['materials'] != 1 else ''}"
     )
     rows = [
         (kind, m["n"], m["materials"], m["psnr"], _psnr_interval(m), m["ssim"], m["flip"])

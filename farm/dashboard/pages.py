@@ -158,10 +158,13 @@ endif %}</div>
 alt="held-out grid" style="max-width:100%"
 src="/runfile/{{ r.name }}?file=val.png&amp;step={{ r.val_last.step }}">{% endif %}
 <p>checkpoints: {% for c in r.checkpoints %}{{ c.name }} ({{ (c.bytes / 1e6)|round(1) }} MB) {%
-else %}none{% endfor %}</p>{% if r.eval %}<p>eval at step {{ r.eval.checkpoint_step }}: PSNR
-{{ "%.2f"|format(r.eval.overall.psnr) }} dB, SSIM {{ "%.4f"|format(r.eval.overall.ssim) }} on
-{{ r.eval.overall.n }} held-out samples</p>{% endif %}{% if r.eval_grid %}<img alt="eval grid"
-style="max-width:100%" src="/runfile/{{ r.name }}?file=eval.png">{% endif %}
+else %}none{% endfor %}</p>{% if r.eval %}{% set o = r.eval.overall %}<p>eval at step
+{{ r.eval.checkpoint_step }}: PSNR {{ "%.2f"|format(o.psnr) }} dB{% if o.psnr_low is number %}
+<span title="95 % interval over materials">[{{ "%.2f"|format(o.psnr_low) }},
+{{ "%.2f"|format(o.psnr_high) }}]</span>{% endif %}, SSIM {{ "%.4f"|format(o.ssim) }} on
+{{ o.n }} held-out samples{% if o.materials is defined %} of {{ o.materials }}
+material{{ "s" if o.materials != 1 }}{% endif %}</p>{% endif %}{% if r.eval_grid %}<img
+alt="eval grid" style="max-width:100%" src="/runfile/{{ r.name }}?file=eval.png">{% endif %}
 {% else %}<p>No runs (start with --runs DIR).</p>{% endfor %}{% endblock %}"""
 
 
