@@ -33,7 +33,7 @@ from benchmarks.quality import baseline_store, load_json, save_json
 from render_jobs.tonemap import to_uint8
 from storage.backend import write_atomic
 from storage.reader import Store
-from trainer.evaluate import Tally, evaluate
+from trainer.evaluate import METRICS, Tally, evaluate
 from trainer.infer import Renderer
 from trainer.intervals import (
     LEVEL,
@@ -47,7 +47,6 @@ from trainer.model import count_parameters
 from trainer.targets import Tonemap, light_vector
 
 PAIRED = ("material_index", "sun_direction", "turbidity", "seed")
-METRICS = ("psnr", "ssim", "flip")
 
 
 class QualityError(RuntimeError):

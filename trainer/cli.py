@@ -337,7 +337,7 @@ def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, p
         f"{o['materials']} material{'s' if o['materials'] != 1 else ''}"
     )
     rows = [
-        (kind, m["n"], m["materials"], m["psnr"], _psnr_interval(m), m["ssim"], m["flip"])
+        (kind, m["n"], m["materials"], m["psnr"], _interval_text(m), m["ssim"], m["flip"])
         for kind, m in [("all", o), *result["by_kind"].items()]
     ]
     head = ["kind", "n", "materials", "PSNR dB", "95 % interval", "SSIM", "FLIP (lower is better)"]
@@ -352,7 +352,7 @@ def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, p
         click.echo(f"each sample's scores: {result['per_sample']}")
 
 
-def _psnr_interval(m: dict) -> str:
+def _interval_text(m: dict) -> str:
     return "—" if m["psnr_low"] is None else f"[{m['psnr_low']:.2f}, {m['psnr_high']:.2f}]"
 
 

@@ -26,6 +26,7 @@ from tabulate import tabulate
 
 from storage.reader import Store
 from trainer.evaluate import (
+    METRICS,
     EvalError,
     NoCatalog,
     score,
@@ -38,8 +39,6 @@ from trainer.evaluate import (
 from trainer.infer import load_renderer
 from trainer.intervals import LEVEL, MIN_MATERIALS, paired_difference
 from trainer.validation import samples_digest
-
-METRICS = ("psnr", "ssim", "flip")
 
 
 def labels(names: list[str], weights: list[str]) -> list[str]:

@@ -79,6 +79,10 @@ def flip(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return torch.tensor(out)
 
 
+#: the scores of a :class:`Tally` row, in its order
+METRICS = ("psnr", "ssim", "flip")
+
+
 class Tally:
     """Per-sample PSNR, SSIM and FLIP of display images, kept per material kind."""
 
