@@ -39,6 +39,7 @@ from trainer.intervals import (
     LEVEL,
     MIN_MATERIALS,
     RESAMPLES,
+    bracket,
     cluster_mean,
     excludes_zero,
     paired_difference,
@@ -289,7 +290,7 @@ def _scores(row: dict) -> str:
 
 
 def _interval(d: dict | None, fmt: str) -> str:
-    return "—" if d is None or d["low"] is None else f"[{d['low']:{fmt}}, {d['high']:{fmt}}]"
+    return bracket(None, None) if d is None else bracket(d["low"], d["high"], fmt)
 
 
 def _difference(d: dict, fmt: str) -> str:

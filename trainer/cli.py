@@ -308,7 +308,7 @@ def _eval_errors() -> tuple[type, ...]:
 def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, per_sample, as_json):
     """One model's scores, kept beside its run when they are what the run renders."""
     from trainer.evaluate import evaluate
-    from trainer.intervals import MIN_MATERIALS
+    from trainer.intervals import MIN_MATERIALS, bracket
 
     run_scores = Path(ckpt).is_dir() and not on and weights == "auto"  # what the run renders
     if grid is None and run_scores:
@@ -337,7 +337,15 @@ def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, p
         f"{o['materials']} material{'s' if o['materials'] != 1 else ''}"
     )
     rows = [
-        (kind, m["n"], m["materials"], m["psnr"], _interval_text(m), m["ssim"], m["flip"])
+        (
+            kind,
+            m["n"],
+            m["materials"],
+            m["psnr"],
+            bracket(m["psnr_low"], m["psnr_high"]),
+            m["ssim"],
+            m["flip"],
+        )
         for kind, m in [("all", o), *result["by_kind"].items()]
     ]
     head = ["kind", "n", "materials", "PSNR dB", "95 % interval", "SSIM", "FLIP (lower is better)"]
@@ -350,10 +358,6 @@ def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, p
         click.echo(f"grid: {result['grid']}")
     if "per_sample" in result:
         click.echo(f"each sample's scores: {result['per_sample']}")
-
-
-def _interval_text(m: dict) -> str:
-    return "—" if m["psnr_low"] is None else f"[{m['psnr_low']:.2f}, {m['psnr_high']:.2f}]"
 
 
 def _warn_unchecked(ckpt, result: dict) -> None:

@@ -37,7 +37,7 @@ from trainer.evaluate import (
     write_sample_table,
 )
 from trainer.infer import load_renderer
-from trainer.intervals import LEVEL, MIN_MATERIALS, paired_difference
+from trainer.intervals import LEVEL, MIN_MATERIALS, bracket, paired_difference
 from trainer.validation import samples_digest
 
 
@@ -124,9 +124,9 @@ def report(result: dict) -> str:
     few = result["materials"] < MIN_MATERIALS
     where = "samples of the --on stores" if result["on"] else "held-out samples"
     rows = [
-        [i, m["label"], m["checkpoint_step"], m["overall"]["psnr"], m["overall"]["ssim"],
-         m["overall"]["flip"]]
-        for i, m in enumerate(models, 1)
+        [i, m["label"], m["checkpoint_step"], o["psnr"], bracket(o["psnr_low"], o["psnr_high"]),
+         o["ssim"], o["flip"]]
+        for i, m in enumerate(models, 1) for o in [m["overall"]]
     ]  # fmt: skip
     kinds = [
         [k, first["n"], *(m["by_kind"][k]["psnr"] for m in models)]
@@ -138,8 +138,8 @@ def report(result: dict) -> str:
         "on the same ones",
         tabulate(
             rows,
-            ["", "checkpoint", "step", "PSNR dB", "SSIM", "FLIP"],
-            floatfmt=("", "", "", ".2f", ".4f", ".4f"),
+            ["", "checkpoint", "step", "PSNR dB", "95 % interval", "SSIM", "FLIP"],
+            floatfmt=("", "", "", ".2f", "", ".4f", ".4f"),
         ),  # fmt: skip
         "",
         "PSNR dB by material kind",

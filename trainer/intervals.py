@@ -52,6 +52,11 @@ def paired_difference(base, other, groups, resamples: int = RESAMPLES) -> dict:
     return {**cluster_mean(d, groups, resamples), "higher": float((d > 0).mean())}
 
 
+def bracket(low: float | None, high: float | None, fmt: str = ".2f") -> str:
+    """An interval as the reports print it, ``[25.81, 26.58]``, or ``—`` for none."""
+    return "—" if low is None else f"[{low:{fmt}}, {high:{fmt}}]"
+
+
 def excludes_zero(d: dict) -> bool:
     """Whether an interval of :func:`cluster_mean` or :func:`paired_difference` lies wholly
     on one side of 0 (False without an interval)."""
