@@ -1077,20 +1077,12 @@ def test_a_loader_worker_that_cannot_send_a_batch_stops_the_run_in_one_line(tiny
     out = tmp_path / "lost"
     cmd = [sys.executable, "-m", "trainer.cli", "train", *argv(tiny_store, out, workers=2)]
     r = run_group(cmd, env=env, timeout=120)
-    lines = r.stderr.strip().splitlines()
-    at = next((i for i, ln in enumerate(lines) if ln.startswith("Error: ")), len(lines) - 1)
+    last = r.stderr.strip().splitlines()[-1]
+    # the last line: the other worker, even one still starting, is stopped before the exit
     assert r.returncode == 1 and re.match(
         r"Error: DataLoader worker \(pid(\(s\))? [\d, ]+\) exited unexpectedly.* \(its error is ",
-        lines[at],
+        last,
     ), r.stderr[-3000:]
-    # after the error line only one thing may follow: the other worker, when it was still
-    # starting, failing in spawn's bootstrap because the run's semaphores are gone (a race,
-    # about one run in four under load; not the trainer's output)
-    rest = "\n".join(lines[at + 1 :])
-    assert not rest or (
-        rest.startswith("Traceback") and "in spawn_main" in rest and "SemLock._rebuild" in rest
-        and rest.endswith("FileNotFoundError: [Errno 2] No such file or directory")
-    ), rest  # fmt: skip
     assert "cannot pickle" in r.stderr and "could not send a batch: exiting" in r.stderr
     assert "done:" not in r.stdout
 

@@ -220,22 +220,27 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     started = time.perf_counter()
     images = 0
     batches = None  # one iteration for the whole run: the workers read across epoch ends
-    while t.epoch < cfg.epochs and not _at_max_steps(cfg, t):
-        if batches is None:
-            stream.set_position(t.epoch, t.position)
-            batches = iter(reader)
-        mine = len(stream.batches(t.epoch, t.position))  # this rank's; one fewer on some ranks
-        total = steps_left(len(split), rk.world, cfg.batch_size, t.position)
-        bar = tqdm(total=total, desc=f"epoch {t.epoch + 1}/{cfg.epochs}", disable=not rk.master)
-        log.new_window()
-        with contextlib.closing(bar):  # the bar ends its line even on errors
-            start = t.step
-            images += _epoch(cfg, rk, t, itertools.islice(batches, mine), len(split), log, bar)
-        _check_epoch_whole(cfg, t, t.step - start, mine)
-        log.validate(t, bar)  # the epoch's weights, unless the last step just scored them
-        if not _at_max_steps(cfg, t):
-            t.epoch, t.position = t.epoch + 1, 0
-        save(cfg, rk, t, out, log)
+    with contextlib.ExitStack() as workers:
+        while t.epoch < cfg.epochs and not _at_max_steps(cfg, t):
+            if batches is None:
+                stream.set_position(t.epoch, t.position)
+                batches = iter(reader)
+                workers.callback(_join_workers, batches)
+            # this rank's batches: one fewer on some ranks
+            mine = len(stream.batches(t.epoch, t.position))
+            total = steps_left(len(split), rk.world, cfg.batch_size, t.position)
+            desc = f"epoch {t.epoch + 1}/{cfg.epochs}"
+            bar = tqdm(total=total, desc=desc, disable=not rk.master)
+            log.new_window()
+            with contextlib.closing(bar):  # the bar ends its line even on errors
+                start = t.step
+                epoch_batches = itertools.islice(batches, mine)
+                images += _epoch(cfg, rk, t, epoch_batches, len(split), log, bar)
+            _check_epoch_whole(cfg, t, t.step - start, mine)
+            log.validate(t, bar)  # the epoch's weights, unless the last step just scored them
+            if not _at_max_steps(cfg, t):
+                t.epoch, t.position = t.epoch + 1, 0
+            save(cfg, rk, t, out, log)
     log.close(t.model)
     seconds = time.perf_counter() - started
     return {
@@ -248,6 +253,18 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         "val": log.last_val,
         "best": t.best,
     }
+
+
+def _join_workers(batches) -> None:
+    """Stop the loader's worker processes now, whether the run ended or failed.
+
+    Torch stops them when the iterator is collected. After an error the traceback keeps the
+    iterator alive until the interpreter exits, after ``multiprocessing`` has removed the
+    queues' semaphores; a worker still starting then finds them gone and prints a
+    traceback under the run's one-line error."""
+    stop = getattr(batches, "_shutdown_workers", None)  # torch's; none without workers
+    if stop is not None:
+        stop()
 
 
 def _check_epoch_whole(cfg: TrainConfig, t: Trainee, trained: int, mine: int) -> None:
