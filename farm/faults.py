@@ -14,7 +14,10 @@ and the actor never calls in here. Keys:
   worker busy for as long as a test needs, and tells the test when it is;
 - ``wait_for``: a path; each task waits until that file exists (another node's ``.held``
   file: this node's worker cannot finish the job before that node's worker has a task);
-- ``trace``: a path; each task appends ``<worker> <material>`` to it as it starts.
+- ``trace``: a path; each task appends ``<worker> <material>`` to it as it starts;
+- ``wait_for_worker``: worker id to worker id; each task of the first waits until the
+  ``trace`` holds a task of the second (a replacement worker gets work, however long it
+  takes to start).
 """
 
 from __future__ import annotations
@@ -44,6 +47,9 @@ class Faults:
         )
         while f.get("wait_for") and not os.path.exists(f["wait_for"]):
             time.sleep(0.1)
+        if other := f.get("wait_for_worker", {}).get(worker):
+            while not _traced(f["trace"], other):
+                time.sleep(0.1)
         hold = f.get("hold_while")
         if hold and os.path.exists(hold):
             open(f"{hold}.held", "w").close()
@@ -58,6 +64,12 @@ class Faults:
             raise RenderError(f"injected fault: material {material} fails once")
         if material in f.get("hang_materials", []):
             time.sleep(3600)
+
+
+def _traced(trace: str, worker: str) -> bool:
+    """Whether the ``trace`` file holds a task of ``worker``."""
+    with open(trace) as lines:
+        return any(line.split()[0] == worker for line in lines)
 
 
 def from_env() -> Faults | None:

@@ -418,8 +418,9 @@ def test_an_idle_worker_takes_back_a_task_waiting_behind_a_slow_one(tmp_path):
 
 
 def test_bad_worker_is_blocklisted_and_replaced(tmp_path):
-    out = tmp_path / "set.zarr"
-    faults = {"bad_workers": ["w0"], "slow_s": 0.5}  # work enough for the replacement
+    out, trace = tmp_path / "set.zarr", tmp_path / "trace"
+    # w1 renders nothing until the replacement w2 has a task: work is left for it
+    faults = {"bad_workers": ["w0"], "trace": str(trace), "wait_for_worker": {"w1": "w2"}}
     r = farm("submit", "-m", "uniform:12", *TINY, "--workers", "2", "-o", out, faults=faults)
     assert r.returncode == 0, r.stderr
     assert_exactly_once(out, 12)
@@ -693,7 +694,8 @@ def test_results_lost_with_a_node_after_a_release_are_rendered_again(tmp_path, m
 def test_killed_driver_resumes_where_it_stopped(tmp_path):
     out = tmp_path / "set.zarr"
     args = ["submit", "-m", "uniform:10", *TINY, "--workers", "2", "-o", out]
-    proc = farm(*args, faults={"slow_s": 0.5}, wait=False)
+    # material 9 (the last shard's) keeps the job running until the signal
+    proc = farm(*args, faults={"slow_materials": {"9": 60}}, wait=False)
     try:
         wait_for_commits(out, 2)
         proc.send_signal(signal.SIGKILL)  # the driver dies mid-job
@@ -722,7 +724,8 @@ def test_sigterm_stops_the_job_cleanly_and_the_same_command_resumes(tmp_path):
     and Ray, says how to resume and exits 143; the job state says interrupted, not running."""
     out = tmp_path / "set.zarr"
     args = ["submit", "-m", "uniform:10", *TINY, "--workers", "2", "-o", out]
-    proc = farm(*args, faults={"slow_s": 0.5}, wait=False)
+    # material 9 (the last shard's) keeps the job running until the signal
+    proc = farm(*args, faults={"slow_materials": {"9": 60}}, wait=False)
     try:
         wait_for_commits(out, 1)
         proc.send_signal(signal.SIGTERM)
