@@ -201,7 +201,13 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     (runs / "log.jsonl").write_text("\n".join(json.dumps(x) for x in lines))
     scores = [{"step": s, "epoch": 0, "samples": 4, "psnr": p, "ssim": 0.5, "heldout_set": "3f2a"}
               for s, p in ((10, 21.5), (20, 23.25), (30, 22.0))]  # fmt: skip
-    (runs / "val.jsonl").write_text("\n".join(json.dumps(x) for x in scores) + "\n{torn")
+    sure = [  # r1's scores say how sure they are: an interval, and the move from the best
+        {**x, "materials": 6, "psnr_low": x["psnr"] - 0.5, "psnr_high": x["psnr"] + 0.5}
+        for x in scores
+    ]
+    sure[1]["vs_best"] = {"step": 10, "mean": 1.75, "low": 1.25, "high": 2.25}
+    sure[2]["vs_best"] = {"step": 20, "mean": -1.25, "low": -1.5, "high": -1.0}
+    (runs / "val.jsonl").write_text("\n".join(json.dumps(x) for x in sure) + "\n{torn")
     Image.new("RGB", (8, 8), (200, 30, 30)).save(runs / "val.png")
     other = tmp_path / "runs" / "r2"  # a second scored run: the page compares the two
     init = runs / "checkpoints" / "step-00000030.pt"  # r2 is fine-tuned from r1's
@@ -256,9 +262,12 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     averaged = (("run", f"{tmp_path / 'runs'}/r2"),)
     assert value[("shaderball_train_val_trained_psnr_db", averaged)] == 19.0
     assert ("shaderball_train_val_trained_psnr_db", run) not in value
-    assert "held-out PSNR<b>22.00 dB</b>" in runs_page  # a torn last line is skipped
+    assert "held-out PSNR<b>22.00 dB" in runs_page  # a torn last line is skipped
+    assert "<small>[21.50, 22.50] over\n6 materials</small>" in runs_page
+    assert "-1.25 dB [-1.50, -1.00] on step 20's, the best\nbefore" in runs_page
     assert "best 23.25 dB at step 20" in runs_page and "steps 10 to 30" in runs_page
-    assert '">21.5</text>' in runs_page  # the PSNR curve spans its own range, not from 0
+    # the PSNR curve spans its own range with its interval's band, not from 0
+    assert '">21</text>' in runs_page and runs_page.count('<polygon class="band"') == 1
     assert "held-out samples at step 30" in runs_page and "file=val.png" in runs_page
     assert grid[0] == 200 and grid[1][:4] == b"\x89PNG" and nothing[0] == 404
     compare = runs_page[runs_page.index("Held-out PSNR of every run") :]

@@ -466,7 +466,27 @@ def test_held_out_scores_are_evenly_spaced_and_change_nothing_trained(tiny_store
         train(cfg)
         trained = Renderer.from_checkpoint(tmp_path / name, weights="trained")
         params.append(trained.model.state_dict())
-    assert len((tmp_path / "scored" / "val.jsonl").read_text().splitlines()) == 4
+    scored = [json.loads(x) for x in (tmp_path / "scored" / "val.jsonl").read_text().splitlines()]
+    assert len(scored) == 4
+    # each score: its materials (an interval needs 5), and after the first its PSNR less the
+    # best before it, on the same samples
+    v = Validator(split, 64)
+    suns = tiny_store.layout.suns_per_material
+    assert [tuple(g) for g in v.groups] == [(0, int(k) // suns) for _, k in split.refs[v.ids]]
+    ran = Catalog.from_dict(checkpoint.load(tmp_path / "scored")["catalog"]).split("test")
+    materials = len({tuple(g) for g in Validator(ran, 64).groups})
+    assert all(x["materials"] == materials for x in scored)
+    assert all((x["psnr_low"] is None) == (materials < 5) for x in scored)
+    assert "vs_best" not in scored[0]
+    wide = Validator(Catalog.snapshot([tiny_store.url], 0, 0.75, None).split("test"), 64)
+    net = Renderer.from_checkpoint(tmp_path / "scored", device="cpu")
+    got, _, each = wide.score(net.model, net.config.roughness_channels, net.tonemap)
+    assert got["materials"] >= 5 and got["psnr_low"] < got["psnr"] < got["psnr_high"]
+    assert wide.against(each, each) == {"mean": 0.0, "low": 0.0, "high": 0.0}
+    for i, x in enumerate(scored[1:], 1):
+        best = max(scored[:i], key=lambda y: y["psnr"])
+        assert x["vs_best"]["step"] == best["step"]
+        assert x["vs_best"]["mean"] == pytest.approx(x["psnr"] - best["psnr"], abs=2e-4)
     assert not (tmp_path / "unscored" / "val.jsonl").exists()
     assert all(torch.equal(params[0][k], p[k]) for p in params[1:] for k in params[0])
     # the averaged run's checkpoints render, and its scores measure, the average

@@ -10,10 +10,12 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 
 from trainer.config import TrainConfig
 from trainer.evaluate import write_grid
+from trainer.intervals import bracket
 from trainer.validation import Validator
 
 if TYPE_CHECKING:
@@ -42,6 +44,8 @@ class RunLog:
         self.validator: Validator | None = None  # rank 0's, unless --val-samples 0
         self.val_every, self.fmt = cfg.val_every, rk.fmt
         self.last_val: dict | None = None
+        #: the best score of this process so far: its record and per-sample PSNRs
+        self.best: tuple[dict, np.ndarray] | None = None
         if rk.master:
             out.mkdir(parents=True, exist_ok=True)
             from torch.utils.tensorboard import SummaryWriter
@@ -81,28 +85,33 @@ class RunLog:
         only where they score the same samples. A run with a moving average scores
         the average (what its checkpoints render with) and the trained weights
         (``trained_psnr``, ``trained_ssim``; TensorBoard's ``val/trained_psnr`` and
-        ``val/trained_ssim``). Its time is left out of the window's images/s. Rank 0 only."""
+        ``val/trained_ssim``). Each record has the PSNR's interval over the materials and,
+        after the first score of the process, ``vs_best``: the PSNR less that of the best
+        score before it, on the same samples, with its interval
+        (:meth:`trainer.validation.Validator.against`). Its time is left out of the window's
+        images/s. Rank 0 only."""
         v = self.validator
         if v is None or not len(v) or (self.last_val or {}).get("step") == t.step:
             return
         t0 = time.perf_counter()
         others = {} if t.ema is None else {"trained": t.model}
-        scores, shown = v.score(
+        scores, shown, each = v.score(
             t.rendering, t.model_cfg.roughness_channels, t.tonemap, self.fmt, VAL_GRID_ROWS, others
         )
         write_grid(self.out / "val.png", shown)
         self.window["t"] += time.perf_counter() - t0
         rec = {"step": t.step, "epoch": t.epoch, **scores, "heldout_set": v.digest}
+        if self.best is not None:
+            rec["vs_best"] = {"step": self.best[0]["step"], **v.against(self.best[1], each)}
+        if self.best is None or rec["psnr"] > self.best[0]["psnr"]:
+            self.best = (rec, each)
         rec["time"] = round(time.time(), 3)
         with open(self.out / "val.jsonl", "a") as f:
             f.write(json.dumps(rec) + "\n")
         for key in (k for k in scores if k.endswith(("psnr", "ssim"))):
             self.writer.add_scalar(f"val/{key}", scores[key], t.step)
         trained = f" (trained weights {rec['trained_psnr']:.2f} dB)" if others else ""
-        bar.write(
-            f"step {t.step}: held-out PSNR {rec['psnr']:.2f} dB, SSIM {rec['ssim']:.4f}{trained} "
-            f"({rec['samples']} samples, {rec['seconds']:.1f} s)"
-        )
+        bar.write(_score_line(rec, trained))
         self.last_val = rec
 
     def record(self, t: Trainee, batch: dict, loss: torch.Tensor, waited: float, bar) -> None:
@@ -131,6 +140,20 @@ class RunLog:
             self.samples.close()
         if self.writer is not None:
             self.writer.close()
+
+
+def _score_line(rec: dict, trained: str) -> str:
+    """A held-out score as the run prints it, with its intervals where it has them."""
+    ci = bracket(rec["psnr_low"], rec["psnr_high"])
+    line = (
+        f"step {rec['step']}: held-out PSNR {rec['psnr']:.2f} dB {ci} over "
+        f"{rec['materials']} materials, SSIM {rec['ssim']:.4f}{trained} "
+        f"({rec['samples']} samples, {rec['seconds']:.1f} s)"
+    )
+    if d := rec.get("vs_best"):
+        ci = bracket(d["low"], d["high"], "+.2f")
+        line += f"; {d['mean']:+.2f} dB {ci} on the best before it (step {d['step']})"
+    return line
 
 
 def _new_window() -> dict:

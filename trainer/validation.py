@@ -11,6 +11,12 @@ checkpoints render with: no collective runs, so the other ranks wait at their ne
 all-reduce. A run with ``--ema-decay`` renders with the moving average of its weights, and
 scores the trained weights too on the same batches (``others``), so that its curves show what
 the average gains.
+
+Each score carries how sure it is (:mod:`trainer.intervals`): the PSNR's interval over the
+samples' materials, which says how far the mean over all materials like these may lie, and
+:func:`against`, the paired difference from an earlier score on the same samples, which says
+whether a move between two scores is more than the materials' spread. The two differ: a
+move far inside the first interval can still be resolved, as both scores share the samples.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ import torch
 
 from trainer.data import SampleReader, Split
 from trainer.evaluate import psnr, spread, ssim
+from trainer.intervals import cluster_mean, paired_difference
 from trainer.targets import Tonemap, model_inputs
 
 
@@ -37,6 +44,12 @@ class Validator:
         self.digest = samples_digest(split, self.ids)
         self.reader = SampleReader(split)
         self.batch_size = batch_size
+        #: each sample's material as ``(store, material)``, for the intervals
+        self.groups = np.array(
+            [(s, self.reader.stores[s].layout.material_of_sample(int(k)))
+             for s, k in split.refs[self.ids]],
+            np.int64,
+        ).reshape(-1, 2)  # fmt: skip
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -50,13 +63,15 @@ class Validator:
         fmt: torch.memory_format = torch.contiguous_format,
         shown: int = 0,
         others: dict[str, torch.nn.Module] | None = None,
-    ) -> tuple[dict, list[tuple[np.ndarray, np.ndarray]]]:
-        """``{"samples", "psnr", "ssim", "seconds"}``: the means over the samples of ``model``
-        on its device, and ``NAME_psnr`` and ``NAME_ssim`` of each ``NAME: model`` of
-        ``others`` on the same batches (each read once); every model is put in eval mode for
-        the scores, then back in the mode it was in. Also the ``(ground truth, prediction)``
-        display images of ``model``'s first ``shown`` samples (for
-        :func:`trainer.evaluate.write_grid`)."""
+    ) -> tuple[dict, list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
+        """``{"samples", "psnr", "ssim", "materials", "psnr_low", "psnr_high", "seconds"}``:
+        the means over the samples of ``model`` on its device, with the PSNR's interval over
+        the materials (None under :data:`trainer.intervals.MIN_MATERIALS`), and ``NAME_psnr``
+        and ``NAME_ssim`` of each ``NAME: model`` of ``others`` on the same batches (each read
+        once); every model is put in eval mode for the scores, then back in the mode it was
+        in. Also the ``(ground truth, prediction)`` display images of ``model``'s first
+        ``shown`` samples (for :func:`trainer.evaluate.write_grid`), and ``model``'s PSNR of
+        each sample (for :func:`against`)."""
         t0 = time.perf_counter()
         device = next(model.parameters()).device
         models = {"": model, **(others or {})}
@@ -87,8 +102,22 @@ class Validator:
             prefix = f"{name}_" if name else ""
             out[prefix + "psnr"] = round(float(mean[0]), 4)
             out[prefix + "ssim"] = round(float(mean[1]), 5)
+        each = torch.cat(scores[""])[:, 0].double().cpu().numpy() if scores[""] else np.zeros(0)
+        m = cluster_mean(each, self.groups)
+        out.update(materials=m["materials"], psnr_low=_rounded(m["low"]))
+        out["psnr_high"] = _rounded(m["high"])
         out["seconds"] = round(time.perf_counter() - t0, 3)
-        return out, pictures
+        return out, pictures, each
+
+    def against(self, base: np.ndarray, now: np.ndarray) -> dict:
+        """``now - base``, two scores' per-sample PSNRs, as ``{"mean", "low", "high"}``
+        (:func:`trainer.intervals.paired_difference` over the samples' materials)."""
+        d = paired_difference(base, now, self.groups)
+        return {"mean": round(d["mean"], 4), "low": _rounded(d["low"]), "high": _rounded(d["high"])}
+
+
+def _rounded(v: float | None) -> float | None:
+    return None if v is None else round(v, 4)
 
 
 def samples_digest(split: Split, ids: np.ndarray) -> str:

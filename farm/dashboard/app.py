@@ -244,7 +244,8 @@ RUN_CURVES = (
 def _run_curves(run: dict) -> list[tuple]:
     """``(title, SVG)`` of each of :data:`RUN_CURVES` over the run's steps (held-out scores
     only when the run has some). A run that averages its weights scores the trained weights
-    too (``trained_psnr``): its held-out chart has both lines."""
+    too (``trained_psnr``): its held-out chart has both lines. Otherwise the held-out PSNR's
+    interval over the materials (``psnr_low``, ``psnr_high``) is a band around its line."""
     charts = []
     for rows, k, title, zero in RUN_CURVES:
         if rows != "log" and not run[rows]:
@@ -255,5 +256,7 @@ def _run_curves(run: dict) -> list[tuple]:
             series = [("moving average (renders)", points), ("trained weights", trained)]
             charts.append((title, pages.lines_chart(series, h=160)))
         else:
-            charts.append((title, pages.line_chart(points, steps=True, from_zero=zero)))
+            band = [(x["step"], x["psnr_low"], x["psnr_high"]) for x in run[rows]
+                    if k == "psnr" and x.get("psnr_low") is not None]  # fmt: skip
+            charts.append((title, pages.line_chart(points, steps=True, from_zero=zero, band=band)))
     return charts

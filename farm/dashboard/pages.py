@@ -147,7 +147,13 @@ epoch<b>{{ (r.epoch + 1) if r.epoch is not none else "-" }}</b></div><div class=
 }}</b></div><div class="card">data wait<b>{{ r.data_wait|num("%.1f %%", 100) }}</b></div>
 {% if r.val_last %}<div class="card" title="step {{ r.val_last.step }}, {{ r.val_last.samples
 }} held-out samples; best {{ "%.2f"|format(r.val_best.psnr) }} dB at step {{ r.val_best.step
-}}">held-out PSNR<b>{{ r.val_last.psnr|num("%.2f dB") }}</b></div><div class="card">held-out
+}}">held-out PSNR<b>{{ r.val_last.psnr|num("%.2f dB") }}{% if r.val_last.psnr_low is number %}
+<small>[{{ "%.2f"|format(r.val_last.psnr_low) }}, {{ "%.2f"|format(r.val_last.psnr_high) }}] over
+{{ r.val_last.materials }} materials</small>{% endif %}{% if r.val_last.vs_best %}<small
+class="vs-best"><br>{{ "%+.2f"|format(r.val_last.vs_best.mean) }} dB{% if r.val_last.vs_best.low
+is number %} [{{ "%+.2f"|format(r.val_last.vs_best.low) }}, {{ "%+.2f"|format(
+r.val_last.vs_best.high) }}]{% endif %} on step {{ r.val_last.vs_best.step }}'s, the best
+before</small>{% endif %}</b></div><div class="card">held-out
 SSIM<b>{{ r.val_last.ssim|num("%.4f") }}</b></div>{% if "trained_psnr" in r.val_last %}<div
 class="card" title="the trained weights, scored beside the moving average the checkpoints render
 with">trained weights' PSNR<b>{{ r.val_last.trained_psnr|num("%.2f dB") }}</b></div>{% endif %}{%
@@ -220,13 +226,15 @@ def line_chart(
     h: int = 160,
     steps: bool = False,
     from_zero: bool = True,
+    band: list[tuple[float, float, float]] | None = None,
 ) -> Markup:
     """An SVG line of ``(x, y)`` points with its y range and x span labelled: x in seconds,
     or with ``steps`` in training steps; y from 0, or without ``from_zero`` over the range
-    of the points (a score in dB, whose changes a line from 0 would flatten)."""
+    of the points (a score in dB, whose changes a line from 0 would flatten). ``band``:
+    ``(x, low, high)`` of an interval around the line, shaded (two of them at least)."""
     if len(points) < 2:
         return Markup("<p>not enough progress points yet</p>")
-    return _chart([(None, points)], w, h, steps, from_zero)
+    return _chart([(None, points)], w, h, steps, from_zero, band if band and len(band) > 1 else [])
 
 
 #: the colours of a chart's lines, in turn
@@ -244,22 +252,37 @@ def lines_chart(
     return _chart(drawn, w, h, steps=True, from_zero=False)
 
 
-def _chart(series: list, w: int, h: int, steps: bool, from_zero: bool) -> Markup:
-    """The SVG of :func:`line_chart` and :func:`lines_chart`; a legend when lines are named."""
+def _chart(
+    series: list, w: int, h: int, steps: bool, from_zero: bool, band: list | None = None
+) -> Markup:
+    """The SVG of :func:`line_chart` and :func:`lines_chart`; a legend when lines are named,
+    a shaded ``band`` under the first line when given."""
+    band = band or []
     xs = [x for _, points in series for x, _ in points]
     ys = [y for _, points in series for _, y in points]
+    ys += [v for _, lo, hi in band for v in (lo, hi)]
     x0, x1 = min(xs), max(xs)
     y0 = 0.0 if from_zero else min(ys)
     y1 = max(max(ys), y0 + 1e-9)
     pad = 30
-    lines, legend = [], []
-    for i, (label, points) in enumerate(series):
-        colour = LINE_COLOURS[i % len(LINE_COLOURS)]
-        coords = " ".join(
+
+    def at(points) -> str:
+        return " ".join(
             f"{pad + (x - x0) / max(x1 - x0, 1e-9) * (w - pad - 5):.1f},"
             f"{h - 15 - (y - y0) / (y1 - y0) * (h - 25):.1f}"
             for x, y in points
         )
+
+    lines = []
+    if band:  # the interval's upper edge left to right, then its lower edge back
+        edge = [(x, hi) for x, _, hi in band] + [(x, lo) for x, lo, _ in reversed(band)]
+        lines.append(
+            f'<polygon class="band" fill="#0b6bcb" fill-opacity="0.15" points="{at(edge)}"/>'
+        )
+    legend = []
+    for i, (label, points) in enumerate(series):
+        colour = LINE_COLOURS[i % len(LINE_COLOURS)]
+        coords = at(points)
         lines.append(
             f'<polyline fill="none" stroke="{colour}" stroke-width="1.5" points="{coords}"/>'
         )
