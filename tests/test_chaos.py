@@ -9,6 +9,7 @@ once, with the seed its (material, sun) must have, and `shards verify` clean.
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import time
@@ -22,10 +23,9 @@ from render_jobs.specs import derive_seed
 from storage.reader import Store
 from tests.conftest import s3_env
 from tests.flaky_proxy import FlakyProxy
-from tests.test_farm import BIN, TINY, farm
+from tests.test_farm import BIN, TINY, descendants, farm
 
-# it kills render actors found by name among all of the machine's processes
-pytestmark = [pytest.mark.slow, pytest.mark.exclusive]
+pytestmark = pytest.mark.slow
 URL = "s3://shaderball/chaos.zarr"
 MATERIALS = 18  # 9 shards of 2 materials x 2 suns
 SHARDS = MATERIALS // 2
@@ -54,11 +54,8 @@ def wait_until(test, timeout: float = 180) -> None:
 
 
 def render_actors() -> list[psutil.Process]:
-    return [
-        p
-        for p in psutil.process_iter(["cmdline"])
-        if "ray::RenderWorker" in " ".join(p.info["cmdline"] or [])
-    ]
+    """The render actors of this test's cluster (whose nodes this process started)."""
+    return descendants(os.getpid(), "ray::RenderWorker")
 
 
 def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, monkeypatch):
