@@ -58,6 +58,14 @@ def render_actors() -> list[psutil.Process]:
     return descendants(os.getpid(), "ray::RenderWorker")
 
 
+def a_busy_actor(opts: dict) -> psutil.Process | None:
+    """A render actor that the running driver's job state says is rendering, and is alive."""
+    state = load_state(URL, opts) or {"workers": {}}
+    mine = {p.pid: p for p in render_actors()}
+    busy = [w["pid"] for w in state["workers"].values() if w["status"] == "busy"]
+    return next((mine[pid] for pid in busy if pid in mine), None)
+
+
 def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, monkeypatch):
     from ray.cluster_utils import Cluster
 
@@ -83,7 +91,8 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, m
             try:
                 wait_until(lambda: committed(opts) >= 1)
                 wait_until(lambda: len(render_actors()) >= 3)
-                render_actors()[0].send_signal(signal.SIGKILL)  # a render actor dies
+                wait_until(lambda: a_busy_actor(opts) is not None)
+                a_busy_actor(opts).send_signal(signal.SIGKILL)  # a render actor dies mid-task
                 wait_until(lambda: dead_workers(opts) >= 1)  # the driver saw it
                 cluster.remove_node(doomed)  # a machine of the farm goes away
                 wait_until(lambda: dead_workers(opts) >= 2)
