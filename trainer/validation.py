@@ -14,9 +14,9 @@ the average gains.
 
 Each score carries how sure it is (:mod:`trainer.intervals`): the PSNR's interval over the
 samples' materials, which says how far the mean over all materials like these may lie, and
-:func:`against`, the paired difference from an earlier score on the same samples, which says
-whether a move between two scores is more than the materials' spread. The two differ: a
-move far inside the first interval can still be resolved, as both scores share the samples.
+:meth:`Validator.against`, the paired difference from an earlier score on the same samples,
+which says whether a move between two scores is more than the materials' spread. The two
+differ: as both scores share the samples, a move inside the first interval can be resolved.
 """
 
 from __future__ import annotations
