@@ -44,11 +44,12 @@ def dead_workers(opts: dict) -> int:
     return sum(w["status"] == "dead" for w in state["workers"].values()) if state else 0
 
 
-def wait_until(test, timeout: float = 180) -> None:
+def wait_until(test, timeout: float = 180):
+    """``test()``'s first true value, asked every 0.3 s; fail after ``timeout``."""
     deadline = time.time() + timeout
     while time.time() < deadline:
-        if test():
-            return
+        if got := test():
+            return got
         time.sleep(0.3)
     raise AssertionError("timed out waiting for the job")
 
@@ -91,8 +92,8 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, m
             try:
                 wait_until(lambda: committed(opts) >= 1)
                 wait_until(lambda: len(render_actors()) >= 3)
-                wait_until(lambda: a_busy_actor(opts) is not None)
-                a_busy_actor(opts).send_signal(signal.SIGKILL)  # a render actor dies mid-task
+                victim = wait_until(lambda: a_busy_actor(opts))
+                victim.send_signal(signal.SIGKILL)  # a render actor dies mid-task
                 wait_until(lambda: dead_workers(opts) >= 1)  # the driver saw it
                 cluster.remove_node(doomed)  # a machine of the farm goes away
                 wait_until(lambda: dead_workers(opts) >= 2)
