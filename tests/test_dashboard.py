@@ -340,8 +340,8 @@ def test_the_job_page_in_chromium_follows_a_running_job_and_cancels_it(tmp_path)
             page.wait_for_function(
                 "[...document.querySelectorAll('#thumbs img')].some(i => i.naturalWidth > 0)"
             )
-            status = json.loads(farm("status", out, "--json").stdout)
-            done, total = page.locator("#frames").inner_text().split("/")
+            done, total = page.locator("#frames").inner_text().split("/")  # read before the
+            status = json.loads(farm("status", out, "--json").stdout)  # state it cannot pass
             assert int(total) == status["frames_total"]
             assert int(done) <= status["frames_done"] + status["frames_skipped"]
             ARTIFACTS.mkdir(exist_ok=True)

@@ -322,30 +322,39 @@ def descendants(root: int, name: str) -> list[psutil.Process]:
     return out
 
 
-def _blender_children(driver: int) -> list[psutil.Process]:
-    return [
-        c
-        for a in descendants(driver, "ray::RenderWorker")
-        for c in a.children()
-        if "spawn_main" in " ".join(c.cmdline())
-    ]
+def _blender_of(actor: psutil.Process) -> list[psutil.Process]:
+    """The render actor's Blender child (the spawned ``RenderProcess``)."""
+    return [c for c in actor.children() if "spawn_main" in " ".join(c.cmdline())]
+
+
+def _dead(p: psutil.Process) -> bool:
+    """Ended, or a zombie its parent has not reaped yet (a held actor reaps it later)."""
+    try:
+        return p.status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
 
 
 def test_killed_blender_and_killed_worker_lose_nothing(tmp_path):
-    out = tmp_path / "set.zarr"
-    proc = farm("submit", "-m", "uniform:8", *TINY, "-o", out, faults={"slow_s": 1.0}, wait=False)
+    """Both workers hold a task (``hold_while``) when one's Blender and the other whole are
+    killed: the first renders on with a fresh Blender, the second's task fails and is
+    rendered again, and the store holds every frame once."""
+    out, hold, trace = tmp_path / "set.zarr", tmp_path / "hold", tmp_path / "trace"
+    hold.touch()
+    faults = {"hold_while": str(hold), "trace": str(trace)}
+    args = ["submit", "-m", "uniform:8", *TINY, "--workers", "2", "-o", out]
+    proc = farm(*args, faults=faults, wait=False)
     watch = None
     try:
-        deadline = time.time() + 120
-        while time.time() < deadline and not _blender_children(proc.pid):
-            time.sleep(0.3)
-        victims = _blender_children(proc.pid)
-        assert victims, "no Blender worker process showed up"
-        victims[0].send_signal(signal.SIGKILL)  # Blender dies mid-job
-        time.sleep(2.5)
-        actors = descendants(proc.pid, "ray::RenderWorker")
-        assert actors
-        actors[0].send_signal(signal.SIGKILL)  # and then a whole Ray worker
+        holding = lambda: {line.split()[0] for line in trace.read_text().splitlines()}  # noqa: E731
+        wait_until(lambda: trace.exists() and len(holding()) == 2, 120, "two never held tasks")
+        kept, killed = descendants(proc.pid, "ray::RenderWorker")
+        blender = _blender_of(kept)
+        assert len(blender) == 1
+        blender[0].send_signal(signal.SIGKILL)  # Blender dies inside a task
+        wait_until(lambda: _dead(blender[0]), 30, "the killed Blender lives")
+        killed.send_signal(signal.SIGKILL)  # and then a whole Ray worker
+        hold.unlink()
         watch = farm("status", out, "--watch", wait=False)  # follows the job to its end
         stdout, stderr = proc.communicate(timeout=240)
         watched, _ = watch.communicate(timeout=30)
@@ -358,10 +367,12 @@ def test_killed_blender_and_killed_worker_lose_nothing(tmp_path):
     assert watch.returncode == 0 and len(refreshes) >= 3
     assert "job       done" in refreshes[-2]  # the last refresh
     assert_exactly_once(out, 8)
-    state = job(out)
-    assert any(w["status"] == "dead" for w in state["workers"].values())
-    recovered = [f for f in state["failures"].values() if f.get("recovered")]
-    assert recovered and not any(f["final"] for f in state["failures"].values())
+    workers = {w["pid"]: w for w in job(out)["workers"].values()}
+    assert workers[killed.pid]["status"] == "dead"
+    assert workers[kept.pid]["status"] != "dead" and workers[kept.pid]["materials"] >= 1
+    failures = job(out)["failures"].values()
+    assert [f for f in failures if f.get("recovered") and "worker died" in f["errors"][-1]["error"]]
+    assert not any(f["final"] for f in failures)
 
 
 def test_blender_is_recycled_above_the_rss_bound(tmp_path):
