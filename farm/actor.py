@@ -121,4 +121,6 @@ class RenderWorker(Revocable):
         return self.process.screen_uv(supersample)
 
     def close(self) -> None:
+        if self.faults is not None:
+            self.faults.on_close()
         self.process.close()

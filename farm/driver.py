@@ -23,6 +23,7 @@ One driver at a time: :mod:`farm.lease`.
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import signal
 import sys
@@ -95,6 +96,26 @@ def stop_on_sigterm() -> None:
     process at once and leaves the job state saying "running"."""
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)
+
+
+@contextlib.contextmanager
+def sigterm_held():
+    """Hold a SIGTERM that lands in the block (a job's clean-up: workers stopped, state
+    saved, Ray shut down) until the block is done, then stop as it asks. With the job's
+    handler gone (a first SIGTERM stopped the job), a second one kills at once as before."""
+    if threading.current_thread() is not threading.main_thread() or (
+        signal.getsignal(signal.SIGTERM) is not _on_sigterm
+    ):
+        yield
+        return
+    held = []
+    signal.signal(signal.SIGTERM, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, _on_sigterm)
+    if held:
+        _on_sigterm(signal.SIGTERM, None)
 
 
 def terminated() -> bool:
@@ -239,8 +260,9 @@ def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls
         job.state.status = "interrupted"
         raise
     finally:
-        loop.close()
-        ray.shutdown()
+        with sigterm_held():  # a SIGTERM now would leave the state unsaved and Ray running
+            loop.close()
+            ray.shutdown()
     return Summary(
         store=cfg.out,
         frames_total=job.layout.num_samples,

@@ -17,7 +17,9 @@ and the actor never calls in here. Keys:
 - ``trace``: a path; each task appends ``<worker> <material>`` to it as it starts;
 - ``wait_for_worker``: worker id to worker id; each task of the first waits until the
   ``trace`` holds a task of the second (a replacement worker gets work, however long it
-  takes to start).
+  takes to start);
+- ``closing``: a path; a worker asked to close creates it, then sleeps ``close_s`` seconds
+  (the driver is in its clean-up for that long, and the test knows when).
 """
 
 from __future__ import annotations
@@ -64,6 +66,12 @@ class Faults:
             raise RenderError(f"injected fault: material {material} fails once")
         if material in f.get("hang_materials", []):
             time.sleep(3600)
+
+    def on_close(self) -> None:
+        """Say that the worker is closing, and take ``close_s`` seconds to."""
+        if self.plan.get("closing"):
+            open(self.plan["closing"], "w").close()
+            time.sleep(float(self.plan.get("close_s", 0)))
 
 
 def _traced(trace: str, worker: str) -> bool:

@@ -780,6 +780,26 @@ def test_sigterm_stops_the_job_cleanly_and_the_same_command_resumes(tmp_path):
     assert_exactly_once(out, 10)
 
 
+def test_a_sigterm_during_a_finished_jobs_clean_up_waits_for_it(tmp_path):
+    """SIGTERM while the driver stops its workers after the last commit: the clean-up ends
+    (state saved as done, Ray shut down), then the driver stops as asked."""
+    out, closing = tmp_path / "set.zarr", tmp_path / "closing"
+    faults = {"closing": str(closing), "close_s": 5}
+    proc = farm("submit", "-m", "uniform:2", *TINY, "-o", out, faults=faults, wait=False)
+    try:
+        wait_until(closing.exists, 120, "no worker was asked to close")
+        ours = psutil.Process(proc.pid).children(recursive=True)  # Ray's, its workers
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=90)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert err.strip().splitlines()[-1].startswith("SIGTERM: stopped; every committed shard")
+    assert job(out)["status"] == "done"
+    assert_exactly_once(out, 2)
+    wait_until(lambda: all(_dead(p) for p in ours), 10, "Ray outlived the driver")
+
+
 def test_a_farm_job_over_a_flaky_object_store_commits_every_sample_once(s3, tmp_path):
     """``--out s3://...`` through a proxy that answers 503 SlowDown or resets the connection
     on four writes, one in every 12, for more tries of each than s3fs makes (botocore's own
