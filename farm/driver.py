@@ -40,7 +40,7 @@ from farm.assembly import ShardAssembly
 from farm.cancel import cancel_requested, clear_cancel
 from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
-from farm.pool import WorkerPool, connect, ray_environment
+from farm.pool import WorkerPool, check_reachable, connect, ray_environment
 from farm.scheduler import Scheduler
 from farm.state import JobState, now
 from farm.validate import pending, read_all
@@ -204,8 +204,9 @@ def submit(
     ray_environment(cfg.address)
     try:
         specs = validate(cfg, progress)  # nothing is written on bad input
+        check_reachable(cfg.address)  # nor for a Ray cluster out of reach
         lease = acquire(cfg.out, Backend(cfg.out))  # before the store is opened for writing
-    except (MaterialError, LeaseHeld) as exc:
+    except (MaterialError, LeaseHeld, ConnectionError) as exc:
         raise FarmError(str(exc)) from None
     except OSError as exc:  # no such bucket, access denied, out of reach after the retries
         raise FarmError(f"{cfg.out}: {type(exc).__name__}: {exc}") from None

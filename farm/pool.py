@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import socket
 import sys
+import time
 
 from farm.actor import CONCURRENCY_GROUPS, RenderWorker
 from farm.commit import commit_shard, placement
@@ -20,6 +22,8 @@ from render_jobs.specs import RenderSettings
 
 #: worker statuses that may be given tasks
 USABLE = ("idle", "busy")
+#: how long a job waits for its Ray address to accept a connection
+REACH_TIMEOUT_S = 10.0
 
 
 def _is_loopback(address: str | None) -> bool:
@@ -43,6 +47,45 @@ def ray_environment(address: str | None) -> None:
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
     if not address:
         os.environ.setdefault("RAY_AUTH_MODE", "token")
+
+
+def endpoint(address: str) -> tuple[str, int] | None:
+    """The ``(host, port)`` that must answer at a Ray address: ``host:port`` (the GCS) or
+    ``ray://host[:port]`` (the client server, port 10001 unless given); ``None`` for a form
+    Ray resolves itself (``auto``, ``local``)."""
+    scheme, _, rest = address.rpartition("://")
+    if scheme not in ("", "ray"):
+        return None
+    host, sep, port = rest.rpartition(":")
+    if not sep:
+        host, port = rest, "10001" if scheme == "ray" else ""
+    if not host or not port.isdigit():
+        return None
+    return host.strip("[]"), int(port)
+
+
+def check_reachable(address: str | None, timeout_s: float = REACH_TIMEOUT_S) -> None:
+    """Raise ``ConnectionError`` naming the address when nothing there accepts a connection
+    within ``timeout_s``. Ray itself retries an unreachable cluster without end, printing
+    only warnings. ``None``: ``RAY_ADDRESS``, or the embedded Ray (nothing to check)."""
+    named = address or os.environ.get("RAY_ADDRESS") or None
+    target = endpoint(named) if named else None
+    if target is None:
+        return
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with socket.create_connection(target, timeout=min(5.0, timeout_s)):
+                return
+        except OSError as exc:
+            if time.monotonic() >= deadline:
+                why = exc.strerror or type(exc).__name__
+                source = "--address" if address else "RAY_ADDRESS"
+                raise ConnectionError(
+                    f"{source} {named}: nothing answers there ({why}, for {timeout_s:.0f} s); "
+                    "is the Ray cluster up, and is that its address?"
+                ) from None
+            time.sleep(0.5)
 
 
 def connect(address: str | None, dashboard: bool = True) -> str | None:

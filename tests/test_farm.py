@@ -21,6 +21,7 @@ import pytest
 from farm.faults import FAULTS_ENV
 from farm.lease import LEASE_S, holder_alive
 from farm.plan import JobConfig, layout_for, material_specs, task_for
+from farm.pool import check_reachable, endpoint
 from farm.state import LOST_AFTER_S, effective_status
 from render_jobs.specs import derive_seed
 from storage.reader import Store
@@ -284,6 +285,42 @@ def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):
     assert_exactly_once(out, 4)
     assert not (out / "farm" / "lease.json").exists()  # released at the end
     assert farm("submit", *args[1:]).returncode == 0  # and the store is free again
+
+
+def test_ray_addresses_name_what_must_answer():
+    assert endpoint("10.0.0.5:6379") == ("10.0.0.5", 6379)
+    assert endpoint("ray://head") == ("head", 10001)
+    assert endpoint("ray://head.ns.svc:10002") == ("head.ns.svc", 10002)
+    assert endpoint("[::1]:6379") == ("::1", 6379)
+    assert endpoint("auto") is None and endpoint("local") is None
+    assert endpoint("http://head:8265") is None  # not a form ray.init takes: Ray says so
+
+
+def closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_ray_address_is_reachable_or_named_after_the_timeout(monkeypatch):
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        check_reachable(f"127.0.0.1:{server.getsockname()[1]}", timeout_s=1)
+    port = closed_port()
+    t0 = time.monotonic()
+    with pytest.raises(ConnectionError, match=rf"^--address 127.0.0.1:{port}: nothing answers"):
+        check_reachable(f"127.0.0.1:{port}", timeout_s=1)
+    assert 1 <= time.monotonic() - t0 < 10  # tried again until the timeout, then gave up
+    monkeypatch.setenv("RAY_ADDRESS", f"ray://127.0.0.1:{port}")
+    with pytest.raises(ConnectionError, match=r"^RAY_ADDRESS ray://127.0.0.1:\d+: nothing"):
+        check_reachable(None, timeout_s=0.5)
+
+
+def test_a_ray_cluster_out_of_reach_stops_the_job_in_one_line_before_any_write(tmp_path):
+    address = f"127.0.0.1:{closed_port()}"
+    r = farm("submit", "-m", "uniform:1", *TINY, "--address", address, "-o", tmp_path / "x.zarr")
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert f"--address {address}: nothing answers there (Connection refused" in r.stderr
+    assert not (tmp_path / "x.zarr").exists()
 
 
 def test_bad_material_stops_before_anything_starts(tmp_path):
