@@ -5,21 +5,28 @@ A driver takes the lease before it renders and renews it with every job-state sa
 last renewal). A lease is dead once it is ``LEASE_S`` old, or at once when its driver ran on
 this machine and that process is gone (a killed driver is resumed by resubmitting, as before).
 
-Taking it is write-then-read-back: the driver writes its lease, waits ``SETTLE_S`` and reads it
-back; of two drivers started together the last writer keeps it and the other refuses. That is
-not a consensus lock (a write delayed past the settle time could let both through), but the
-store itself stays safe then: shards are written whole and committed once, and a second commit
-of a shard is refused.
+Taking it on a local store (a path, a shared filesystem's included) is read-check-write under
+an exclusive ``flock`` on the store's ``farm`` folder: of two drivers started together the
+second sees the first's live lease and refuses. Where that lock cannot be had (an object store;
+a filesystem without ``flock``) it is write-then-read-back: the driver writes its lease, waits
+``SETTLE_S`` and reads it back, and of two drivers started together the last writer keeps it.
+That is not a consensus lock (a write delayed past the settle time could let both through),
+but the store itself stays safe then: shards are written whole and committed once, and a
+second commit of a shard is refused.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import os
 import socket
 import time
 import uuid
+from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import psutil
 
@@ -95,13 +102,37 @@ class Lease:
             self.backend.delete(LEASE_KEY)
 
 
+@contextlib.contextmanager
+def _locked(backend: Backend) -> Iterator[bool]:
+    """Hold an exclusive ``flock`` on a local store's ``farm`` folder for the block; yields
+    whether it is held (False for an object store, or where ``flock`` fails)."""
+    if not backend.local:
+        yield False
+        return
+    folder = Path(backend.path(LEASE_KEY)).parent
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError:  # an NFS mount may refuse it on a folder: read back after a settle
+            yield False
+            return
+        yield True
+    finally:
+        os.close(fd)  # closing releases the lock
+
+
 def acquire(url: str, backend: Backend, settle_s: float = SETTLE_S) -> Lease:
     """Take the store's lease or raise :class:`LeaseHeld` naming its holder."""
     lease = Lease(url, backend, {**_me(), "token": uuid.uuid4().hex})
-    rec = lease._read()
-    if rec is not None and holder_alive(rec, time.time()):
-        raise LeaseHeld(describe(url, rec, time.time()))
-    lease._write()
+    with _locked(backend) as locked:
+        rec = lease._read()
+        if rec is not None and holder_alive(rec, time.time()):
+            raise LeaseHeld(describe(url, rec, time.time()))
+        lease._write()
+    if locked:
+        return lease
     time.sleep(settle_s)
     rec = lease._read()
     if rec is None or rec.get("token") != lease.record["token"]:

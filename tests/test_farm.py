@@ -19,7 +19,7 @@ import psutil
 import pytest
 
 from farm.faults import FAULTS_ENV
-from farm.lease import LEASE_S, holder_alive
+from farm.lease import LEASE_S, LeaseHeld, acquire, holder_alive
 from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.pool import check_reachable, endpoint
 from farm.state import LOST_AFTER_S, effective_status
@@ -142,6 +142,35 @@ def test_a_lease_binds_while_renewed_and_its_driver_lives():
     dead = {"host": "here", "pid": gone.pid, "started": 0.0, "renewed": 100.0}
     assert not holder_alive(dead, now=101.0, here="here")  # a killed driver frees it at once
     assert holder_alive({**dead, "host": "elsewhere"}, now=101.0, here="here")  # can't tell
+
+
+def test_of_drivers_racing_for_a_local_store_one_takes_it_under_the_lock(tmp_path, monkeypatch):
+    """Eight at once: one lease, seven refusals naming its holder; on a local store the lock
+    decides, with no settle wait (``time.sleep`` in the lease module would fail)."""
+    import threading
+
+    from storage.backend import Backend
+
+    monkeypatch.setattr("farm.lease.time.sleep", lambda s: pytest.fail("settled"))
+    url, go, got = str(tmp_path / "set.zarr"), threading.Barrier(8), []
+
+    def take() -> None:
+        go.wait()
+        try:
+            got.append(acquire(url, Backend(url)))
+        except LeaseHeld as exc:
+            got.append(exc)
+
+    threads = [threading.Thread(target=take) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    leases = [g for g in got if not isinstance(g, LeaseHeld)]
+    assert len(got) == 8 and len(leases) == 1
+    assert all("another farm submit is running" in str(g) for g in got if g is not leases[0])
+    leases[0].release()
+    acquire(url, Backend(url)).release()  # free again
 
 
 def test_a_running_state_is_lost_once_its_drivers_lease_is_dead():
