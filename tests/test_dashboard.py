@@ -259,6 +259,8 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     assert value[("shaderball_train_loss", run)] == pytest.approx(0.05)
     assert value[("shaderball_train_val_psnr_db", run)] == 22.0  # the last score, not the best
     assert value[("shaderball_train_val_ssim", run)] == 0.5
+    assert value[("shaderball_train_val_psnr_low_db", run)] == 21.5  # the last score's interval
+    assert value[("shaderball_train_val_psnr_high_db", run)] == 22.5
     averaged = (("run", f"{tmp_path / 'runs'}/r2"),)
     assert value[("shaderball_train_val_trained_psnr_db", averaged)] == 19.0
     assert ("shaderball_train_val_trained_psnr_db", run) not in value

@@ -20,6 +20,8 @@ persist (:mod:`farm.dashboard.jobs`, :mod:`farm.dashboard.runs`).
 ``shaderball_train_images_per_second``         its throughput
 ``shaderball_train_data_wait_ratio``           its share of time waiting for data
 ``shaderball_train_val_psnr_db``               its held-out PSNR at the last score (``val.jsonl``)
+``shaderball_train_val_psnr_low_db``           the 95 % interval's bounds around it (5 or more
+``shaderball_train_val_psnr_high_db``          held-out materials: :mod:`trainer.intervals`)
 ``shaderball_train_val_ssim``                  its held-out SSIM at the last score
 ``shaderball_train_val_trained_psnr_db``       with a moving average: the trained weights' PSNR
 =============================================  ====================================================
@@ -96,6 +98,9 @@ class Collector:
                                  labels=["run"])  # fmt: skip
         vpsnr = GaugeMetricFamily(t + "val_psnr_db", "Held-out PSNR at the last score",
                                   labels=["run"])  # fmt: skip
+        vlow, vhigh = (GaugeMetricFamily(t + f"val_psnr_{b}_db",
+                                         f"The {b} bound of the held-out PSNR's 95 % interval",
+                                         labels=["run"]) for b in ("low", "high"))  # fmt: skip
         vssim = GaugeMetricFamily(t + "val_ssim", "Held-out SSIM at the last score",
                                   labels=["run"])  # fmt: skip
         vtrained = GaugeMetricFamily(t + "val_trained_psnr_db",
@@ -106,6 +111,9 @@ class Collector:
             if last is not None:
                 vpsnr.add_metric([run["label"]], last["psnr"])
                 vssim.add_metric([run["label"]], last["ssim"])
+                if "psnr_low" in last:
+                    vlow.add_metric([run["label"]], last["psnr_low"])
+                    vhigh.add_metric([run["label"]], last["psnr_high"])
                 if "trained_psnr" in last:
                     vtrained.add_metric([run["label"]], last["trained_psnr"])
             if run["step"] is None:
@@ -114,4 +122,4 @@ class Collector:
             loss.add_metric([run["label"]], run["loss"])
             ips.add_metric([run["label"]], run["images_per_second"])
             wait.add_metric([run["label"]], run["data_wait"])
-        yield from (step, loss, ips, wait, vpsnr, vssim, vtrained)
+        yield from (step, loss, ips, wait, vpsnr, vlow, vhigh, vssim, vtrained)
