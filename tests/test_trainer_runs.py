@@ -466,8 +466,10 @@ def test_held_out_scores_are_evenly_spaced_and_change_nothing_trained(tiny_store
         train(cfg)
         trained = Renderer.from_checkpoint(tmp_path / name, weights="trained")
         params.append(trained.model.state_dict())
+        if name == "scored":  # resumed for 2 steps more: its first score is against the best
+            train(dataclasses.replace(cfg, resume=True, max_steps=6))  # of the first process
     scored = [json.loads(x) for x in (tmp_path / "scored" / "val.jsonl").read_text().splitlines()]
-    assert len(scored) == 4
+    assert len(scored) == 6
     # each score: its materials (an interval needs 5), and after the first its PSNR less the
     # best before it, on the same samples
     v = Validator(split, 64)

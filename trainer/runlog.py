@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from storage.backend import write_atomic
 from trainer.config import TrainConfig
 from trainer.evaluate import write_grid
 from trainer.intervals import bracket
@@ -24,6 +25,8 @@ if TYPE_CHECKING:
 
 #: rows of ``val.png``: ground truth | network | error of the first held-out samples scored
 VAL_GRID_ROWS = 3
+#: the run's best held-out score so far with its per-sample PSNRs, for ``vs_best`` after a resume
+BEST_SCORES = "val-best.json"
 
 
 class RunLog:
@@ -44,7 +47,7 @@ class RunLog:
         self.validator: Validator | None = None  # rank 0's, unless --val-samples 0
         self.val_every, self.fmt = cfg.val_every, rk.fmt
         self.last_val: dict | None = None
-        #: the best score of this process so far: its record and per-sample PSNRs
+        #: the run's best score so far (``BEST_SCORES`` after a resume): record, per-sample PSNRs
         self.best: tuple[dict, np.ndarray] | None = None
         if rk.master:
             out.mkdir(parents=True, exist_ok=True)
@@ -86,10 +89,11 @@ class RunLog:
         the average (what its checkpoints render with) and the trained weights
         (``trained_psnr``, ``trained_ssim``; TensorBoard's ``val/trained_psnr`` and
         ``val/trained_ssim``). Each record has the PSNR's interval over the materials and,
-        after the first score of the process, ``vs_best``: the PSNR less that of the best
-        score before it, on the same samples, with its interval
-        (:meth:`trainer.validation.Validator.against`). Its time is left out of the window's
-        images/s. Rank 0 only."""
+        after the run's first score, ``vs_best``: the PSNR less that of the best score before
+        it, on the same samples, with its interval
+        (:meth:`trainer.validation.Validator.against`); the best's per-sample scores are kept
+        in ``val-best.json`` for a resumed run. Its time is left out of the window's images/s.
+        Rank 0 only."""
         v = self.validator
         if v is None or not len(v) or (self.last_val or {}).get("step") == t.step:
             return
@@ -101,10 +105,14 @@ class RunLog:
         write_grid(self.out / "val.png", shown)
         self.window["t"] += time.perf_counter() - t0
         rec = {"step": t.step, "epoch": t.epoch, **scores, "heldout_set": v.digest}
-        if self.best is not None:
-            rec["vs_best"] = {"step": self.best[0]["step"], **v.against(self.best[1], each)}
-        if self.best is None or rec["psnr"] > self.best[0]["psnr"]:
+        best = self.best_before(v.digest, len(each))
+        if best is not None:
+            rec["vs_best"] = {"step": best[0]["step"], **v.against(best[1], each)}
+        if best is None or rec["psnr"] > best[0]["psnr"]:
             self.best = (rec, each)
+            keep = {"step": rec["step"], "psnr": rec["psnr"], "heldout_set": v.digest}
+            text = json.dumps({**keep, "psnr_each": [float(x) for x in each]})
+            write_atomic(self.out / BEST_SCORES, lambda f: f.write(text.encode()))
         rec["time"] = round(time.time(), 3)
         with open(self.out / "val.jsonl", "a") as f:
             f.write(json.dumps(rec) + "\n")
@@ -113,6 +121,16 @@ class RunLog:
         trained = f" (trained weights {rec['trained_psnr']:.2f} dB)" if others else ""
         bar.write(_score_line(rec, trained))
         self.last_val = rec
+
+    def best_before(self, digest: str, n: int) -> tuple[dict, np.ndarray] | None:
+        """The run's best score so far, read from ``BEST_SCORES`` when this process has none
+        (a resumed run), if it scored the same ``n`` samples (``digest``)."""
+        if self.best is None and (self.out / BEST_SCORES).exists():
+            kept = json.loads((self.out / BEST_SCORES).read_text())
+            self.best = kept, np.asarray(kept.pop("psnr_each"), dtype=np.float64)
+        if self.best is None or self.best[0]["heldout_set"] != digest or len(self.best[1]) != n:
+            return None
+        return self.best
 
     def record(self, t: Trainee, batch: dict, loss: torch.Tensor, waited: float, bar) -> None:
         """One step done: add it to the window, note its samples, move the bar."""
