@@ -5,10 +5,16 @@ proxy (503s and reset connections), slow renders so that faults land mid-job; th
 a render actor's process killed, a whole node removed, the driver killed. The same `farm
 submit` run again finishes the job on what is left, and the store is whole: every sample
 once, with the seed its (material, sun) must have, and `shards verify` clean.
+
+Planted holds (:mod:`farm.faults`) make each fault land where it must, however fast or slow
+the machine: while the actor and the node are killed every task waits (``hold_while``), so
+both have a task in flight; the last shard's materials wait (``hold_materials``) until the
+driver has been killed, so the job cannot end before it.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -54,30 +60,38 @@ def wait_until(test, timeout: float = 180):
     raise AssertionError("timed out waiting for the job")
 
 
-def render_actors() -> list[psutil.Process]:
-    """The render actors of this test's cluster (whose nodes this process started)."""
-    return descendants(os.getpid(), "ray::RenderWorker")
+def render_actors(root: int | None = None) -> list[psutil.Process]:
+    """The render actors under ``root`` (a node's raylet), or of this test's whole cluster
+    (whose nodes this process started)."""
+    return descendants(root or os.getpid(), "ray::RenderWorker")
 
 
-def a_busy_actor(opts: dict) -> psutil.Process | None:
-    """A render actor that the running driver's job state says is rendering, and is alive."""
+def a_busy_actor(opts: dict, root: int | None = None) -> psutil.Process | None:
+    """A render actor (under ``root``) that the running driver's job state says is
+    rendering, and is alive."""
     state = load_state(URL, opts) or {"workers": {}}
-    mine = {p.pid: p for p in render_actors()}
+    mine = {p.pid: p for p in render_actors(root)}
     busy = [w["pid"] for w in state["workers"].values() if w["status"] == "busy"]
     return next((mine[pid] for pid in busy if pid in mine), None)
 
 
-def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, monkeypatch):
+def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(
+    s3, monkeypatch, tmp_path
+):
     from ray.cluster_utils import Cluster
 
     endpoint, opts = s3
     args = ["submit", "-m", f"uniform:{MATERIALS}", *TINY, "--workers", "3"]
+    hold, last = tmp_path / "hold", tmp_path / "last-shard"
+    last.touch()
+    held = {"while": str(last), "materials": [MATERIALS - 2, MATERIALS - 1]}
+    faults = {"slow_s": 1.5, "hold_while": str(hold), "hold_materials": held}
     with FlakyProxy.past_client_retries(endpoint, every=25, method="PUT") as proxy:
         env = s3_env(
             proxy.endpoint,
             RAY_AUTH_MODE="disabled",
             AWS_MAX_ATTEMPTS="1",  # botocore's own retries off
-            SHADERBALL_FARM_FAULTS='{"slow_s": 1.5}',
+            SHADERBALL_FARM_FAULTS=json.dumps(faults),
         )
         for k, v in env.items():  # the nodes' workers (and commit tasks) inherit these
             monkeypatch.setenv(k, v)
@@ -91,12 +105,16 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, m
             first = farm(*argv, env=env, wait=False)
             try:
                 wait_until(lambda: committed(opts) >= 1)
+                hold.touch()  # from here each worker's next task waits: it stays busy
                 wait_until(lambda: len(render_actors()) >= 3)
                 victim = wait_until(lambda: a_busy_actor(opts))
                 victim.send_signal(signal.SIGKILL)  # a render actor dies mid-task
                 wait_until(lambda: dead_workers(opts) >= 1)  # the driver saw it
+                raylet = doomed.all_processes["raylet"][0].process.pid
+                wait_until(lambda: a_busy_actor(opts, raylet))  # its worker has a task
                 cluster.remove_node(doomed)  # a machine of the farm goes away
                 wait_until(lambda: dead_workers(opts) >= 2)
+                hold.unlink()  # the rest renders, but for the last shard
                 wait_until(lambda: committed(opts) >= 3)
                 first.send_signal(signal.SIGKILL)  # and the driver itself
                 first.wait(30)
@@ -104,6 +122,7 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(s3, m
                 first.kill()
             before = committed(opts)
             assert 3 <= before < SHARDS  # the driver was killed mid-job
+            last.unlink()
             second = farm(*argv, env=env, timeout=300)
         finally:
             cluster.shutdown()
