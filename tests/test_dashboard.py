@@ -320,9 +320,11 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
 def test_the_job_page_in_chromium_follows_a_running_job_and_cancels_it(tmp_path):
     from playwright.sync_api import sync_playwright
 
-    out = tmp_path / "out" / "live.zarr"
+    out, hold = tmp_path / "out" / "live.zarr", tmp_path / "hold"
     args = ["submit", "-m", "uniform:30", *TINY, "--workers", "2", "--no-ray-dashboard", "-o", out]
-    job = farm(*args, faults={"slow_s": 2.0}, wait=False)
+    hold.touch()  # the last 5 shards wait until the cancel: the job cannot end before it
+    held = {"while": str(hold), "materials": list(range(20, 30))}
+    job = farm(*args, faults={"slow_s": 2.0, "hold_materials": held}, wait=False)
     try:
         wait_for_commits(out, 1)
         with Server("out", cwd=tmp_path) as s, sync_playwright() as p:  # as the README runs it
@@ -354,6 +356,7 @@ def test_the_job_page_in_chromium_follows_a_running_job_and_cancels_it(tmp_path)
                 "document.getElementById('cancel-msg') === null || "
                 "document.getElementById('cancel-msg').textContent.includes('requested')"
             )
+            hold.unlink()  # the tasks in flight end; those not started are dropped
             stdout, stderr = job.communicate(timeout=120)
             assert job.returncode == 0, stderr[-2000:]
             assert "cancelled" in stdout
