@@ -1,15 +1,15 @@
 """Chaos: one farm job through every fault at once, and nothing lost or written twice.
 
 A three-node Ray cluster on this machine, the store on the local S3 server behind the flaky
-proxy (503s and reset connections), slow renders so that faults land mid-job; then, in turn:
-a render actor's process killed, a whole node removed, the driver killed. The same `farm
-submit` run again finishes the job on what is left, and the store is whole: every sample
-once, with the seed its (material, sun) must have, and `shards verify` clean.
+proxy (503s and reset connections); the first 3 shards are committed, then, in turn: a
+render actor's process killed, a whole node removed, the driver killed, each mid-task. The
+same `farm submit` run again finishes the job on what is left, and the store is whole: every
+sample once, with the seed its (material, sun) must have, and `shards verify` clean.
 
-Planted holds (:mod:`farm.faults`) make each fault land where it must, however fast or slow
-the machine: while the actor and the node are killed every task waits (``hold_while``), so
-both have a task in flight; the last shard's materials wait (``hold_materials``) until the
-driver has been killed, so the job cannot end before it.
+A planted hold (``hold_materials``, :mod:`farm.faults`) makes each fault land where it must,
+however fast or slow the machine: the materials of the shards after the first 3 wait until
+the driver has been killed, so every worker has a task in flight, and more wait in the
+queue, when the faults land, and the job cannot end before them.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ pytestmark = pytest.mark.slow
 URL = "s3://shaderball/chaos.zarr"
 MATERIALS = 18  # 9 shards of 2 materials x 2 suns
 SHARDS = MATERIALS // 2
+FIRST = 3  # shards committed before the faults
 
 
 def committed(opts: dict) -> int:
@@ -82,10 +83,10 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(
 
     endpoint, opts = s3
     args = ["submit", "-m", f"uniform:{MATERIALS}", *TINY, "--workers", "3"]
-    hold, last = tmp_path / "hold", tmp_path / "last-shard"
-    last.touch()
-    held = {"while": str(last), "materials": [MATERIALS - 2, MATERIALS - 1]}
-    faults = {"slow_s": 1.5, "hold_while": str(hold), "hold_materials": held}
+    hold = tmp_path / "hold"
+    hold.touch()
+    held = list(range(2 * FIRST, MATERIALS))  # the materials of the shards after the first
+    faults = {"hold_materials": {"while": str(hold), "materials": held}}
     with FlakyProxy.past_client_retries(endpoint, every=25, method="PUT") as proxy:
         env = s3_env(
             proxy.endpoint,
@@ -104,9 +105,8 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(
             argv = [*args, "--address", cluster.address, "--no-ray-dashboard", "-o", URL]
             first = farm(*argv, env=env, wait=False)
             try:
-                wait_until(lambda: committed(opts) >= 1)
-                hold.touch()  # from here each worker's next task waits: it stays busy
-                wait_until(lambda: len(render_actors()) >= 3)
+                wait_until(lambda: committed(opts) == FIRST)
+                wait_until(lambda: len(render_actors()) == 3)
                 victim = wait_until(lambda: a_busy_actor(opts))
                 victim.send_signal(signal.SIGKILL)  # a render actor dies mid-task
                 wait_until(lambda: dead_workers(opts) >= 1)  # the driver saw it
@@ -114,15 +114,13 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(
                 wait_until(lambda: a_busy_actor(opts, raylet))  # its worker has a task
                 cluster.remove_node(doomed)  # a machine of the farm goes away
                 wait_until(lambda: dead_workers(opts) >= 2)
-                hold.unlink()  # the rest renders, but for the last shard
-                wait_until(lambda: committed(opts) >= 3)
                 first.send_signal(signal.SIGKILL)  # and the driver itself
                 first.wait(30)
             finally:
                 first.kill()
             before = committed(opts)
-            assert 3 <= before < SHARDS  # the driver was killed mid-job
-            last.unlink()
+            assert before == FIRST  # the driver was killed mid-job
+            hold.unlink()
             second = farm(*argv, env=env, timeout=300)
         finally:
             cluster.shutdown()
