@@ -1,7 +1,7 @@
 """Inference benchmark at 400² (or ``--resolution``): ms per frame at batch 1, frames/s batched.
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
-        [--gemm-at N] [--resolution 400] [--only TEXT]
+        [--gemm-at N] [--subpixel-from N] [--resolution 400] [--only TEXT]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
 rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
@@ -12,7 +12,9 @@ channels_last eager (cudnn.benchmark), the same with BatchNorm folded, that with
 cast to bf16 once and replayed as a CUDA graph (``trainer.infer.GraphedRenderer``), the
 rewrite so replayed, and with ``--compile`` both after torch.compile (Inductor
 ``max-autotune-no-cudagraphs``: fused pointwise work around the tuned convolutions, then
-captured).
+captured); ``--gemm-at N`` and ``--subpixel-from N`` add the compiled rewrite with GEMM
+convolutions on inputs at most N wide, or with the decoder levels on inputs narrower than N
+in the original upsample-and-concatenate form.
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -76,6 +78,14 @@ def main() -> None:
         metavar="N",
         help="add a compiled subpixel row with the convolutions on inputs at most N wide as "
         "GEMMs (trainer.fastnet.Conv; CUDA)",
+    )
+    ap.add_argument(
+        "--subpixel-from",
+        type=int,
+        default=0,
+        metavar="N",
+        help="add a compiled subpixel row whose decoder levels on inputs narrower than N keep "
+        "the upsample-and-concatenate form (trainer.fastnet.PlainLevel; CUDA)",
     )
     ap.add_argument(
         "--only",
@@ -177,6 +187,13 @@ def main() -> None:
                 compile=True,
                 subpixel=True,
                 gemm_at=args.gemm_at,
+            )
+        if args.subpixel_from:
+            graph_row(
+                f"subpixel from {args.subpixel_from}², compiled",
+                compile=True,
+                subpixel=True,
+                subpixel_from=args.subpixel_from,
             )
 
 

@@ -39,12 +39,15 @@ def main() -> None:
     ap.add_argument("--rows", type=int, default=25)
     ap.add_argument("--subpixel", action="store_true", help="the trainer.fastnet rewrite")
     ap.add_argument("--gemm-at", type=int, default=0, help="with --subpixel: GEMM convs this wide")
+    ap.add_argument(
+        "--subpixel-from", type=int, default=0, help="with --subpixel: plain levels narrower"
+    )
     args = ap.parse_args()
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)
     fmt = torch.channels_last
     model = NeuralRenderer(cfg).cuda()
-    fast = {"subpixel": args.subpixel, "gemm_at": args.gemm_at}
+    fast = {"subpixel": args.subpixel, "gemm_at": args.gemm_at, "subpixel_from": args.subpixel_from}
     plain, net = fast_network(model, **fast), fast_network(model, compile=args.compile, **fast)
     x = torch.rand(args.batch, cfg.in_channels, 400, 400, device="cuda", dtype=torch.bfloat16)
     x = x.contiguous(memory_format=fmt)

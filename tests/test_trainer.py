@@ -241,15 +241,22 @@ def test_upconv_is_upsampling_then_convolution(size):
     ],
 )
 @pytest.mark.parametrize("gemm_at", [0, 1 << 10])
-def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at):
-    from trainer.fastnet import SubpixelRenderer
+@pytest.mark.parametrize("plain_levels", ["none", "the smaller half", "all"])
+def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels):
+    """Exact in fp32 whichever decoder levels keep the upsample-and-concatenate form."""
+    from trainer.fastnet import PlainLevel, SubpixelRenderer
 
     model = NeuralRenderer(cfg).train()
     r, c = cfg.resolution, cfg.in_channels
     for _ in range(2):  # running statistics that are not the identity
         model(torch.rand(3, c, r, r) * 2, torch.rand(3, 4))
     model.eval()
-    fast = SubpixelRenderer(fold_batchnorm(model)).gemm_at(gemm_at)
+    start = {"none": 0, "the smaller half": r // 4, "all": r}[plain_levels]
+    fast = SubpixelRenderer(fold_batchnorm(model), start).gemm_at(gemm_at)
+    plain = [isinstance(level, PlainLevel) for level in fast.levels]
+    assert (
+        plain == {"none": [0] * 4, "the smaller half": [1, 1, 0, 0], "all": [1] * 4}[plain_levels]
+    )
     fast.to(memory_format=torch.channels_last)
     x, light = torch.rand(2, c, r, r), torch.rand(2, 4)
     with torch.no_grad():
@@ -276,6 +283,7 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             "plain": {},
             "subpixel": {"subpixel": True},
             "gemm": {"subpixel": True, "gemm_at": 64},
+            "mixed": {"subpixel": True, "subpixel_from": 16},
         }
         errors = {
             name: (fast_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
@@ -287,15 +295,15 @@ def test_bf16_fast_networks_stay_close_to_fp32():
         assert err < max(2 * plain, 0.01), (name, float(err), float(plain))
 
 
-@pytest.mark.parametrize("gemm_at", [0, 64])
-def test_subpixel_network_traces_as_one_graph(gemm_at):
+@pytest.mark.parametrize(("gemm_at", "subpixel_from"), [(0, 0), (64, 0), (0, 8)])
+def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from):
     """``--compile`` must see the rewrite whole: Dynamo traces it with ``fullgraph=True``
     (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here)."""
     from trainer.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()
     model = NeuralRenderer(ModelConfig(resolution=32)).eval()
-    net = SubpixelRenderer(fold_batchnorm(model)).gemm_at(gemm_at)
+    net = SubpixelRenderer(fold_batchnorm(model), subpixel_from).gemm_at(gemm_at)
     x, light = torch.rand(1, model.config.in_channels, 32, 32), torch.rand(1, 4)
     traced = torch.compile(net, backend="eager", fullgraph=True, dynamic=False)
     with torch.no_grad():

@@ -20,8 +20,9 @@ fp32 to 1e-5; about 1e-7 in practice) with about the same FLOPs, without the hig
 tensors of the original (upsampled features, concatenations, a 64-channel 400² input to the
 3-channel output convolution). ``trainer.infer.Renderer`` runs it in fp32 on CPU from 288²
 up, where it is about 1.1x faster than the folded original at batch 1 (slower below:
-``trainer.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 on an H100 it renders 1.53x the frames
-a second of the compiled original, but is slower at batch 1 (``docs/benchmarks.md``).
+``trainer.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 on an H100 or H200 it renders 1.5-1.6x
+the frames a second of the compiled original batched, but is slower at batch 1
+(``docs/benchmarks.md``).
 BatchNorm must be folded first (:func:`trainer.model.fold_batchnorm`).
 """
 
@@ -136,10 +137,52 @@ class UpConv(nn.Module):
         return ring(z, self.ring, F.pixel_shuffle(self.phases(z), 2))
 
 
-class SubpixelRenderer(nn.Module):
-    """The folded network rewritten as the module docstring says; same inputs and outputs."""
+class SubpixelLevel(nn.Module):
+    """One decoder level rewritten: ``conv(cat(up(z), skip), w) + b`` as the sub-pixel
+    :class:`UpConv` of ``z`` plus a convolution of the skip (none when ``skips`` is off)."""
 
-    def __init__(self, folded: NeuralRenderer):
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor, skips: bool):
+        super().__init__()
+        feats = weight.shape[1] - (weight.shape[0] if skips else 0)  # a skip has cout channels
+        self.up = UpConv(weight[:, :feats])
+        self.skip = Conv(weight[:, feats:]) if skips else None
+        self.bias = nn.Parameter(bias.detach().clone().view(1, -1, 1, 1), False)
+
+    def forward(self, z: torch.Tensor, skip: torch.Tensor | None = None) -> torch.Tensor:
+        y = self.up(z) + self.bias
+        return y if self.skip is None else y + self.skip(skip)
+
+    def convs(self, size: int) -> list[tuple[Conv, int]]:
+        """Its convolutions with the width of their inputs, for ``z`` ``size`` wide."""
+        return [(self.up.phases, size)] + ([(self.skip, 2 * size)] if self.skip else [])
+
+
+class PlainLevel(nn.Module):
+    """One decoder level as the trained network computes it: ``z`` upsampled, concatenated
+    with the skip, one convolution. Fewer kernels than :class:`SubpixelLevel` (no ring): with
+    the deep levels plain the rewrite is faster at batch 1 and slower batched, and neither
+    beats the pure form at its use on a GPU (``docs/benchmarks.md``)."""
+
+    def __init__(self, weight: torch.Tensor, bias: torch.Tensor):
+        super().__init__()
+        self.conv = Conv(weight, bias)
+
+    def forward(self, z: torch.Tensor, skip: torch.Tensor | None = None) -> torch.Tensor:
+        up = F.interpolate(z, scale_factor=2, mode="bilinear", align_corners=False)
+        return self.conv(up if skip is None else torch.cat([up, skip], 1))
+
+    def convs(self, size: int) -> list[tuple[Conv, int]]:
+        return [(self.conv, 2 * size)]
+
+
+class SubpixelRenderer(nn.Module):
+    """The folded network rewritten as the module docstring says; same inputs and outputs.
+
+    ``subpixel_from``: the decoder levels (and the output convolution) whose input ``z`` is
+    narrower than this keep the upsample-and-concatenate form (:class:`PlainLevel`); 0, the
+    default, rewrites them all."""
+
+    def __init__(self, folded: NeuralRenderer, subpixel_from: int = 0):
         super().__init__()
         if any(isinstance(block[1], nn.BatchNorm2d) for block in folded.encoder):
             raise ValueError("fold the BatchNorm first (trainer.model.fold_batchnorm)")
@@ -153,17 +196,12 @@ class SubpixelRenderer(nn.Module):
             torch.cat([fw[:, :deep], fw[:, deep:].sum(1, True)], 1), folded.fuse[0].bias
         )
         self.dec0 = Conv(folded.decoder[0][0].weight, folded.decoder[0][0].bias)
-        self.up = nn.ModuleList()
-        self.skip = nn.ModuleList()
-        self.bias = nn.ParameterList()
-        for block in folded.decoder[1:]:
-            w, b = block[0].weight, block[0].bias
-            feats = w.shape[1] - (w.shape[0] if cfg.skips else 0)  # a skip has cout channels
-            self.up.append(UpConv(w[:, :feats]))
-            self.skip.append(Conv(w[:, feats:], None) if cfg.skips else nn.Identity())
-            self.bias.append(nn.Parameter(b.detach().clone().view(1, -1, 1, 1), False))
-        self.out = UpConv(folded.out.weight)
-        self.out_bias = nn.Parameter(folded.out.bias.detach().clone().view(1, -1, 1, 1), False)
+        convs = [(b[0].weight, b[0].bias, cfg.skips) for b in folded.decoder[1:]]
+        convs.append((folded.out.weight, folded.out.bias, False))
+        self.levels = nn.ModuleList(
+            SubpixelLevel(w, b, skips) if self.b << i >= subpixel_from else PlainLevel(w, b)
+            for i, (w, b, skips) in enumerate(convs)
+        )
 
     def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         skips = []
@@ -174,19 +212,19 @@ class SubpixelRenderer(nn.Module):
         plane = self.light(light).view(-1, 1, self.b, self.b).to(x.dtype)
         x = F.relu(self.fuse(torch.cat([x, plane], 1)))
         x = F.relu(self.dec0(torch.cat([x, skips[-1]], 1) if self.config.skips else x))
-        for i, (up, skip, bias) in enumerate(zip(self.up, self.skip, self.bias, strict=True)):
-            y = up(x) + bias
-            x = F.relu(y + skip(skips[-2 - i]) if self.config.skips else y)
-        return torch.sigmoid(self.out(x) + self.out_bias)
+        *decoder, out = self.levels
+        for i, level in enumerate(decoder):
+            x = F.relu(level(x, skips[-2 - i] if self.config.skips else None))
+        return torch.sigmoid(out(x))
 
     def gemm_at(self, largest: int) -> SubpixelRenderer:
         """Run every convolution whose input is at most ``largest`` pixels wide as a GEMM
         (:class:`Conv`); returns self."""
         r = self.config.resolution
         sized = [(c, r >> i) for i, c in enumerate(self.encoder)]
-        sized += [(self.fuse, r // 16), (self.dec0, r // 16)]
-        sized += [(u.phases, r >> (4 - i)) for i, u in enumerate([*self.up, self.out])]
-        sized += [(s, r >> (3 - i)) for i, s in enumerate(self.skip) if isinstance(s, Conv)]
+        sized += [(self.fuse, self.b), (self.dec0, self.b)]
+        for i, level in enumerate(self.levels):
+            sized += level.convs(self.b << i)
         for conv, size in sized:
             conv.gemm = size <= largest
         return self

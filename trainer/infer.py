@@ -192,17 +192,22 @@ def material_mapper(renderer: MapsRenderer, store: str | None = None):
 
 
 def fast_network(
-    model: NeuralRenderer, compile: bool = False, subpixel: bool = False, gemm_at: int = 0
+    model: NeuralRenderer,
+    compile: bool = False,
+    subpixel: bool = False,
+    gemm_at: int = 0,
+    subpixel_from: int = 0,
 ) -> torch.nn.Module:
     """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
     channels_last. ``subpixel``: the exact rewrite of ``trainer.fastnet`` (no upsampled or
     concatenated tensors; ``gemm_at`` > 0 runs its convolutions on inputs at most that wide as
-    GEMMs). ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work
-    fused around tuned convolutions; minutes of autotuning at first use). Feed it bf16
-    channels_last inputs."""
+    GEMMs; decoder levels on inputs narrower than ``subpixel_from`` keep the original form).
+    ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
+    around tuned convolutions; minutes of autotuning at first use). Feed it bf16 channels_last
+    inputs."""
     net = fold_batchnorm(model)
     if subpixel:
-        net = SubpixelRenderer(net).gemm_at(gemm_at)
+        net = SubpixelRenderer(net, subpixel_from).gemm_at(gemm_at)
     net = net.to(torch.bfloat16, memory_format=torch.channels_last)
     return torch.compile(net, mode="max-autotune-no-cudagraphs", dynamic=False) if compile else net
 
