@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-train bench-infer bench-viewer bench-materials bench-storage gpu-wheels clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage gpu-wheels clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -63,6 +63,10 @@ bench-farm-scale: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.farm_scale
 
 # Training and inference at 400² (renders out/bench-400.zarr with the farm on first use).
+# bench-store renders only that store (about a minute), e.g. to carry to a GPU machine.
+bench-store: $(BIN)/.installed
+	$(BIN)/python -c "from benchmarks.trainstore import ensure_store; print(ensure_store())"
+
 bench-train: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.train
 

@@ -2,7 +2,7 @@
 # The CUDA benchmarks (issue targets: training and inference at 400² on one H100), run on a GPU
 # machine that has Python with CUDA torch but no package registry, such as the lent device.
 #
-# On the CPU machine, once: `make bench-train` (renders out/bench-400.zarr) and `make gpu-wheels`
+# On the CPU machine, once: `make bench-store` (renders out/bench-400.zarr) and `make gpu-wheels`
 # (the store's own packages as wheels in .whl/). Carry out/bench-400.zarr and .whl/ with the
 # checkout, then there:
 #
@@ -34,7 +34,7 @@ shift
 if [[ $part == viewer ]]; then
     compgen -G "benchmarks/.cache/screen_uv-*.npz" >/dev/null || { echo "gpu.sh: benchmarks/.cache has no screen UV layouts (make bench-viewer, then carry benchmarks/.cache)" >&2; exit 2; }
 else
-    [[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make bench-train, then carry it)" >&2; exit 2; }
+    [[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make bench-store, then carry it)" >&2; exit 2; }
 fi
 if ! "$py" -c "import zarr, numcodecs, zstandard, google_crc32c, PIL, click, tenacity, fsspec, tqdm" 2>/dev/null; then
     [[ -d .whl ]] || { echo "gpu.sh: zarr or the viewer's packages are not installed and .whl/ is missing (make gpu-wheels)" >&2; exit 2; }
