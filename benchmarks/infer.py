@@ -14,7 +14,9 @@ rewrite so replayed, and with ``--compile`` both after torch.compile (Inductor
 ``max-autotune-no-cudagraphs``: fused pointwise work around the tuned convolutions, then
 captured); ``--gemm-at N`` and ``--subpixel-from N`` add the compiled rewrite with GEMM
 convolutions on inputs at most N wide, or with the decoder levels on inputs narrower than N
-in the original upsample-and-concatenate form.
+in the original upsample-and-concatenate form (both given: the GEMM row is of that form;
+``--subpixel-from`` at the resolution makes every level plain: the original network with
+its light plane as one channel, so ``--gemm-at`` then applies to the original's layers).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -181,12 +183,14 @@ def main() -> None:
         if args.compile:
             graph_row("torch.compile + CUDA graph", compile=True)
             graph_row("subpixel compiled + graph", compile=True, subpixel=True)
-        if args.gemm_at:
+        if args.gemm_at:  # with --subpixel-from, of that mixed form
+            start = f", from {args.subpixel_from}²" if args.subpixel_from else ""
             graph_row(
-                f"  + GEMMs at <= {args.gemm_at}²",
+                f"  + GEMMs at <= {args.gemm_at}²{start}",
                 compile=True,
                 subpixel=True,
                 gemm_at=args.gemm_at,
+                subpixel_from=args.subpixel_from,
             )
         if args.subpixel_from:
             graph_row(
