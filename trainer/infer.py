@@ -218,8 +218,8 @@ class GraphedRenderer:
     The :func:`fast_network` (compiled with ``compile=True``) is captured, so no autocast
     casts run per call. ``__call__(x (N, C, H, W) float, light (N, 4))`` copies into static
     inputs, replays, and returns the static ``(N, 3, H, W) bfloat16`` output (overwritten by
-    the next call). CUDA only: measured by ``benchmarks.infer`` on an H100, not exercised by
-    the CPU test suite."""
+    the next call). CUDA only: measured by ``benchmarks.infer`` on an H100 and an H200, not
+    exercised by the CPU test suite."""
 
     def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3, **fast):
         if not torch.cuda.is_available() or next(model.parameters()).device.type != "cuda":
