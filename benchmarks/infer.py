@@ -1,7 +1,7 @@
 """Inference benchmark at 400² (or ``--resolution``): ms per frame at batch 1, frames/s batched.
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
-        [--gemm-at N] [--subpixel-from N] [--resolution 400] [--only TEXT]
+        [--gemm-at N] [--subpixel-from N] [--align N] [--resolution 400] [--only TEXT]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
 rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
@@ -16,7 +16,9 @@ captured); ``--gemm-at N`` and ``--subpixel-from N`` add the compiled rewrite wi
 convolutions on inputs at most N wide, or with the decoder levels on inputs narrower than N
 in the original upsample-and-concatenate form (both given: the GEMM row is of that form;
 ``--subpixel-from`` at the resolution makes every level plain: the original network with
-its light plane as one channel, so ``--gemm-at`` then applies to the original's layers).
+its light plane as one channel, so ``--gemm-at`` then applies to the original's layers);
+``--align N`` adds the compiled rewrite with its channel counts padded to multiples of N by
+zero-weight channels (``trainer.fastnet``), and pads those two rows' channels too.
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -88,6 +90,14 @@ def main() -> None:
         metavar="N",
         help="add a compiled subpixel row whose decoder levels on inputs narrower than N keep "
         "the upsample-and-concatenate form (trainer.fastnet.PlainLevel; CUDA)",
+    )
+    ap.add_argument(
+        "--align",
+        type=int,
+        default=1,
+        metavar="N",
+        help="add a compiled subpixel row with channel counts padded to multiples of N, and pad "
+        "the --gemm-at and --subpixel-from rows' too (CUDA; 8 suits tensor cores)",
     )
     ap.add_argument(
         "--only",
@@ -183,21 +193,26 @@ def main() -> None:
         if args.compile:
             graph_row("torch.compile + CUDA graph", compile=True)
             graph_row("subpixel compiled + graph", compile=True, subpixel=True)
+        x8 = f", channels x{args.align}" if args.align > 1 else ""
+        if args.align > 1:
+            graph_row(f"subpixel compiled{x8}", compile=True, subpixel=True, align=args.align)
         if args.gemm_at:  # with --subpixel-from, of that mixed form
             start = f", from {args.subpixel_from}²" if args.subpixel_from else ""
             graph_row(
-                f"  + GEMMs at <= {args.gemm_at}²{start}",
+                f"  + GEMMs at <= {args.gemm_at}²{start}{x8}",
                 compile=True,
                 subpixel=True,
                 gemm_at=args.gemm_at,
                 subpixel_from=args.subpixel_from,
+                align=args.align,
             )
         if args.subpixel_from:
             graph_row(
-                f"subpixel from {args.subpixel_from}², compiled",
+                f"subpixel from {args.subpixel_from}², compiled{x8}",
                 compile=True,
                 subpixel=True,
                 subpixel_from=args.subpixel_from,
+                align=args.align,
             )
 
 

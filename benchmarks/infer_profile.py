@@ -42,14 +42,21 @@ def main() -> None:
     ap.add_argument(
         "--subpixel-from", type=int, default=0, help="with --subpixel: plain levels narrower"
     )
+    ap.add_argument("--align", type=int, default=1, help="with --subpixel: channels padded to x N")
     args = ap.parse_args()
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)
     fmt = torch.channels_last
     model = NeuralRenderer(cfg).cuda()
-    fast = {"subpixel": args.subpixel, "gemm_at": args.gemm_at, "subpixel_from": args.subpixel_from}
+    fast = {
+        "subpixel": args.subpixel,
+        "gemm_at": args.gemm_at,
+        "subpixel_from": args.subpixel_from,
+        "align": args.align,
+    }
     plain, net = fast_network(model, **fast), fast_network(model, compile=args.compile, **fast)
-    x = torch.rand(args.batch, cfg.in_channels, 400, 400, device="cuda", dtype=torch.bfloat16)
+    width = getattr(plain, "in_channels", cfg.in_channels)  # aligned: fed padded, as graphed
+    x = torch.rand(args.batch, width, 400, 400, device="cuda", dtype=torch.bfloat16)
     x = x.contiguous(memory_format=fmt)
     light = torch.rand(args.batch, 4, device="cuda", dtype=torch.bfloat16)
     with torch.inference_mode():

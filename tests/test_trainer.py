@@ -242,8 +242,11 @@ def test_upconv_is_upsampling_then_convolution(size):
 )
 @pytest.mark.parametrize("gemm_at", [0, 1 << 10])
 @pytest.mark.parametrize("plain_levels", ["none", "the smaller half", "all"])
-def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels):
-    """Exact in fp32 whichever decoder levels keep the upsample-and-concatenate form."""
+@pytest.mark.parametrize("align", [1, 8])
+def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align):
+    """Exact in fp32 whichever decoder levels keep the upsample-and-concatenate form, with
+    channel counts padded to multiples of 8 or not; the padded input channels' values do not
+    matter, and maps with the model's own channel count are padded inside."""
     from trainer.fastnet import PlainLevel, SubpixelRenderer
 
     model = NeuralRenderer(cfg).train()
@@ -252,17 +255,26 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels):
         model(torch.rand(3, c, r, r) * 2, torch.rand(3, 4))
     model.eval()
     start = {"none": 0, "the smaller half": r // 4, "all": r}[plain_levels]
-    fast = SubpixelRenderer(fold_batchnorm(model), start).gemm_at(gemm_at)
+    fast = SubpixelRenderer(fold_batchnorm(model), start, align).gemm_at(gemm_at)
     plain = [isinstance(level, PlainLevel) for level in fast.levels]
     assert (
         plain == {"none": [0] * 4, "the smaller half": [1, 1, 0, 0], "all": [1] * 4}[plain_levels]
     )
     fast.to(memory_format=torch.channels_last)
+    out = fast.levels[-1]  # its output channels: the colours, padded (x4 before pixel_shuffle)
+    colours = out.conv.weight.shape[0] if plain[-1] else out.up.phases.weight.shape[0] // 4
+    widths = [fast.in_channels, fast.fuse.weight.shape[1], colours]
+    assert widths == ([c, 8 * cfg.width + 1, 3] if align == 1 else [16, 8 * cfg.width + 8, 8])
     x, light = torch.rand(2, c, r, r), torch.rand(2, 4)
+    extra = torch.rand(2, fast.in_channels - c, r, r) * 100
+    cl = torch.channels_last
     with torch.no_grad():
         want = model(x, light)
-        got = fast(x.contiguous(memory_format=torch.channels_last), light)
+        got = fast(x.contiguous(memory_format=cl), light)
+        got_wide = fast(torch.cat([x, extra], 1).contiguous(memory_format=cl), light)
+    assert got.shape == want.shape
     torch.testing.assert_close(got, want, atol=1e-5, rtol=0)
+    torch.testing.assert_close(got_wide, want, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="fold the BatchNorm first"):
         SubpixelRenderer(model)
 
@@ -284,6 +296,8 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             "subpixel": {"subpixel": True},
             "gemm": {"subpixel": True, "gemm_at": 64},
             "mixed": {"subpixel": True, "subpixel_from": 16},
+            "aligned": {"subpixel": True, "align": 8},
+            "all plain, aligned": {"subpixel": True, "subpixel_from": 64, "align": 8},
         }
         errors = {
             name: (fast_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
@@ -295,15 +309,17 @@ def test_bf16_fast_networks_stay_close_to_fp32():
         assert err < max(2 * plain, 0.01), (name, float(err), float(plain))
 
 
-@pytest.mark.parametrize(("gemm_at", "subpixel_from"), [(0, 0), (64, 0), (0, 8)])
-def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from):
+@pytest.mark.parametrize(
+    ("gemm_at", "subpixel_from", "align"), [(0, 0, 1), (64, 0, 1), (0, 8, 1), (0, 0, 8)]
+)
+def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align):
     """``--compile`` must see the rewrite whole: Dynamo traces it with ``fullgraph=True``
     (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here)."""
     from trainer.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()
     model = NeuralRenderer(ModelConfig(resolution=32)).eval()
-    net = SubpixelRenderer(fold_batchnorm(model), subpixel_from).gemm_at(gemm_at)
+    net = SubpixelRenderer(fold_batchnorm(model), subpixel_from, align).gemm_at(gemm_at)
     x, light = torch.rand(1, model.config.in_channels, 32, 32), torch.rand(1, 4)
     traced = torch.compile(net, backend="eager", fullgraph=True, dynamic=False)
     with torch.no_grad():

@@ -14,6 +14,12 @@ convolves the concatenation of that with the skip. Both steps are linear, so for
   of ``up(z)`` (:func:`ring`).
 * **Light plane.** The 128 light channels are one plane repeated, so their weights are summed
   into one input channel.
+* **Aligned channels** (``align=8``, for tensor cores). Tensor-core convolutions want
+  channel counts that are multiples of 8; cuDNN pads others itself, a pass over the tensor
+  each time. So the maps' input channels, the bottleneck's features + light plane and the
+  3 output colours are padded with zero-weight channels: the same numbers, aligned shapes.
+  The padded input channels may hold anything finite (``trainer.infer.GraphedRenderer``
+  leaves them zero); the output is sliced back to 3 channels inside the sigmoid's kernel.
 
 The output equals the original network's up to rounding (``tests/test_trainer.py`` checks
 fp32 to 1e-5; about 1e-7 in practice) with about the same FLOPs, without the high-resolution
@@ -175,29 +181,49 @@ class PlainLevel(nn.Module):
         return [(self.conv, 2 * size)]
 
 
+def padded(t: torch.Tensor, dim: int, size: int) -> torch.Tensor:
+    """``t`` with zeros appended along ``dim`` up to ``size``."""
+    extra = size - t.shape[dim]
+    return torch.cat([t, t.new_zeros(*t.shape[:dim], extra, *t.shape[dim + 1 :])], dim)
+
+
+def round_up(n: int, multiple: int) -> int:
+    return -(-n // multiple) * multiple
+
+
 class SubpixelRenderer(nn.Module):
     """The folded network rewritten as the module docstring says; same inputs and outputs.
 
     ``subpixel_from``: the decoder levels (and the output convolution) whose input ``z`` is
     narrower than this keep the upsample-and-concatenate form (:class:`PlainLevel`); 0, the
-    default, rewrites them all."""
+    default, rewrites them all. ``align``: pad channel counts to multiples of it with
+    zero-weight channels (1, the default, pads none; the CPU gains nothing from it).
+    ``in_channels`` is the input's channel count it convolves; maps with the model's fewer
+    channels are zero-padded up to it first (one extra pass: feed it ``in_channels`` to
+    avoid that)."""
 
-    def __init__(self, folded: NeuralRenderer, subpixel_from: int = 0):
+    def __init__(self, folded: NeuralRenderer, subpixel_from: int = 0, align: int = 1):
         super().__init__()
         if any(isinstance(block[1], nn.BatchNorm2d) for block in folded.encoder):
             raise ValueError("fold the BatchNorm first (trainer.model.fold_batchnorm)")
         self.config = cfg = folded.config
         self.light = folded.light.mlp
         self.b = cfg.bottleneck
-        self.encoder = nn.ModuleList(Conv(b[0].weight, b[0].bias, 2) for b in folded.encoder)
+        self.in_channels = round_up(cfg.in_channels, align)
+        enc = [(b[0].weight, b[0].bias) for b in folded.encoder]
+        enc[0] = (padded(enc[0][0], 1, self.in_channels), enc[0][1])
+        self.encoder = nn.ModuleList(Conv(w, b, 2) for w, b in enc)
         fw = folded.fuse[0].weight
         deep = fw.shape[1] - LIGHT_CHANNELS  # the bottleneck's features; then the plane
-        self.fuse = Conv(
-            torch.cat([fw[:, :deep], fw[:, deep:].sum(1, True)], 1), folded.fuse[0].bias
-        )
+        self.planes = round_up(deep + 1, align) - deep  # the plane, then zero-weight copies
+        plane_w = padded(fw[:, deep:].sum(1, True), 1, self.planes)
+        self.fuse = Conv(torch.cat([fw[:, :deep], plane_w], 1), folded.fuse[0].bias)
         self.dec0 = Conv(folded.decoder[0][0].weight, folded.decoder[0][0].bias)
         convs = [(b[0].weight, b[0].bias, cfg.skips) for b in folded.decoder[1:]]
-        convs.append((folded.out.weight, folded.out.bias, False))
+        self.colours = folded.out.weight.shape[0]
+        width = round_up(self.colours, align)
+        out_w, out_b = (padded(t, 0, width) for t in (folded.out.weight, folded.out.bias))
+        convs.append((out_w, out_b, False))
         self.levels = nn.ModuleList(
             SubpixelLevel(w, b, skips) if self.b << i >= subpixel_from else PlainLevel(w, b)
             for i, (w, b, skips) in enumerate(convs)
@@ -206,16 +232,18 @@ class SubpixelRenderer(nn.Module):
     def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         skips = []
         x = maps
+        if x.shape[1] < self.in_channels:
+            x = F.pad(x, (0, 0, 0, 0, 0, self.in_channels - x.shape[1]))
         for enc in self.encoder:
             x = F.relu(enc(x))
             skips.append(x)
         plane = self.light(light).view(-1, 1, self.b, self.b).to(x.dtype)
-        x = F.relu(self.fuse(torch.cat([x, plane], 1)))
+        x = F.relu(self.fuse(torch.cat([x, plane.expand(-1, self.planes, -1, -1)], 1)))
         x = F.relu(self.dec0(torch.cat([x, skips[-1]], 1) if self.config.skips else x))
         *decoder, out = self.levels
         for i, level in enumerate(decoder):
             x = F.relu(level(x, skips[-2 - i] if self.config.skips else None))
-        return torch.sigmoid(out(x))
+        return torch.sigmoid(out(x)[:, : self.colours])
 
     def gemm_at(self, largest: int) -> SubpixelRenderer:
         """Run every convolution whose input is at most ``largest`` pixels wide as a GEMM

@@ -197,17 +197,19 @@ def fast_network(
     subpixel: bool = False,
     gemm_at: int = 0,
     subpixel_from: int = 0,
+    align: int = 1,
 ) -> torch.nn.Module:
     """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
     channels_last. ``subpixel``: the exact rewrite of ``trainer.fastnet`` (no upsampled or
     concatenated tensors; ``gemm_at`` > 0 runs its convolutions on inputs at most that wide as
-    GEMMs; decoder levels on inputs narrower than ``subpixel_from`` keep the original form).
+    GEMMs; decoder levels on inputs narrower than ``subpixel_from`` keep the original form;
+    ``align`` pads its channel counts to multiples of that, its ``in_channels`` included).
     ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
     around tuned convolutions; minutes of autotuning at first use). Feed it bf16 channels_last
     inputs."""
     net = fold_batchnorm(model)
     if subpixel:
-        net = SubpixelRenderer(net, subpixel_from).gemm_at(gemm_at)
+        net = SubpixelRenderer(net, subpixel_from, align).gemm_at(gemm_at)
     net = net.to(torch.bfloat16, memory_format=torch.channels_last)
     return torch.compile(net, mode="max-autotune-no-cudagraphs", dynamic=False) if compile else net
 
@@ -229,7 +231,9 @@ class GraphedRenderer:
         torch.backends.cudnn.benchmark = True
         fmt, bf16 = torch.channels_last, torch.bfloat16
         self.model = net = fast_network(model, **fast)
-        shape = (batch, cfg.in_channels, cfg.resolution, cfg.resolution)
+        self.channels = cfg.in_channels  # the static input may have more, left zero
+        width = getattr(net, "in_channels", cfg.in_channels)
+        shape = (batch, width, cfg.resolution, cfg.resolution)
         self.x = torch.zeros(shape, device=dev, dtype=bf16).contiguous(memory_format=fmt)
         self.light = torch.zeros(batch, 4, device=dev, dtype=bf16)
         stream = torch.cuda.Stream()
@@ -243,7 +247,7 @@ class GraphedRenderer:
             self.out = net(self.x, self.light)
 
     def __call__(self, x: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
-        self.x.copy_(x)
+        self.x[:, : self.channels].copy_(x)
         self.light.copy_(light)
         self.graph.replay()
         return self.out
