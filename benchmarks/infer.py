@@ -16,9 +16,10 @@ captured); ``--gemm-at N`` and ``--subpixel-from N`` add the compiled rewrite wi
 convolutions on inputs at most N wide, or with the decoder levels on inputs narrower than N
 in the original upsample-and-concatenate form (both given: the GEMM row is of that form;
 ``--subpixel-from`` at the resolution makes every level plain: the original network with
-its light plane as one channel, so ``--gemm-at`` then applies to the original's layers);
-``--align N`` adds the compiled rewrite with its channel counts padded to multiples of N by
-zero-weight channels (``trainer.fastnet``), and pads those two rows' channels too.
+its light plane as one channel, so ``--gemm-at`` then applies to the original's layers).
+Every rewrite row pads its channel counts to multiples of ``--align`` (8, the fast path's
+default: ``trainer.infer.fast_network``) with zero-weight channels; ``--align 1`` keeps the
+model's own counts.
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -94,10 +95,10 @@ def main() -> None:
     ap.add_argument(
         "--align",
         type=int,
-        default=1,
+        default=8,
         metavar="N",
-        help="add a compiled subpixel row with channel counts padded to multiples of N, and pad "
-        "the --gemm-at and --subpixel-from rows' too (CUDA; 8 suits tensor cores)",
+        help="pad the subpixel rows' channel counts to multiples of N (default 8, for tensor "
+        "cores; 1: the model's own)",
     )
     ap.add_argument(
         "--only",
@@ -189,17 +190,17 @@ def main() -> None:
         eager_row("eager bf16 channels_last", model, True, torch.channels_last)
         eager_row("  + BatchNorm folded", folded, True, torch.channels_last)
         graph_row("  + bf16 weights, CUDA graph")
-        graph_row("subpixel bf16, CUDA graph", subpixel=True)
+        x1 = f", channels x{args.align}" if args.align != 8 else ""  # rows not at the default
+        graph_row(f"subpixel bf16, CUDA graph{x1}", subpixel=True, align=args.align)
         if args.compile:
             graph_row("torch.compile + CUDA graph", compile=True)
-            graph_row("subpixel compiled + graph", compile=True, subpixel=True)
-        x8 = f", channels x{args.align}" if args.align > 1 else ""
-        if args.align > 1:
-            graph_row(f"subpixel compiled{x8}", compile=True, subpixel=True, align=args.align)
+            graph_row(
+                f"subpixel compiled + graph{x1}", compile=True, subpixel=True, align=args.align
+            )
         if args.gemm_at:  # with --subpixel-from, of that mixed form
             start = f", from {args.subpixel_from}²" if args.subpixel_from else ""
             graph_row(
-                f"  + GEMMs at <= {args.gemm_at}²{start}{x8}",
+                f"  + GEMMs at <= {args.gemm_at}²{start}{x1}",
                 compile=True,
                 subpixel=True,
                 gemm_at=args.gemm_at,
@@ -208,7 +209,7 @@ def main() -> None:
             )
         if args.subpixel_from:
             graph_row(
-                f"subpixel from {args.subpixel_from}², compiled{x8}",
+                f"subpixel from {args.subpixel_from}², compiled{x1}",
                 compile=True,
                 subpixel=True,
                 subpixel_from=args.subpixel_from,

@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument(
         "--subpixel-from", type=int, default=0, help="with --subpixel: plain levels narrower"
     )
-    ap.add_argument("--align", type=int, default=1, help="with --subpixel: channels padded to x N")
+    ap.add_argument("--align", type=int, default=8, help="with --subpixel: channels padded to x N")
     args = ap.parse_args()
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)

@@ -26,9 +26,9 @@ fp32 to 1e-5; about 1e-7 in practice) with about the same FLOPs, without the hig
 tensors of the original (upsampled features, concatenations, a 64-channel 400² input to the
 3-channel output convolution). ``trainer.infer.Renderer`` runs it in fp32 on CPU from 288²
 up, where it is about 1.1x faster than the folded original at batch 1 (slower below:
-``trainer.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 on an H100 or H200 it renders 1.5-1.6x
-the frames a second of the compiled original batched, but is slower at batch 1
-(``docs/benchmarks.md``).
+``trainer.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 with aligned channels on an H100 it
+renders 1.8x the frames a second of the compiled original batched, but is 1.1x slower at
+batch 1 (``docs/benchmarks.md``).
 BatchNorm must be folded first (:func:`trainer.model.fold_batchnorm`).
 """
 
