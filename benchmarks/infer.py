@@ -1,7 +1,8 @@
 """Inference benchmark at 400² (or ``--resolution``): ms per frame at batch 1, frames/s batched.
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
-        [--gemm-at N] [--subpixel-from N] [--align N] [--resolution 400] [--only TEXT]
+        [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--resolution 400]
+        [--only TEXT]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
 rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
@@ -19,7 +20,8 @@ in the original upsample-and-concatenate form (both given: the GEMM row is of th
 its light plane as one channel, so ``--gemm-at`` then applies to the original's layers).
 Every rewrite row pads its channel counts to multiples of ``--align`` (8, the fast path's
 default: ``trainer.infer.fast_network``) with zero-weight channels; ``--align 1`` keeps the
-model's own counts.
+model's own counts. ``--ring-gemm`` adds the compiled rewrite with each ring's grouped
+convolution as a batched matrix product (``trainer.fastnet.strip_gemm``).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -99,6 +101,11 @@ def main() -> None:
         metavar="N",
         help="pad the subpixel rows' channel counts to multiples of N (default 8, for tensor "
         "cores; 1: the model's own)",
+    )
+    ap.add_argument(
+        "--ring-gemm",
+        action="store_true",
+        help="add a compiled subpixel row with the rings' convolutions as matrix products (CUDA)",
     )
     ap.add_argument(
         "--only",
@@ -196,6 +203,14 @@ def main() -> None:
             graph_row("torch.compile + CUDA graph", compile=True)
             graph_row(
                 f"subpixel compiled + graph{x1}", compile=True, subpixel=True, align=args.align
+            )
+        if args.ring_gemm:
+            graph_row(
+                f"subpixel compiled, ring GEMMs{x1}",
+                compile=True,
+                subpixel=True,
+                align=args.align,
+                ring_gemm=True,
             )
         if args.gemm_at:  # with --subpixel-from, of that mixed form
             start = f", from {args.subpixel_from}²" if args.subpixel_from else ""

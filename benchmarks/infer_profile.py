@@ -43,6 +43,7 @@ def main() -> None:
         "--subpixel-from", type=int, default=0, help="with --subpixel: plain levels narrower"
     )
     ap.add_argument("--align", type=int, default=8, help="with --subpixel: channels padded to x N")
+    ap.add_argument("--ring-gemm", action="store_true", help="with --subpixel: rings as GEMMs")
     args = ap.parse_args()
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)
@@ -53,6 +54,7 @@ def main() -> None:
         "gemm_at": args.gemm_at,
         "subpixel_from": args.subpixel_from,
         "align": args.align,
+        "ring_gemm": args.ring_gemm,
     }
     plain, net = fast_network(model, **fast), fast_network(model, compile=args.compile, **fast)
     width = getattr(plain, "in_channels", cfg.in_channels)  # aligned: fed padded, as graphed

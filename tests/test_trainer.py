@@ -227,6 +227,8 @@ def test_upconv_is_upsampling_then_convolution(size):
     torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
     up.phases.gemm = True  # the im2col GEMM form of the same convolution
     torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
+    up.gemm_ring = True  # and the ring's grouped convolution as a batched matrix product
+    torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
     with pytest.raises(ValueError, match="the ring needs a square input, not 3x4"):
         up(torch.randn(1, 6, 3, 4, dtype=torch.float64))
 
@@ -256,6 +258,7 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
     model.eval()
     start = {"none": 0, "the smaller half": r // 4, "all": r}[plain_levels]
     fast = SubpixelRenderer(fold_batchnorm(model), start, align).gemm_at(gemm_at)
+    fast.ring_gemms(gemm_at > 0)  # with GEMMs: every convolution one
     plain = [isinstance(level, PlainLevel) for level in fast.levels]
     assert (
         plain == {"none": [0] * 4, "the smaller half": [1, 1, 0, 0], "all": [1] * 4}[plain_levels]
@@ -299,6 +302,7 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             "mixed": {"subpixel": True, "subpixel_from": 16},
             "unaligned": {"subpixel": True, "align": 1},
             "all plain": {"subpixel": True, "subpixel_from": 64},
+            "ring GEMMs": {"subpixel": True, "ring_gemm": True},
         }
         errors = {
             name: (fast_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
@@ -315,12 +319,14 @@ def test_bf16_fast_networks_stay_close_to_fp32():
 )
 def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align):
     """``--compile`` must see the rewrite whole: Dynamo traces it with ``fullgraph=True``
-    (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here)."""
+    (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here); with
+    ``gemm_at``, the rings run as matrix products too."""
     from trainer.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()
     model = NeuralRenderer(ModelConfig(resolution=32)).eval()
     net = SubpixelRenderer(fold_batchnorm(model), subpixel_from, align).gemm_at(gemm_at)
+    net.ring_gemms(gemm_at > 0)
     x, light = torch.rand(1, model.config.in_channels, 32, 32), torch.rand(1, 4)
     traced = torch.compile(net, backend="eager", fullgraph=True, dynamic=False)
     with torch.no_grad():

@@ -66,7 +66,21 @@ def ring_weight(w: torch.Tensor) -> torch.Tensor:
     return torch.cat([w, w.transpose(2, 3)])
 
 
-def ring(z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+def strip_gemm(strips: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
+    """``F.conv2d(x, w2, padding=(0, 1), groups=2)`` of three-row strips, as one batched matrix
+    product: ``strips`` is ``(2, m, C, 3, W)``, group g's strips of ``x`` stacked along the
+    first axis; returns ``(m, 2·O, 1, W)`` like the convolution. The im2col of a strip is 3x
+    the strip, small beside the level; cuBLAS has no group to slice apart."""
+    _, m, c, _, w = strips.shape
+    o = w2.shape[0] // 2
+    t = F.pad(strips, (1, 1)).permute(0, 1, 3, 4, 2)  # (2, m, 3, W + 2, C)
+    cols = torch.cat([t[:, :, a, b : b + w] for a in range(3) for b in range(3)], -1)
+    k = w2.reshape(2, o, c, 3, 3).permute(0, 3, 4, 2, 1).reshape(2, 9 * c, o)  # (a, b, c) rows
+    out = torch.bmm(cols.reshape(2, m * w, 9 * c), k)
+    return out.view(2, m, w, o).permute(1, 0, 3, 2).reshape(m, 2 * o, 1, w)
+
+
+def ring(z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor, gemm: bool = False) -> torch.Tensor:
     """``y`` with its outermost ring overwritten, in place, by the exact ``conv(up(z), w,
     padding=1)``, for a square ``z`` and ``w2 = ring_weight(w)``; returns ``y``.
 
@@ -74,8 +88,9 @@ def ring(z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     made by upsampling two rows of ``z`` (the clamped edge included): a three-row strip
     convolved to one row. A border column is the same with rows and columns swapped, so the
     left and right columns go transposed, as rows: one upsampling of all four edges, then
-    one grouped convolution (rows with ``w``, transposed columns with ``w`` transposed);
-    about 2/h of the sub-pixel convolution's work for a ``z`` h wide."""
+    one grouped convolution (rows with ``w``, transposed columns with ``w`` transposed), or
+    with ``gemm`` the same as one batched matrix product (:func:`strip_gemm`); about 2/h of
+    the sub-pixel convolution's work for a ``z`` h wide."""
     n, h = z.shape[0], z.shape[2]
     if z.shape[3] != h:
         raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
@@ -88,8 +103,11 @@ def ring(z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     first, last = up[: 2 * n, :, :2], up[2 * n :, :, -2:]
     zero = torch.zeros_like(first[:, :, :1])
     a, b = torch.cat([zero, first], 2), torch.cat([last, zero], 2)  # (2n, C, 3, 2h) strips
-    rows_cols = torch.cat([torch.cat([a[:n], b[:n]]), torch.cat([a[n:], b[n:]])], 1)
-    out = F.conv2d(rows_cols, w2, padding=(0, 1), groups=2)  # (2n, 2·O, 1, 2h)
+    rows, cols = torch.cat([a[:n], b[:n]]), torch.cat([a[n:], b[n:]])
+    if gemm:
+        out = strip_gemm(torch.stack([rows, cols]), w2)
+    else:
+        out = F.conv2d(torch.cat([rows, cols], 1), w2, padding=(0, 1), groups=2)  # (2n, 2O, 1, 2h)
     y[:, :, 0], y[:, :, -1] = out[:n, :o, 0], out[n:, :o, 0]  # top, bottom
     y[:, :, :, 0], y[:, :, :, -1] = out[:n, o:, 0], out[n:, o:, 0]  # left, right
     return y
@@ -132,15 +150,16 @@ class Conv(nn.Module):
 
 class UpConv(nn.Module):
     """``conv(up(z), weight, padding=1)`` (no bias) of a square ``z`` without building
-    ``up(z)``."""
+    ``up(z)``. ``gemm_ring``: the ring's convolution as a matrix product (:func:`ring`)."""
 
     def __init__(self, weight: torch.Tensor):
         super().__init__()
         self.ring = nn.Parameter(ring_weight(weight.detach()), requires_grad=False)
         self.phases = Conv(subpixel_weight(weight.detach()), pad="replicate")
+        self.gemm_ring = False
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        return ring(z, self.ring, F.pixel_shuffle(self.phases(z), 2))
+        return ring(z, self.ring, F.pixel_shuffle(self.phases(z), 2), self.gemm_ring)
 
 
 class SubpixelLevel(nn.Module):
@@ -255,4 +274,11 @@ class SubpixelRenderer(nn.Module):
             sized += level.convs(self.b << i)
         for conv, size in sized:
             conv.gemm = size <= largest
+        return self
+
+    def ring_gemms(self, on: bool = True) -> SubpixelRenderer:
+        """Run the rings' grouped convolutions as batched matrix products; returns self."""
+        for module in self.modules():
+            if isinstance(module, UpConv):
+                module.gemm_ring = on
         return self
