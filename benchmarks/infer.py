@@ -1,8 +1,8 @@
 """Inference benchmark at 400² (or ``--resolution``): ms per frame at batch 1, frames/s batched.
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
-        [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--resolution 400]
-        [--only TEXT]
+        [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring]
+        [--resolution 400] [--only TEXT]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
 rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
@@ -20,8 +20,10 @@ in the original upsample-and-concatenate form (both given: the GEMM row is of th
 its light plane as one channel, so ``--gemm-at`` then applies to the original's layers).
 Every rewrite row pads its channel counts to multiples of ``--align`` (8, the fast path's
 default: ``trainer.infer.fast_network``) with zero-weight channels; ``--align 1`` keeps the
-model's own counts. ``--ring-gemm`` adds the compiled rewrite with each ring's grouped
-convolution as a batched matrix product (``trainer.fastnet.strip_gemm``).
+model's own counts. ``--ring-gemm`` and ``--wide-ring`` add the compiled rewrite with each
+ring's grouped convolution as a batched matrix product (``trainer.fastnet.strip_gemm``), and
+with the sub-pixel convolutions on zero-padded inputs and the ring two deep
+(``trainer.fastnet.UpConv.widen_ring``).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -106,6 +108,12 @@ def main() -> None:
         "--ring-gemm",
         action="store_true",
         help="add a compiled subpixel row with the rings' convolutions as matrix products (CUDA)",
+    )
+    ap.add_argument(
+        "--wide-ring",
+        action="store_true",
+        help="add (with --ring-gemm: make that) a compiled subpixel row whose sub-pixel "
+        "convolutions read zero-padded inputs, with rings two deep (CUDA)",
     )
     ap.add_argument(
         "--only",
@@ -204,13 +212,15 @@ def main() -> None:
             graph_row(
                 f"subpixel compiled + graph{x1}", compile=True, subpixel=True, align=args.align
             )
-        if args.ring_gemm:
+        if args.ring_gemm or args.wide_ring:
+            kinds = ", ring GEMMs" * args.ring_gemm + ", wide ring" * args.wide_ring
             graph_row(
-                f"subpixel compiled, ring GEMMs{x1}",
+                f"subpixel compiled{kinds}{x1}",
                 compile=True,
                 subpixel=True,
                 align=args.align,
-                ring_gemm=True,
+                ring_gemm=args.ring_gemm,
+                wide_ring=args.wide_ring,
             )
         if args.gemm_at:  # with --subpixel-from, of that mixed form
             start = f", from {args.subpixel_from}²" if args.subpixel_from else ""

@@ -44,6 +44,7 @@ def main() -> None:
     )
     ap.add_argument("--align", type=int, default=8, help="with --subpixel: channels padded to x N")
     ap.add_argument("--ring-gemm", action="store_true", help="with --subpixel: rings as GEMMs")
+    ap.add_argument("--wide-ring", action="store_true", help="with --subpixel: rings two deep")
     args = ap.parse_args()
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)
@@ -55,6 +56,7 @@ def main() -> None:
         "subpixel_from": args.subpixel_from,
         "align": args.align,
         "ring_gemm": args.ring_gemm,
+        "wide_ring": args.wide_ring,
     }
     plain, net = fast_network(model, **fast), fast_network(model, compile=args.compile, **fast)
     width = getattr(plain, "in_channels", cfg.in_channels)  # aligned: fed padded, as graphed

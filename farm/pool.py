@@ -9,6 +9,7 @@ starts :func:`farm.commit.commit_shard` tasks where :func:`farm.commit.placement
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import os
 import socket
 import sys
@@ -26,11 +27,19 @@ USABLE = ("idle", "busy")
 REACH_TIMEOUT_S = 10.0
 
 
-def _is_loopback(address: str | None) -> bool:
+def is_loopback(address: str | None) -> bool:
+    """Whether a Ray address is on this machine's loopback interface (``None``: the embedded
+    Ray); the host is read as :func:`endpoint` reads it, ``[::1]:6379`` included."""
     if not address:
-        return True  # the embedded Ray
-    host = address.split("://")[-1].rsplit(":", 1)[0]
-    return host in ("localhost", "::1") or host.startswith("127.")
+        return True
+    target = endpoint(address)
+    host = target[0] if target else address.split("://")[-1]
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def ray_environment(address: str | None) -> None:
@@ -43,7 +52,7 @@ def ray_environment(address: str | None) -> None:
     if "ray" in sys.modules:
         return
     address = address or os.environ.get("RAY_ADDRESS")
-    if _is_loopback(address):
+    if is_loopback(address):
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
     if not address:
         os.environ.setdefault("RAY_AUTH_MODE", "token")
@@ -95,7 +104,7 @@ def connect(address: str | None, dashboard: bool = True) -> str | None:
 
     address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
-        extra = {"_node_ip_address": "127.0.0.1"} if _is_loopback(address) else {}
+        extra = {"_node_ip_address": "127.0.0.1"} if is_loopback(address) else {}
         ctx = ray.init(address=address, log_to_driver=False, **extra)
     else:
         ctx = ray.init(  # embedded: everything on the loopback interface

@@ -216,7 +216,7 @@ def test_bad_partition_arguments():
 
 @pytest.mark.parametrize("size", [1, 2, 3, 25])
 def test_upconv_is_upsampling_then_convolution(size):
-    from trainer.fastnet import UpConv
+    from trainer.fastnet import UpConv, ring
 
     z = torch.randn(2, 6, size, size, dtype=torch.float64)
     w = torch.randn(5, 6, 3, 3, dtype=torch.float64)
@@ -229,6 +229,14 @@ def test_upconv_is_upsampling_then_convolution(size):
     torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
     up.gemm_ring = True  # and the ring's grouped convolution as a batched matrix product
     torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
+    up.wide_ring = True  # zero-padded phases, the ring two deep (replicate below 2 wide)
+    for gemm in (True, False):
+        up.phases.gemm = up.gemm_ring = gemm
+        torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
+    if size < 2:
+        y = torch.zeros_like(want)
+        with pytest.raises(ValueError, match="a ring 2 deep needs an input at least 2 wide"):
+            ring(z, up.ring, y, depth=2)
     with pytest.raises(ValueError, match="the ring needs a square input, not 3x4"):
         up(torch.randn(1, 6, 3, 4, dtype=torch.float64))
 
@@ -258,7 +266,7 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
     model.eval()
     start = {"none": 0, "the smaller half": r // 4, "all": r}[plain_levels]
     fast = SubpixelRenderer(fold_batchnorm(model), start, align).gemm_at(gemm_at)
-    fast.ring_gemms(gemm_at > 0)  # with GEMMs: every convolution one
+    fast.rings(gemm=gemm_at > 0, wide=gemm_at > 0)  # with GEMMs: every convolution one
     plain = [isinstance(level, PlainLevel) for level in fast.levels]
     assert (
         plain == {"none": [0] * 4, "the smaller half": [1, 1, 0, 0], "all": [1] * 4}[plain_levels]
@@ -302,7 +310,7 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             "mixed": {"subpixel": True, "subpixel_from": 16},
             "unaligned": {"subpixel": True, "align": 1},
             "all plain": {"subpixel": True, "subpixel_from": 64},
-            "ring GEMMs": {"subpixel": True, "ring_gemm": True},
+            "ring GEMMs, wide": {"subpixel": True, "ring_gemm": True, "wide_ring": True},
         }
         errors = {
             name: (fast_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
@@ -320,13 +328,13 @@ def test_bf16_fast_networks_stay_close_to_fp32():
 def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align):
     """``--compile`` must see the rewrite whole: Dynamo traces it with ``fullgraph=True``
     (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here); with
-    ``gemm_at``, the rings run as matrix products too."""
+    ``gemm_at``, the rings run as matrix products and two deep too."""
     from trainer.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()
     model = NeuralRenderer(ModelConfig(resolution=32)).eval()
     net = SubpixelRenderer(fold_batchnorm(model), subpixel_from, align).gemm_at(gemm_at)
-    net.ring_gemms(gemm_at > 0)
+    net.rings(gemm=gemm_at > 0, wide=gemm_at > 0)
     x, light = torch.rand(1, model.config.in_channels, 32, 32), torch.rand(1, 4)
     traced = torch.compile(net, backend="eager", fullgraph=True, dynamic=False)
     with torch.no_grad():

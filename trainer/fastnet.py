@@ -67,49 +67,55 @@ def ring_weight(w: torch.Tensor) -> torch.Tensor:
 
 
 def strip_gemm(strips: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
-    """``F.conv2d(x, w2, padding=(0, 1), groups=2)`` of three-row strips, as one batched matrix
-    product: ``strips`` is ``(2, m, C, 3, W)``, group g's strips of ``x`` stacked along the
-    first axis; returns ``(m, 2·O, 1, W)`` like the convolution. The im2col of a strip is 3x
-    the strip, small beside the level; cuBLAS has no group to slice apart."""
-    _, m, c, _, w = strips.shape
-    o = w2.shape[0] // 2
-    t = F.pad(strips, (1, 1)).permute(0, 1, 3, 4, 2)  # (2, m, 3, W + 2, C)
-    cols = torch.cat([t[:, :, a, b : b + w] for a in range(3) for b in range(3)], -1)
+    """``F.conv2d(x, w2, padding=(0, 1), groups=2)`` of R-row strips, as one batched matrix
+    product: ``strips`` is ``(2, m, C, R, W)``, group g's strips of ``x`` stacked along the
+    first axis; returns ``(m, 2·O, R - 2, W)`` like the convolution. The im2col of a strip is
+    3x the strip, small beside the level; cuBLAS has no group to slice apart."""
+    _, m, c, r, w = strips.shape
+    o, d = w2.shape[0] // 2, r - 2
+    t = F.pad(strips, (1, 1)).permute(0, 1, 3, 4, 2)  # (2, m, R, W + 2, C)
+    cols = torch.cat([t[:, :, a : a + d, b : b + w] for a in range(3) for b in range(3)], -1)
     k = w2.reshape(2, o, c, 3, 3).permute(0, 3, 4, 2, 1).reshape(2, 9 * c, o)  # (a, b, c) rows
-    out = torch.bmm(cols.reshape(2, m * w, 9 * c), k)
-    return out.view(2, m, w, o).permute(1, 0, 3, 2).reshape(m, 2 * o, 1, w)
+    out = torch.bmm(cols.reshape(2, m * d * w, 9 * c), k)
+    return out.view(2, m, d, w, o).permute(1, 0, 4, 2, 3).reshape(m, 2 * o, d, w)
 
 
-def ring(z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor, gemm: bool = False) -> torch.Tensor:
-    """``y`` with its outermost ring overwritten, in place, by the exact ``conv(up(z), w,
-    padding=1)``, for a square ``z`` and ``w2 = ring_weight(w)``; returns ``y``.
+def ring(
+    z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor, gemm: bool = False, depth: int = 1
+) -> torch.Tensor:
+    """``y`` with its outer ``depth`` rings (1 or 2) overwritten, in place, by the exact
+    ``conv(up(z), w, padding=1)``, for a square ``z`` and ``w2 = ring_weight(w)``; returns ``y``.
 
-    Each border row of the output sees the conv's zero padding and two rows of ``up(z)``,
-    made by upsampling two rows of ``z`` (the clamped edge included): a three-row strip
-    convolved to one row. A border column is the same with rows and columns swapped, so the
-    left and right columns go transposed, as rows: one upsampling of all four edges, then
-    one grouped convolution (rows with ``w``, transposed columns with ``w`` transposed), or
-    with ``gemm`` the same as one batched matrix product (:func:`strip_gemm`); about 2/h of
-    the sub-pixel convolution's work for a ``z`` h wide."""
+    The output's first row sees the conv's zero padding and rows 0-1 of ``up(z)``, its second
+    rows 0-2, all made by upsampling rows 0-1 of ``z`` (the clamped edge included): a strip of
+    ``depth + 2`` rows convolved to ``depth`` rows, and the same at the bottom. A border
+    column is the same with rows and columns swapped, so the left and right columns go
+    transposed, as rows: one upsampling of all four edges, then one grouped convolution
+    (rows with ``w``, transposed columns with ``w`` transposed), or with ``gemm`` the same as
+    one batched matrix product (:func:`strip_gemm`); about 2·depth/h of the sub-pixel
+    convolution's work for a ``z`` h wide."""
     n, h = z.shape[0], z.shape[2]
     if z.shape[3] != h:
         raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
-    o = w2.shape[0] // 2
+    if depth > h:
+        raise ValueError(f"a ring {depth} deep needs an input at least {depth} wide, not {h}")
+    o, d = w2.shape[0] // 2, depth
     firsts = torch.cat([z[:, :, :2], z[:, :, :, :2].transpose(2, 3)])  # top; left, as rows
     lasts = torch.cat([z[:, :, -2:], z[:, :, :, -2:].transpose(2, 3)])  # bottom; right
     up = F.interpolate(
         torch.cat([firsts, lasts]), scale_factor=2, mode="bilinear", align_corners=False
     )
-    first, last = up[: 2 * n, :, :2], up[2 * n :, :, -2:]
+    first, last = up[: 2 * n, :, : d + 1], up[2 * n :, :, -d - 1 :]
     zero = torch.zeros_like(first[:, :, :1])
-    a, b = torch.cat([zero, first], 2), torch.cat([last, zero], 2)  # (2n, C, 3, 2h) strips
+    a, b = torch.cat([zero, first], 2), torch.cat([last, zero], 2)  # (2n, C, d + 2, 2h) strips
     rows, cols = torch.cat([a[:n], b[:n]]), torch.cat([a[n:], b[n:]])
     if gemm:
         out = strip_gemm(torch.stack([rows, cols]), w2)
     else:
-        out = F.conv2d(torch.cat([rows, cols], 1), w2, padding=(0, 1), groups=2)  # (2n, 2O, 1, 2h)
-    y[:, :, 0], y[:, :, -1] = out[:n, :o, 0], out[n:, :o, 0]  # top, bottom
-    y[:, :, :, 0], y[:, :, :, -1] = out[:n, o:, 0], out[n:, o:, 0]  # left, right
+        out = F.conv2d(torch.cat([rows, cols], 1), w2, padding=(0, 1), groups=2)  # (2n, 2O, d, 2h)
+    y[:, :, :d], y[:, :, -d:] = out[:n, :o], out[n:, :o]  # top, bottom
+    y[:, :, :, :d] = out[:n, o:].transpose(2, 3)  # left
+    y[:, :, :, -d:] = out[n:, o:].transpose(2, 3)  # right
     return y
 
 
@@ -119,8 +125,8 @@ class Conv(nn.Module):
     ``gemm = True`` runs it as an explicit channels-last im2col matrix product instead, the
     same numbers, so that Inductor tunes it as a GEMM (its choices include split-K, which a
     direct convolution on a small image lacks). A knob for ``benchmarks.infer --gemm-at``: on
-    CPU it is no faster, and on an H100 its Triton GEMM autotuning outlasted the benchmark's
-    time limit, so it has no GPU figure (``docs/benchmarks.md``)."""
+    CPU it is no faster, and on an H100 at batch 1 slower than cuDNN's convolutions
+    (``docs/benchmarks.md``)."""
 
     def __init__(self, weight, bias=None, stride: int = 1, pad: str = "zeros"):
         super().__init__()
@@ -128,10 +134,12 @@ class Conv(nn.Module):
         self.bias = None if bias is None else nn.Parameter(bias.detach().clone(), False)
         self.stride, self.pad, self.gemm = stride, pad, False
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.pad == "zeros" and not self.gemm:
+    def forward(self, x: torch.Tensor, pad: str | None = None) -> torch.Tensor:
+        """``pad`` overrides the padding given at construction."""
+        pad = pad or self.pad
+        if pad == "zeros" and not self.gemm:
             return F.conv2d(x, self.weight, self.bias, self.stride, 1)
-        x = F.pad(x, (1, 1, 1, 1), mode="replicate" if self.pad == "replicate" else "constant")
+        x = F.pad(x, (1, 1, 1, 1), mode="replicate" if pad == "replicate" else "constant")
         if not self.gemm:
             return F.conv2d(x, self.weight, self.bias, self.stride)
         n, c, hp, wp = x.shape
@@ -150,16 +158,21 @@ class Conv(nn.Module):
 
 class UpConv(nn.Module):
     """``conv(up(z), weight, padding=1)`` (no bias) of a square ``z`` without building
-    ``up(z)``. ``gemm_ring``: the ring's convolution as a matrix product (:func:`ring`)."""
+    ``up(z)``. ``gemm_ring``: the ring's convolution as a matrix product (:func:`ring`).
+    ``wide_ring``: the phases on a zero-padded ``z`` (no padding pass over it), which is
+    wrong on the output's two outer rings, so the ring is recomputed two deep (for a ``z`` at
+    least 2 wide; a narrower one takes the replicate padding)."""
 
     def __init__(self, weight: torch.Tensor):
         super().__init__()
         self.ring = nn.Parameter(ring_weight(weight.detach()), requires_grad=False)
         self.phases = Conv(subpixel_weight(weight.detach()), pad="replicate")
-        self.gemm_ring = False
+        self.gemm_ring = self.wide_ring = False
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        return ring(z, self.ring, F.pixel_shuffle(self.phases(z), 2), self.gemm_ring)
+        depth = 2 if self.wide_ring and z.shape[2] >= 2 else 1
+        y = F.pixel_shuffle(self.phases(z, "zeros" if depth == 2 else "replicate"), 2)
+        return ring(z, self.ring, y, self.gemm_ring, depth)
 
 
 class SubpixelLevel(nn.Module):
@@ -276,9 +289,10 @@ class SubpixelRenderer(nn.Module):
             conv.gemm = size <= largest
         return self
 
-    def ring_gemms(self, on: bool = True) -> SubpixelRenderer:
-        """Run the rings' grouped convolutions as batched matrix products; returns self."""
+    def rings(self, gemm: bool = False, wide: bool = False) -> SubpixelRenderer:
+        """Run the rings' grouped convolutions as batched matrix products (``gemm``), and
+        two deep on zero-padded phases (``wide``: :class:`UpConv`); returns self."""
         for module in self.modules():
             if isinstance(module, UpConv):
-                module.gemm_ring = on
+                module.gemm_ring, module.wide_ring = gemm, wide
         return self

@@ -199,6 +199,7 @@ def fast_network(
     subpixel_from: int = 0,
     align: int = 8,
     ring_gemm: bool = False,
+    wide_ring: bool = False,
 ) -> torch.nn.Module:
     """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
     channels_last. ``subpixel``: the exact rewrite of ``trainer.fastnet`` (no upsampled or
@@ -206,14 +207,15 @@ def fast_network(
     GEMMs; decoder levels on inputs narrower than ``subpixel_from`` keep the original form;
     its channel counts, ``in_channels`` included, are padded to multiples of ``align`` with
     zero-weight channels: on an H100, 1.12x the frames batched and 0.76x the time at batch 1
-    of ``align=1``, ``docs/benchmarks.md``; ``ring_gemm``: its rings' grouped convolutions as
-    batched matrix products).
+    of ``align=1``, ``docs/benchmarks.md``; ``ring_gemm`` and ``wide_ring``: its rings as
+    ``trainer.fastnet.SubpixelRenderer.rings`` says).
     ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
     around tuned convolutions; minutes of autotuning at first use). Feed it bf16 channels_last
     inputs."""
     net = fold_batchnorm(model)
     if subpixel:
-        net = SubpixelRenderer(net, subpixel_from, align).gemm_at(gemm_at).ring_gemms(ring_gemm)
+        net = SubpixelRenderer(net, subpixel_from, align).gemm_at(gemm_at)
+        net.rings(gemm=ring_gemm, wide=wide_ring)
     net = net.to(torch.bfloat16, memory_format=torch.channels_last)
     return torch.compile(net, mode="max-autotune-no-cudagraphs", dynamic=False) if compile else net
 
