@@ -23,7 +23,7 @@ default: ``trainer.infer.fast_network``) with zero-weight channels; ``--align 1`
 model's own counts. ``--ring-gemm`` and ``--wide-ring`` add the compiled rewrite with each
 ring's grouped convolution as a batched matrix product (``trainer.fastnet.strip_gemm``), and
 with the sub-pixel convolutions on zero-padded inputs and the ring two deep
-(``trainer.fastnet.UpConv.widen_ring``).
+(``trainer.fastnet.UpConv``).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
