@@ -206,39 +206,30 @@ def main() -> None:
         eager_row("  + BatchNorm folded", folded, True, torch.channels_last)
         graph_row("  + bf16 weights, CUDA graph")
         x1 = f", channels x{args.align}" if args.align != 8 else ""  # rows not at the default
-        graph_row(f"subpixel bf16, CUDA graph{x1}", subpixel=True, align=args.align)
+
+        def rewrite_row(name, **fast):
+            """A row of the rewrite with ``--align``'s channels, compiled unless told."""
+            graph_row(name + x1, **{"compile": True, "subpixel": True, "align": args.align, **fast})
+
+        rewrite_row("subpixel bf16, CUDA graph", compile=False)
         if args.compile:
             graph_row("torch.compile + CUDA graph", compile=True)
-            graph_row(
-                f"subpixel compiled + graph{x1}", compile=True, subpixel=True, align=args.align
-            )
+            rewrite_row("subpixel compiled + graph")
         if args.ring_gemm or args.wide_ring:
             kinds = ", ring GEMMs" * args.ring_gemm + ", wide ring" * args.wide_ring
-            graph_row(
-                f"subpixel compiled{kinds}{x1}",
-                compile=True,
-                subpixel=True,
-                align=args.align,
-                ring_gemm=args.ring_gemm,
-                wide_ring=args.wide_ring,
+            rewrite_row(
+                f"subpixel compiled{kinds}", ring_gemm=args.ring_gemm, wide_ring=args.wide_ring
             )
         if args.gemm_at:  # with --subpixel-from, of that mixed form
             start = f", from {args.subpixel_from}²" if args.subpixel_from else ""
-            graph_row(
-                f"  + GEMMs at <= {args.gemm_at}²{start}{x1}",
-                compile=True,
-                subpixel=True,
+            rewrite_row(
+                f"  + GEMMs at <= {args.gemm_at}²{start}",
                 gemm_at=args.gemm_at,
                 subpixel_from=args.subpixel_from,
-                align=args.align,
             )
         if args.subpixel_from:
-            graph_row(
-                f"subpixel from {args.subpixel_from}², compiled{x1}",
-                compile=True,
-                subpixel=True,
-                subpixel_from=args.subpixel_from,
-                align=args.align,
+            rewrite_row(
+                f"subpixel from {args.subpixel_from}², compiled", subpixel_from=args.subpixel_from
             )
 
 

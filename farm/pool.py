@@ -9,7 +9,6 @@ starts :func:`farm.commit.commit_shard` tasks where :func:`farm.commit.placement
 from __future__ import annotations
 
 import contextlib
-import ipaddress
 import os
 import socket
 import sys
@@ -19,6 +18,7 @@ from farm.actor import CONCURRENCY_GROUPS, RenderWorker
 from farm.commit import commit_shard, placement
 from farm.plan import JobConfig
 from farm.state import JobState, WorkerStats, now
+from farm.web import is_loopback
 from render_jobs.specs import RenderSettings
 
 #: worker statuses that may be given tasks
@@ -27,19 +27,13 @@ USABLE = ("idle", "busy")
 REACH_TIMEOUT_S = 10.0
 
 
-def is_loopback(address: str | None) -> bool:
+def address_is_loopback(address: str | None) -> bool:
     """Whether a Ray address is on this machine's loopback interface (``None``: the embedded
     Ray); the host is read as :func:`endpoint` reads it, ``[::1]:6379`` included."""
     if not address:
         return True
     target = endpoint(address)
-    host = target[0] if target else address.split("://")[-1]
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
+    return is_loopback(target[0] if target else address.split("://")[-1])
 
 
 def ray_environment(address: str | None) -> None:
@@ -52,7 +46,7 @@ def ray_environment(address: str | None) -> None:
     if "ray" in sys.modules:
         return
     address = address or os.environ.get("RAY_ADDRESS")
-    if is_loopback(address):
+    if address_is_loopback(address):
         os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
     if not address:
         os.environ.setdefault("RAY_AUTH_MODE", "token")
@@ -104,7 +98,7 @@ def connect(address: str | None, dashboard: bool = True) -> str | None:
 
     address = address or os.environ.get("RAY_ADDRESS") or None
     if address:
-        extra = {"_node_ip_address": "127.0.0.1"} if is_loopback(address) else {}
+        extra = {"_node_ip_address": "127.0.0.1"} if address_is_loopback(address) else {}
         ctx = ray.init(address=address, log_to_driver=False, **extra)
     else:
         ctx = ray.init(  # embedded: everything on the loopback interface

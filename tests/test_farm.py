@@ -21,7 +21,7 @@ import pytest
 from farm.faults import FAULTS_ENV
 from farm.lease import LEASE_S, LeaseHeld, acquire, holder_alive
 from farm.plan import JobConfig, layout_for, material_specs, task_for
-from farm.pool import check_reachable, endpoint, is_loopback
+from farm.pool import address_is_loopback, check_reachable, endpoint
 from farm.state import LOST_AFTER_S, effective_status
 from render_jobs.specs import derive_seed
 from storage.reader import Store
@@ -324,8 +324,10 @@ def test_ray_addresses_name_what_must_answer():
     assert endpoint("auto") is None and endpoint("local") is None
     assert endpoint("http://head:8265") is None  # not a form ray.init takes: Ray says so
     loopback = ["127.0.0.1:6379", "localhost:6379", "[::1]:6379", "ray://127.0.0.2", None]
-    assert all(is_loopback(a) for a in loopback)
-    assert not any(is_loopback(a) for a in ["10.0.0.5:6379", "ray://head", "auto", "[::2]:1"])
+    assert all(address_is_loopback(a) for a in loopback)
+    assert not any(
+        address_is_loopback(a) for a in ["10.0.0.5:6379", "ray://head", "auto", "[::2]:1"]
+    )
 
 
 def closed_port() -> int:
