@@ -48,7 +48,8 @@ export TORCHINDUCTOR_CACHE_DIR=$PWD/.gpucache/inductor TRITON_CACHE_DIR=$PWD/.gp
 budget=(timeout --signal=INT --kill-after=20 "${BUDGET:-540}")
 train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 10)
 {
-    echo "== $part $(date -u +%FT%TZ) $(git rev-parse --short HEAD 2>/dev/null || echo '?')"
+    # "-dirty": the tree differs from that commit (a device copy may carry an older .git)
+    echo "== $part $(date -u +%FT%TZ) $(git describe --always --dirty 2>/dev/null || echo '?')"
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader || true
     "$py" -c 'import sys, torch; print("python", sys.version.split()[0], "torch", torch.__version__)'
     case $part in
