@@ -293,8 +293,8 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
 def test_bf16_fast_networks_stay_close_to_fp32():
     """The networks the CUDA benchmark rows capture (trainer.infer.fast_network: BatchNorm
     folded, bf16 weights, channels_last; plain, sub-pixel with its channels aligned or not,
-    with GEMMs, with some or all levels plain), run here on CPU: bf16 images stay within 0.02
-    of fp32, the rewrite no further off than the original."""
+    with GEMMs, with some or all levels plain, with the rings as GEMMs two deep), run here on
+    CPU: bf16 images stay within 0.02 of fp32, the rewrite no further off than the original."""
     from trainer.infer import fast_network
 
     torch.manual_seed(0)
