@@ -5,10 +5,15 @@ BIN := $(VENV)/bin
 
 .PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage gpu-wheels clean
 
+# torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
+# torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
+# nvidia-* downloads that a CPU machine never uses and a flaky network can fail.
+TORCH ?= $(if $(wildcard /opt/wheels/torch-2.13.0+cpu-*.whl),torch==2.13.0+cpu,torch==2.13.0)
+
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[all,dev]' torch==2.13.0
+	$(BIN)/pip install --quiet -e '.[all,dev]' '$(TORCH)'
 	touch $@
 
 # The main job on the embedded default (local Ray, local store): a small real farm job,
