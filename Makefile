@@ -32,8 +32,9 @@ demo-train: $(BIN)/.installed
 
 # Two pytest workers: the suite mostly waits on Ray, Blender and servers starting
 # (docs/development.md). A test kills only processes it started, so any two run side by side.
+# The 25 slowest tests are listed at the end: where the suite's time goes.
 test: $(BIN)/.installed lint chromium
-	$(BIN)/pytest -q -n 2 --dist worksteal
+	$(BIN)/pytest -q -n 2 --dist worksteal --durations=25
 
 # The page tests drive Debian's Chromium (headless, through Playwright); CI runs as root.
 # When it cannot be installed, those tests fail saying so; the rest still run.
