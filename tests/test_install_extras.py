@@ -18,6 +18,13 @@ pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def torch_requirement() -> str:
+    """The Makefile's torch: the CPU build of 2.13.0 where pip's find-links folder holds it
+    (a plain ``torch==2.13.0`` resolves to PyPI's CUDA build and its gigabytes of downloads)."""
+    cpu = list(Path("/opt/wheels").glob("torch-2.13.0+cpu-*.whl"))
+    return "torch==2.13.0+cpu" if cpu else "torch==2.13.0"
+
+
 def test_the_train_extra_alone_trains_and_names_the_missing_extras(tmp_path):
     layout = Layout(num_materials=8, suns_per_material=2, resolution=32, shard_size=4)
     store = create_store(str(tmp_path / "tiny.zarr"), layout, {"samples": 4})
@@ -25,9 +32,9 @@ def test_the_train_extra_alone_trains_and_names_the_missing_extras(tmp_path):
         write_shard(store, shard, synthetic_payload(layout, shard))
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
-    pip = subprocess.run(  # torch: the CPU wheel these machines carry
+    pip = subprocess.run(
         [str(venv / "bin" / "pip"), "install", "--quiet", "--no-compile", f"{ROOT}[train]",
-         "torch==2.13.0"],
+         torch_requirement()],
         capture_output=True, text=True, timeout=900,
     )  # fmt: skip
     assert pip.returncode == 0, pip.stderr[-3000:]
@@ -39,7 +46,7 @@ def test_the_train_extra_alone_trains_and_names_the_missing_extras(tmp_path):
     r = subprocess.run(
         [str(venv / "bin" / "trainer"), "launch", "--store", str(tmp_path / "tiny.zarr"),
          "--out", str(run), "--epochs", "1", "--loss", "l1", "--batch-size", "2",
-         "--workers", "0"],
+         "--workers", "0", "--width", "16"],
         capture_output=True, text=True, timeout=600, cwd=tmp_path,
     )  # fmt: skip
     assert r.returncode == 0, r.stderr[-3000:]

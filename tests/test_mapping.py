@@ -270,7 +270,8 @@ def test_trainer_render_any_material_from_the_checkpoint_alone(aov_store, tmp_pa
     run = tmp_path / "run"
     t = subprocess.run(
         [str(BIN / "trainer"), "train", "--store", aov_store.url, "--out", str(run), "--loss",
-         "l1", "--epochs", "1", "--batch-size", "2", "--workers", "0", "--holdout-fraction", "0"],
+         "l1", "--epochs", "1", "--batch-size", "2", "--workers", "0", "--holdout-fraction", "0",
+         "--width", "16"],
         capture_output=True, text=True,
     )  # fmt: skip
     assert t.returncode == 0, t.stderr[-2000:]
