@@ -7,13 +7,14 @@ BIN := $(VENV)/bin
 
 # torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
 # torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
-# nvidia-* downloads that a CPU machine never uses and a flaky network can fail.
+# nvidia-* downloads that a CPU machine never uses and a flaky network can fail. The retries:
+# bpy and Ray still come from PyPI, and pip's default of 5 resumes once ran out mid-wheel.
 TORCH ?= $(if $(wildcard /opt/wheels/torch-2.13.0+cpu-*.whl),torch==2.13.0+cpu,torch==2.13.0)
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[all,dev]' '$(TORCH)'
+	$(BIN)/pip install --quiet --retries 10 --upgrade pip
+	$(BIN)/pip install --quiet --retries 10 --resume-retries 20 -e '.[all,dev]' '$(TORCH)'
 	touch $@
 
 # The main job on the embedded default (local Ray, local store): a small real farm job,
