@@ -33,8 +33,8 @@ def test_the_train_extra_alone_trains_and_names_the_missing_extras(tmp_path):
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
     pip = subprocess.run(
-        [str(venv / "bin" / "pip"), "install", "--quiet", "--no-compile", f"{ROOT}[train]",
-         torch_requirement()],
+        [str(venv / "bin" / "pip"), "install", "--quiet", "--retries", "10", "--no-compile",
+         f"{ROOT}[train]", torch_requirement()],
         capture_output=True, text=True, timeout=900,
     )  # fmt: skip
     assert pip.returncode == 0, pip.stderr[-3000:]
