@@ -488,6 +488,7 @@ class Loop:
         w.recycled += int(res["recycled"])
         w.host, w.pid = res["host"], res["pid"]
         self.bar.update(len(res["seconds"]))  # rendered; state.frames_done counts committed ones
+        self.state.frames_rendered += len(res["seconds"])
         if str(m) in self.state.failures:  # an earlier failure was retried successfully
             self.state.failures[str(m)]["recovered"] = True
         whole = self.shards.add(m, arrays)

@@ -59,15 +59,16 @@ class JobState:
     driver: str = field(default_factory=lambda: f"{socket.gethostname()}:{os.getpid()}")
     started: float = field(default_factory=now)
     updated: float = field(default_factory=now)
-    frames_done: int = 0
+    frames_done: int = 0  # in the shards this run committed
     frames_skipped: int = 0  # already committed when the job (re)started
+    frames_rendered: int = 0  # in the results this run received, committed or not
     shards_committed: int = 0
     shards_failed: list[int] = field(default_factory=list)
     failures: dict[str, dict] = field(default_factory=dict)  # material -> {attempts, errors, final}
     commit_failures: dict[str, str] = field(default_factory=dict)  # shard -> error
     workers: dict[str, WorkerStats] = field(default_factory=dict)
     dashboard: str | None = None
-    history: list[list[float]] = field(default_factory=list)  # [time, frames done], bounded
+    history: list[list[float]] = field(default_factory=list)  # add_point's points, bounded
     screen_uv_error: str | None = None  # why the store's screen UV layout could not be made
     stop_error: str | None = None  # why a failed job stopped before its end (no worker placed)
 
@@ -84,14 +85,18 @@ class JobState:
 
     def save(self, backend: Backend) -> None:
         self.updated = now()
-        self.history = add_point(self.history, self.updated, self.frames_done)
+        point = (self.updated, self.frames_done, self.frames_rendered)
+        self.history = add_point(self.history, *point)
         backend.put_atomic(STATE_KEY, self.to_json())
 
 
-def add_point(history: list, t: float, frames: int, limit: int = HISTORY_POINTS) -> list:
-    """``history`` with ``[t, frames]`` appended; past ``limit`` points every other older
-    point is dropped (the first and the newest are kept), so its size stays bounded."""
-    out = [*history, [round(t, 2), frames]]
+def add_point(
+    history: list, t: float, frames: int, rendered: int | None = None, limit: int = HISTORY_POINTS
+) -> list:
+    """``history`` with ``[t, frames]`` (frames committed) or ``[t, frames, rendered]``
+    appended; past ``limit`` points every other older point is dropped (the first and the
+    newest are kept), so its size stays bounded."""
+    out = [*history, [round(t, 2), frames, *([] if rendered is None else [rendered])]]
     if len(out) > limit:
         out = out[:-1:2] + [out[-1]]
     return out

@@ -41,6 +41,7 @@ def synthetic_job(path: Path, committed=(0, 1), status="running", pending=()) ->
         (path / commit_key(shard)).unlink()
     st = JobState(str(path), {}, LAYOUT.num_samples, LAYOUT.num_shards, status=status)
     st.frames_done = 4 * len(committed)
+    st.frames_rendered = st.frames_done + 2  # and a result waiting for its shard
     st.shards_committed = len(committed)
     errors = [{"worker": "w1", "error": "boom", "at": 0}]
     st.failures = {"5": {"attempts": 2, "errors": errors, "final": True, "kind": "uniform",
@@ -248,6 +249,7 @@ def test_metrics_parse_and_match_the_job_state(sets, tmp_path):
     }
     store = (("store", f"{sets}/a.zarr"),)  # the root as given, then the store's path
     assert value[("shaderball_farm_frames_committed_total", store)] == 8
+    assert value[("shaderball_farm_frames_rendered_total", store)] == 10
     assert value[("shaderball_farm_frames_planned", store)] == 12
     assert value[("shaderball_farm_failures_total", store)] == 2
     assert value[("shaderball_farm_materials_failed", store)] == 1
@@ -392,6 +394,27 @@ def test_the_progress_history_stays_bounded_over_a_long_job():
     assert history[0] == [0.0, 0] and history[-1] == [9999.0, 49995]
     times = [t for t, _ in history]
     assert times == sorted(times) and times[len(times) // 2] > 2000  # spread over the life
+
+
+def test_the_frames_per_second_chart_follows_renders_not_the_steps_of_commits():
+    """Points every 2 s of a job rendering a material (5 frames) every 4 s and committing a
+    shard of 20 frames every 16 s: every rate after the first window reads 1.25 frames/s
+    within a material's worth over the window, never the zeros and jumps of commits."""
+    from farm.dashboard.jobs import RATE_WINDOW_S, rates
+
+    history: list = []
+    for k in range(61):
+        t = 2.0 * k
+        history = add_point(history, t, 20 * int(t // 16), 5 * int(t // 4))
+    chart = rates(history)
+    assert [t for t, _ in chart] == [2.0 * k for k in range(1, 61)]
+    settled = [r for t, r in chart if t >= RATE_WINDOW_S + 2]
+    assert settled and all(abs(r - 1.25) <= 5 / RATE_WINDOW_S for r in settled), settled
+    # a state of committed frames only (two values a point) is read the same way
+    old = rates([[0.0, 0], [10.0, 20], [40.0, 20], [100.0, 60]])
+    assert old == [(10.0, 2.0), (40.0, 0.0), (100.0, 40 / 60)]
+    # a history halved to points further apart than the window: consecutive points
+    assert rates([[0.0, 0, 0], [100.0, 80, 100], [300.0, 80, 300]]) == [(100.0, 1.0), (300.0, 1.0)]
 
 
 def test_the_compare_commands_name_runs_of_the_same_samples_that_have_checkpoints(

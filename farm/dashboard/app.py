@@ -116,6 +116,7 @@ class Dashboard:
         ctx.update(
             committed=len(times),
             chart=pages.line_chart(jobs.rates(state.get("history", [])) if state else []),
+            rate_window=f"{jobs.RATE_WINDOW_S:.0f}",
             shard_map=pages.shard_map(
                 jobs.shard_states(store, set(times), jobs.shards_with_bytes(store.backend), state)
             ),

@@ -7,6 +7,7 @@ persist (:mod:`farm.dashboard.jobs`, :mod:`farm.dashboard.runs`).
 
 =============================================  ====================================================
 ``shaderball_farm_frames_committed_total``     frames in committed shards (resumed ones included)
+``shaderball_farm_frames_rendered_total``      frames in the results the driver received this run
 ``shaderball_farm_frames_planned``             frames in the dataset
 ``shaderball_farm_failures_total``             failed render attempts
 ``shaderball_farm_materials_failed``           materials that failed for good
@@ -59,6 +60,9 @@ class Collector:
         committed = CounterMetricFamily(f + "frames_committed", "Frames in committed shards",
                                         labels=["store"])  # fmt: skip
         planned = GaugeMetricFamily(f + "frames_planned", "Frames in the dataset", labels=["store"])
+        rendered = CounterMetricFamily(f + "frames_rendered",
+                                       "Frames in the render results the driver received",
+                                       labels=["store"])  # fmt: skip
         failures = CounterMetricFamily(f + "failures", "Failed render attempts", labels=["store"])
         final = GaugeMetricFamily(f + "materials_failed", "Materials failed for good",
                                   labels=["store"])  # fmt: skip
@@ -80,6 +84,8 @@ class Collector:
                 failures.add_metric([name], sum(x["attempts"] for x in st["failures"].values()))
                 final.add_metric([name], row["failed"])
                 shards.add_metric([name], st["shards_committed"])
+                if "frames_rendered" in st:  # a job state an older version wrote lacks it
+                    rendered.add_metric([name], st["frames_rendered"])
                 by = collections.Counter(w["status"] for w in st["workers"].values())
                 for status, n in sorted(by.items()):
                     workers.add_metric([name, status], n)
@@ -89,7 +95,8 @@ class Collector:
             if seconds is not None:
                 buckets, total = frame_histogram(seconds)
                 hist.add_metric([name], buckets, total)
-        yield from (committed, planned, failures, final, workers, shards, eta, running, hist)
+        yield from (committed, rendered, planned, failures, final, workers, shards, eta, running)
+        yield hist
         t = "shaderball_train_"
         step = GaugeMetricFamily(t + "step", "Last logged step", labels=["run"])
         loss = GaugeMetricFamily(t + "loss", "Loss at the last logged step", labels=["run"])

@@ -96,7 +96,8 @@ loading, or no room: a node still joining)">workers<b>{{ row.workers }}{% if row
 {% if state and state.stop_error %}<p class="err" id="stop-error">stopped: {{ state.stop_error }}
 </p>{% endif %}{% if state and state.screen_uv_error %}<p class="err">the store's screen UV layout
 was not made: {{ state.screen_uv_error }} (<code>farm screen-uv</code> makes it)</p>{% endif %}
-<h2>Frames per second</h2>{{ chart }}
+<h2>Frames rendered per second</h2>{{ chart }}<p><small>each point: the average over
+the {{ rate_window }} s before it</small></p>
 <h2>Shards</h2>{{ shard_map }}
 <h2>Newest renders</h2><div class="thumbs" id="thumbs">{% for s in thumbs %}
 <a href="/sheet/{{ row.name }}?sample={{ s }}">
