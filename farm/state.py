@@ -79,8 +79,13 @@ class JobState:
         elapsed = max(self.updated - self.started, 1e-9)
         rate = self.frames_done / elapsed
         data["frames_per_s"] = rate
+        # the time left at the rate of the last RATE_WINDOW_S: the whole run's mean lags a
+        # cluster that grows (an autoscaler adding nodes) and counts the start-up
+        now_rate = window_rate(self.history, len(self.history) - 1) if self.history else 0.0
+        data["frames_per_s_now"] = now_rate
         remaining = self.frames_total - self.frames_skipped - self.frames_done
-        data["eta_s"] = remaining / rate if rate > 0 else None
+        pace = now_rate or rate
+        data["eta_s"] = remaining / pace if pace > 0 else None
         return json.dumps(data, indent=1).encode()
 
     def save(self, backend: Backend) -> None:
@@ -88,6 +93,27 @@ class JobState:
         point = (self.updated, self.frames_done, self.frames_rendered)
         self.history = add_point(self.history, *point)
         backend.put_atomic(STATE_KEY, self.to_json())
+
+
+#: a progress point's rate (frames rendered a second) is the average over this many seconds
+RATE_WINDOW_S = 30.0
+
+
+def window_rate(history: list, i: int, window_s: float = RATE_WINDOW_S) -> float:
+    """Frames rendered a second at ``history[i]`` (i > 0): since the latest point at least
+    ``window_s`` before it (the first point, early in a job), over the time between. A
+    point's last value is its frames rendered (one that did not count them has only its
+    frames committed).
+
+    Rendered, not committed: commits come a whole shard at a time, so between two points a
+    few seconds apart the rate would read zero and then a shard's worth at once. The window
+    smooths the steps of results as well: a result is a material, all its suns' frames."""
+    t1, f1 = history[i][0], history[i][-1]
+    j = i - 1
+    while j > 0 and history[j][0] > t1 - window_s:
+        j -= 1
+    t0, f0 = history[j][0], history[j][-1]
+    return max(f1 - f0, 0) / (t1 - t0) if t1 > t0 else 0.0
 
 
 def add_point(

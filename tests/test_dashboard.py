@@ -400,7 +400,8 @@ def test_the_frames_per_second_chart_follows_renders_not_the_steps_of_commits():
     """Points every 2 s of a job rendering a material (5 frames) every 4 s and committing a
     shard of 20 frames every 16 s: every rate after the first window reads 1.25 frames/s
     within a material's worth over the window, never the zeros and jumps of commits."""
-    from farm.dashboard.jobs import RATE_WINDOW_S, rates
+    from farm.dashboard.jobs import rates
+    from farm.state import RATE_WINDOW_S
 
     history: list = []
     for k in range(61):
@@ -415,6 +416,25 @@ def test_the_frames_per_second_chart_follows_renders_not_the_steps_of_commits():
     assert old == [(10.0, 2.0), (40.0, 0.0), (100.0, 40 / 60)]
     # a history halved to points further apart than the window: consecutive points
     assert rates([[0.0, 0, 0], [100.0, 80, 100], [300.0, 80, 300]]) == [(100.0, 1.0), (300.0, 1.0)]
+
+
+def test_the_eta_follows_the_rate_of_the_last_window_as_a_cluster_grows():
+    """1 frame/s for 60 s, then 4 (nodes added): the time left is the frames left at 4 a
+    second, where the run's mean (1.5) would say 2.7x that; with nothing rendered in the
+    last window (commits still to come) it falls back to the mean."""
+    st = JobState("s", {}, frames_total=1000, shards_total=40, started=0.0)
+    st.history = [[t, 0, t] for t in range(0, 62, 2)]
+    st.history += [[t, 0, 60 + 4 * (t - 60)] for t in range(62, 92, 2)]
+    st.updated, st.frames_done = 90.0, 100
+    data = json.loads(st.to_json())
+    assert data["frames_per_s_now"] == pytest.approx(4.0)
+    assert data["eta_s"] == pytest.approx(900 / 4.0) and data["frames_per_s"] == pytest.approx(
+        100 / 90
+    )
+    st.history += [[t, 100, 180] for t in range(92, 130, 2)]
+    st.updated = 128.0
+    data = json.loads(st.to_json())
+    assert data["frames_per_s_now"] == 0.0 and data["eta_s"] == pytest.approx(900 / (100 / 128))
 
 
 def test_the_compare_commands_name_runs_of_the_same_samples_that_have_checkpoints(

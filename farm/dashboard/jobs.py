@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from farm.state import load_state
+from farm.state import load_state, window_rate
 from farm.web import confine, confine_key
 from storage.backend import Backend, is_remote
 from storage.reader import Store
@@ -142,28 +142,10 @@ def job_row(name: str, url: str, label: str | None = None) -> dict:
     return row
 
 
-#: the job page's frames/s at a progress point: the average over this many seconds before it
-RATE_WINDOW_S = 30.0
-
-
-def rates(history: list, window_s: float = RATE_WINDOW_S) -> list[tuple[float, float]]:
-    """(time, frames/s) at each progress point after the first: the frames rendered since
-    the latest point at least ``window_s`` before it (the first point, early in a job), over
-    the time between. A point's last value is its frames rendered (a state that did not
-    count them has only its frames committed).
-
-    Rendered, not committed: commits come a whole shard at a time, so between two points a
-    few seconds apart the rate would read zero and then a shard's worth at once. The window
-    smooths the steps of results as well: a result is a material, all its suns' frames."""
-    out, j = [], 0
-    for i in range(1, len(history)):
-        t1, f1 = history[i][0], history[i][-1]
-        while j < i - 1 and history[j + 1][0] <= t1 - window_s:
-            j += 1
-        t0, f0 = history[j][0], history[j][-1]
-        if t1 > t0:
-            out.append((t1, max(f1 - f0, 0) / (t1 - t0)))
-    return out
+def rates(history: list) -> list[tuple[float, float]]:
+    """(time, frames rendered a second) at each progress point after the first
+    (:func:`farm.state.window_rate`)."""
+    return [(history[i][0], window_rate(history, i)) for i in range(1, len(history))]
 
 
 def shards_with_bytes(backend: Backend) -> set[int]:
