@@ -7,6 +7,8 @@ from collections import Counter
 
 from tabulate import tabulate
 
+from farm.state import RATE_WINDOW_S
+
 #: worker rows ``farm status`` prints unless asked for all (a cluster job runs hundreds)
 WORKER_ROWS = 20
 
@@ -29,11 +31,13 @@ def format_status(st: dict, worker_rows: int | None = WORKER_ROWS) -> str:
             "lost: says running, but its driver is gone (killed?); "
             "run the same `farm submit` again to resume"
         )
+    rate = f"{st['frames_per_s']:.2f} frames/s"
+    if status == "running" and st.get("frames_per_s_now"):  # the rate the ETA runs at
+        rate += f" ({st['frames_per_s_now']:.2f} rendered in the last {RATE_WINDOW_S:.0f} s)"
     lines = [
         f"job       {shown}  (driver {st['driver']}, updated {_ago(st['updated'])})",
         f"store     {st['store']}",
-        f"frames    {done}/{total} ({100 * done / total:.1f}%), {st['frames_per_s']:.2f} frames/s,"
-        f" ETA {eta}",
+        f"frames    {done}/{total} ({100 * done / total:.1f}%), {rate}, ETA {eta}",
         f"shards    {st['shards_committed']}/{st['shards_total']} committed"
         + (f", failed: {st['shards_failed']}" if st["shards_failed"] else ""),
     ]

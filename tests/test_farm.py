@@ -197,6 +197,9 @@ def test_status_names_the_ray_dashboard_only_while_the_job_runs():
           "eta_s": 4.0, "shards_committed": 1, "shards_total": 2, "shards_failed": [],
           "dashboard": "http://127.0.0.1:8265", "failures": {}, "workers": {}}  # fmt: skip
     assert "ray       http://127.0.0.1:8265" in format_status(st)
+    assert "1.00 frames/s, ETA 4 s" in format_status(st)  # a state without the recent rate
+    now = format_status({**st, "frames_per_s_now": 1.5})
+    assert "1.00 frames/s (1.50 rendered in the last 30 s), ETA 4 s" in now
     for status in ("done", "lost"):
         assert "8265" not in format_status({**st, "effective_status": status})
     w = {"worker": "w0", "status": "busy", "frames": 4, "mean_frame_s": 0.5, "failures": 0,
