@@ -81,7 +81,8 @@ class JobState:
         data["frames_per_s"] = rate
         # the time left at the rate of the last RATE_WINDOW_S: the whole run's mean lags a
         # cluster that grows (an autoscaler adding nodes) and counts the start-up
-        now_rate = window_rate(self.history, len(self.history) - 1) if self.history else 0.0
+        last = len(self.history) - 1
+        now_rate = window_rate(self.history, last) if last > 0 else 0.0
         data["frames_per_s_now"] = now_rate
         remaining = self.frames_total - self.frames_skipped - self.frames_done
         pace = now_rate or rate
@@ -90,8 +91,8 @@ class JobState:
 
     def save(self, backend: Backend) -> None:
         self.updated = now()
-        point = (self.updated, self.frames_done, self.frames_rendered)
-        self.history = add_point(self.history, *point)
+        rendered = self.frames_rendered
+        self.history = add_point(self.history, self.updated, self.frames_done, rendered)
         backend.put_atomic(STATE_KEY, self.to_json())
 
 
