@@ -15,6 +15,10 @@
 # Output is printed and appended to ${OUT:-out}/gpu-bench.txt. The compiled rows leave the
 # convolutions to cuDNN (CONV_BACKENDS=ATEN): with Triton's convolution templates autotuned too
 # (CONV_BACKENDS=ATEN,TRITON) the infer part needs more than the device's 10-minute call.
+# GEMMs (the light MLP, --ring-gemm's strips, --gemm-at's convolutions) are autotuned over
+# cuBLAS and Triton's templates (Inductor's default) unless GEMM_BACKENDS says otherwise:
+# GEMM_BACKENDS=ATEN (cuBLAS alone) for rows with --ring-gemm, whose strips' autotuning
+# alone outlasts a device call.
 #
 # Autotuning across calls: Inductor's and Triton's caches live in .gpucache/ (ignored by git).
 # Inductor writes each operation's autotuning timings there as soon as they are measured, so a
@@ -54,6 +58,7 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
     "$py" -c 'import sys, torch; print("python", sys.version.split()[0], "torch", torch.__version__)'
     case $part in
         infer) TORCHINDUCTOR_MAX_AUTOTUNE_CONV_BACKENDS=${CONV_BACKENDS:-ATEN} \
+                   TORCHINDUCTOR_MAX_AUTOTUNE_GEMM_BACKENDS=${GEMM_BACKENDS:-ATEN,TRITON,CPP} \
                    "${budget[@]}" "$py" -m benchmarks.infer --store "$store" --batch 128 \
                    --iters 30 --compile "$@" || echo "benchmarks.infer ended with status $?" ;;
         # L1 on 2,000 samples (63 steps an epoch: the epoch-end stall, if any, shows), then
