@@ -1,7 +1,7 @@
 """Inference benchmark at 400² (or ``--resolution``): ms per frame at batch 1, frames/s batched.
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
-        [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring]
+        [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--streams]
         [--resolution 400] [--only TEXT]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
@@ -23,7 +23,9 @@ default: ``trainer.infer.fast_network``) with zero-weight channels; ``--align 1`
 model's own counts. ``--ring-gemm`` and ``--wide-ring`` add the compiled rewrite with each
 ring's grouped convolution as a batched matrix product (``trainer.fastnet.strip_gemm``), and
 with the sub-pixel convolutions on zero-padded inputs and the ring two deep
-(``trainer.fastnet.UpConv``).
+(``trainer.fastnet.UpConv``). ``--streams`` adds the network compiled segment by segment on
+two CUDA streams, the skip convolutions and the light MLP beside the critical path, every
+level plain (``trainer.streamnet``; for batch 1).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -114,6 +116,12 @@ def main() -> None:
         action="store_true",
         help="add (with --ring-gemm: make that) a compiled subpixel row whose sub-pixel "
         "convolutions read zero-padded inputs, with rings two deep (CUDA)",
+    )
+    ap.add_argument(
+        "--streams",
+        action="store_true",
+        help="add a compiled row on two CUDA streams: skip convolutions and the light MLP "
+        "beside the critical path (trainer.streamnet; CUDA)",
     )
     ap.add_argument(
         "--only",
@@ -219,6 +227,10 @@ def main() -> None:
             kinds = ", ring GEMMs" * args.ring_gemm + ", wide ring" * args.wide_ring
             rewrite_row(
                 f"subpixel compiled{kinds}", ring_gemm=args.ring_gemm, wide_ring=args.wide_ring
+            )
+        if args.streams:
+            graph_row(
+                f"two streams, compiled + graph{x1}", compile=True, streams=True, align=args.align
             )
         if args.gemm_at:  # with --subpixel-from, of that mixed form
             start = f", from {args.subpixel_from}²" if args.subpixel_from else ""

@@ -290,6 +290,48 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
         SubpixelRenderer(model)
 
 
+@pytest.mark.parametrize("plain_levels", ["none", "the smaller half", "all"])
+@pytest.mark.parametrize("align", [1, 8])
+def test_two_stream_split_gives_the_same_image(plain_levels, align):
+    """trainer.streamnet: the skip halves and the light MLP cut off into their own segments
+    (run in order on CPU) give the image of the network, whichever form each level has; a
+    network without skips is refused."""
+    from trainer.fastnet import SubpixelRenderer
+    from trainer.streamnet import StreamedRenderer
+
+    cfg = ModelConfig(resolution=64, width=8)
+    model = NeuralRenderer(cfg).train()
+    model(torch.rand(3, cfg.in_channels, 64, 64) * 2, torch.rand(3, 4))  # running statistics
+    model.eval()
+    start = {"none": 0, "the smaller half": 16, "all": 64}[plain_levels]
+    net = StreamedRenderer(SubpixelRenderer(fold_batchnorm(model), start, align))
+    assert len(net.skips) == len(net.ups) + 1 == 4
+    x, light = torch.rand(2, cfg.in_channels, 64, 64), torch.rand(2, 4)
+    with torch.no_grad():
+        torch.testing.assert_close(net(x, light), model(x, light), atol=1e-5, rtol=0)
+    no_skips = NeuralRenderer(ModelConfig(resolution=64, width=8, skips=False)).eval()
+    with pytest.raises(ValueError, match="two streams need a network with skips"):
+        StreamedRenderer(SubpixelRenderer(fold_batchnorm(no_skips)))
+
+
+def test_two_stream_segments_each_trace_as_one_graph():
+    """Every segment compiles without a graph break (Dynamo's ``eager`` backend, fullgraph),
+    at three batch sizes in one process: more graphs of the shared skip segment than Dynamo
+    keeps by default."""
+    from trainer.fastnet import SubpixelRenderer
+    from trainer.streamnet import StreamedRenderer
+
+    torch._dynamo.reset()
+    model = NeuralRenderer(ModelConfig(resolution=32)).eval()
+    options = {"backend": "eager", "fullgraph": True, "dynamic": False}
+    for n in (1, 2, 3):
+        net = StreamedRenderer(SubpixelRenderer(fold_batchnorm(model), 32, 8))
+        net.compile_segments(**options)
+        x, light = torch.rand(n, model.config.in_channels, 32, 32), torch.rand(n, 4)
+        with torch.no_grad():
+            torch.testing.assert_close(net(x, light), model(x, light), atol=1e-5, rtol=0)
+
+
 def test_bf16_fast_networks_stay_close_to_fp32():
     """The networks the CUDA benchmark rows capture (trainer.infer.fast_network: BatchNorm
     folded, bf16 weights, channels_last; plain, sub-pixel with its channels aligned or not,
@@ -311,6 +353,8 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             "unaligned": {"subpixel": True, "align": 1},
             "all plain": {"subpixel": True, "subpixel_from": 64},
             "ring GEMMs, wide": {"subpixel": True, "ring_gemm": True, "wide_ring": True},
+            "two streams": {"streams": True},
+            "two streams, sub-pixel": {"streams": True, "subpixel": True},
         }
         errors = {
             name: (fast_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()

@@ -15,6 +15,7 @@ import torch
 from trainer import checkpoint
 from trainer.fastnet import SubpixelRenderer
 from trainer.model import ModelConfig, NeuralRenderer, build_model, fold_batchnorm
+from trainer.streamnet import StreamedRenderer
 from trainer.targets import Tonemap, light_vector, model_inputs
 
 
@@ -200,6 +201,7 @@ def fast_network(
     align: int = 8,
     ring_gemm: bool = False,
     wide_ring: bool = False,
+    streams: bool = False,
 ) -> torch.nn.Module:
     """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
     channels_last. ``subpixel``: the exact rewrite of ``trainer.fastnet`` (no upsampled or
@@ -208,16 +210,25 @@ def fast_network(
     its channel counts, ``in_channels`` included, are padded to multiples of ``align`` with
     zero-weight channels: on an H100, 1.12x the frames batched and 0.76x the time at batch 1
     of ``align=1``, ``docs/benchmarks.md``; ``ring_gemm`` and ``wide_ring``: its rings as
-    ``trainer.fastnet.SubpixelRenderer.rings`` says).
+    ``trainer.fastnet.SubpixelRenderer.rings`` says). ``streams``: the skip convolutions and
+    the light MLP on a second CUDA stream (``trainer.streamnet``), with the levels of
+    ``subpixel`` and ``subpixel_from``, or every level plain without ``subpixel``; compiled
+    segment by segment.
     ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
     around tuned convolutions; minutes of autotuning at first use). Feed it bf16 channels_last
     inputs."""
     net = fold_batchnorm(model)
-    if subpixel:
-        net = SubpixelRenderer(net, subpixel_from, align).gemm_at(gemm_at)
+    if subpixel or streams:
+        plain_from = subpixel_from if subpixel else model.config.resolution
+        net = SubpixelRenderer(net, plain_from, align).gemm_at(gemm_at)
         net.rings(gemm=ring_gemm, wide=wide_ring)
+    if streams:
+        net = StreamedRenderer(net)
     net = net.to(torch.bfloat16, memory_format=torch.channels_last)
-    return torch.compile(net, mode="max-autotune-no-cudagraphs", dynamic=False) if compile else net
+    if not compile:
+        return net
+    options = {"mode": "max-autotune-no-cudagraphs", "dynamic": False}
+    return net.compile_segments(**options) if streams else torch.compile(net, **options)
 
 
 class GraphedRenderer:
