@@ -211,7 +211,8 @@ def show(store, index, out):
 
 @main.command()
 @click.argument("store")
-@click.argument("directory", type=click.Path(path_type=Path))
+@click.option("--out", "-o", "directory", required=True, type=click.Path(path_type=Path),
+              help="the folder to write the files into (made if missing)")  # fmt: skip
 @click.option("--samples", default="0:10", show_default=True, help="START:STOP or one index.")
 @click.option(
     "--format",
@@ -226,8 +227,8 @@ def export(store, directory, samples, fmt):
 
     \b
     Examples:
-      shards export out/dataset.zarr --samples 0:10 --format png exported/
-      shards export s3://bucket/set.zarr --samples 5 --format exr one/
+      shards export out/dataset.zarr --samples 0:10 --format png -o exported/
+      shards export s3://bucket/set.zarr --samples 5 --format exr -o one/
     """
     from render_jobs.contact_sheet import display_maps
     from render_jobs.exr import write_exr, write_image_exr

@@ -395,10 +395,10 @@ def test_ls_info_show_export(tmp_path):
     assert f"{info['bytes']['compression_ratio']:.2f}x" in text
     r = shards("show", path, "--sample", "5", "-o", tmp_path / "s5.png")
     assert r.returncode == 0 and (tmp_path / "s5.png").stat().st_size > 0
-    r = shards("export", path, tmp_path / "png", "--samples", "2:5")
+    r = shards("export", path, "-o", tmp_path / "png", "--samples", "2:5")
     assert r.returncode == 0
     assert len(list((tmp_path / "png").glob("*_render.png"))) == 3
-    r = shards("export", path, tmp_path / "exr", "--samples", "4", "--format", "exr")
+    r = shards("export", path, "-o", tmp_path / "exr", "--samples", "4", "--format", "exr")
     assert sorted(p.name for p in (tmp_path / "exr").iterdir()) == [
         "sample_000004.json",
         "sample_000004_maps.exr",
@@ -420,7 +420,7 @@ def test_cli_bad_input_is_one_line(tmp_path):
         (["ls", tmp_path / "v99.zarr"], "unknown schema version 99"),
         (["show", path, "--sample", "999", "-o", tmp_path / "x.png"], "out of range"),
         (["show", path, "--sample", "13", "-o", tmp_path / "x.png"], "not committed"),
-        (["export", path, tmp_path / "e", "--samples", "12:14"], "not committed"),
+        (["export", path, "-o", tmp_path / "e", "--samples", "12:14"], "not committed"),
     ]
     for args, needle in cases:
         r = shards(*args)
@@ -428,9 +428,9 @@ def test_cli_bad_input_is_one_line(tmp_path):
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0] and "Traceback" not in r.stderr, args
     assert not (tmp_path / "e").exists() or not list((tmp_path / "e").iterdir())
-    r = shards("export", path, tmp_path / "e", "--samples", "9:2")
+    r = shards("export", path, "-o", tmp_path / "e", "--samples", "9:2")
     assert r.returncode == 2 and "Invalid value for --samples: '9:2' is outside" in r.stderr
-    r = shards("export", path, tmp_path / "e", "--samples", "1:2:3")
+    r = shards("export", path, "-o", tmp_path / "e", "--samples", "1:2:3")
     assert r.returncode == 2 and "for --samples: '1:2:3' is not START:STOP" in r.stderr
     r = shards("show", path, "--sample", "5", "-o", tmp_path / "s5.txt")
     assert r.returncode == 2 and "'s5.txt' does not name a picture" in r.stderr.replace(
