@@ -111,13 +111,17 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets, tmp_path):
         page = s.get("/job/1")[1].decode()  # a failed job says why it stopped
         assert '<p class="err" id="stop-error">stopped: no live worker for 300 s' in page
         assert 'id="waiting"' not in page  # a stopped job waits for nothing
+        assert 'id="fps-now"' not in page  # nor has a rate of now
         assert '<small id="waiting"> +1 starting</small>' in s.get("/job/2")[1].decode()
         code, body = s.get("/")
         page = body.decode()
         assert code == 200 and f'href="/job/0/a.zarr">{sets}/a.zarr</a>' in page  # as given
         assert "broken.zarr" in page and "not valid JSON" in page  # an error row, a page
+        # a running job's rate of the last window (its ETA's) beside the run's mean
+        assert re.search(r'<td class="num">[0-9.]+\s*<small title="[^"]*">\s*\([0-9.]+ now\)', page)
         code, body = s.get("/job/0/a.zarr")
         assert f"<title>{sets}/a.zarr - shaderball</title>".encode() in body
+        assert re.search(rb'<small id="fps-now"> [0-9.]+ in the last\s+30 s</small>', body)
         assert code == 200 and b"shardmap" in body and b"boom" in body and b"(stale)" not in body
         assert b"uniform:seed=77" in body  # the failed material's source
         assert b"committed 2" in body and b"pending 1" in body  # the shard map's legend

@@ -23,7 +23,6 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_l
 from farm.cancel import request_cancel
 from farm.dashboard import jobs, pages, runs
 from farm.dashboard.metrics import Collector
-from farm.state import RATE_WINDOW_S
 from farm.web import Refused, application, confine
 from storage.reader import Store
 
@@ -117,7 +116,6 @@ class Dashboard:
         ctx.update(
             committed=len(times),
             chart=pages.line_chart(jobs.rates(state.get("history", [])) if state else []),
-            rate_window=f"{RATE_WINDOW_S:.0f}",
             shard_map=pages.shard_map(
                 jobs.shard_states(store, set(times), jobs.shards_with_bytes(store.backend), state)
             ),

@@ -122,13 +122,18 @@ def job_row(name: str, url: str, label: str | None = None) -> dict:
     row.update(frames_total=lay.num_samples, shards_total=lay.num_shards)
     if state is None:
         done = sum(len(lay.shard_samples(s)) for s in commit_times(store.backend))
-        row.update(frames_done=done, frames_per_s=0.0, eta_s=None, failed=0, workers=0, age_s=None)
+        row.update(frames_done=done, frames_per_s=0.0, frames_per_s_now=0.0, eta_s=None)
+        row.update(failed=0, workers=0, age_s=None)
         return row
     live = [w for w in state["workers"].values() if w["status"] in ("idle", "busy")]
     row.update(
         status=state["effective_status"],
         frames_done=state["frames_done"] + state["frames_skipped"],
         frames_per_s=state["frames_per_s"],
+        # what the ETA runs at (rendered in the last RATE_WINDOW_S), shown while running
+        frames_per_s_now=state.get("frames_per_s_now", 0.0)
+        if state["effective_status"] == "running"
+        else 0.0,
         eta_s=state["eta_s"] if state["effective_status"] == "running" else None,
         failed=sum(1 for f in state["failures"].values() if f["final"]),
         workers=len(live),

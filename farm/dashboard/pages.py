@@ -10,6 +10,8 @@ import json
 from jinja2 import DictLoader, Environment, select_autoescape
 from markupsafe import Markup
 
+from farm.state import RATE_WINDOW_S
+
 CSS = """
 body{font:14px/1.4 system-ui,sans-serif;margin:0;background:#f6f7f9;color:#1d2330}
 header{background:#1d2330;color:#fff;padding:10px 20px;display:flex;gap:24px;align-items:center}
@@ -64,7 +66,10 @@ frames/s</th><th class="num">ETA</th><th class="num">failed materials</th><th cl
 {{ r.error }}</td>{% else %}<td><a href="/job/{{ r.name }}">{{ r.label }}</a></td>
 <td class="s-{{ r.status }}">{{ r.status }}</td>
 <td class="num">{{ r.frames_done }}/{{ r.frames_total }}</td>
-<td class="num">{{ "%.2f"|format(r.frames_per_s) }}</td><td class="num">{{ r.eta_s|dur }}</td>
+<td class="num">{{ "%.2f"|format(r.frames_per_s) }}{% if r.frames_per_s_now %}
+<small title="frames rendered a second in the last {{ rate_window }} s: the ETA's rate">
+({{ "%.2f"|format(r.frames_per_s_now) }} now)</small>{% endif %}</td>
+<td class="num">{{ r.eta_s|dur }}</td>
 <td class="num">{{ r.failed }}</td><td class="num">{{ r.workers }}</td>
 <td class="num">{{ r.age_s|dur }}</td>{% endif %}</tr>{% endfor %}</table>
 {% if not rows and want %}<p>No jobs match the filter: {{ want }}.</p>
@@ -83,7 +88,11 @@ JOB_LIVE = """<div id="live" data-live="{{ 1 if row.status == 'running' else 0 }
 <div class="card">frames<b id="frames">{{ row.frames_done }}/{{ row.frames_total }}</b></div>
 <div class="card">progress<b>{{ "%.1f"|format(100 * row.frames_done / row.frames_total) }} %
 </b></div>
-<div class="card">frames/s<b id="fps">{{ "%.2f"|format(row.frames_per_s) }}</b></div>
+<div class="card" title="committed frames a second over the run{% if row.frames_per_s_now %};
+under it, frames rendered a second in the last {{ rate_window }} s, the ETA's rate{% endif %}">
+frames/s<b id="fps">{{ "%.2f"|format(row.frames_per_s) }}{% if row.frames_per_s_now %}
+<small id="fps-now"> {{ "%.2f"|format(row.frames_per_s_now) }} in the last
+{{ rate_window }} s</small>{% endif %}</b></div>
 <div class="card">ETA<b>{{ row.eta_s|dur }}</b></div>
 <div class="card">shards<b id="shards">{{ committed }}/{{ row.shards_total }}</b></div>
 <div class="card">failed materials<b id="failed">{{ row.failed }}</b></div>
@@ -215,6 +224,7 @@ ENV.filters["dur"] = _dur
 ENV.filters["when"] = _when
 ENV.filters["setting"] = _setting
 ENV.filters["num"] = _num
+ENV.globals["rate_window"] = f"{RATE_WINDOW_S:.0f}"  # seconds behind each rendered rate
 
 
 def render(name: str, **ctx) -> str:
