@@ -275,7 +275,9 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
     out = fast.levels[-1]  # its output channels: the colours, padded (x4 before pixel_shuffle)
     colours = out.conv.weight.shape[0] if plain[-1] else out.up.phases.weight.shape[0] // 4
     widths = [fast.in_channels, fast.fuse.weight.shape[1], colours]
-    assert widths == ([c, 8 * cfg.width + 1, 3] if align == 1 else [16, 8 * cfg.width + 8, 8])
+    # aligned: 4 colours x 4 phases (16 channels) for a sub-pixel output, 8 for a plain one
+    aligned = [16, 8 * cfg.width + 8, 8 if plain[-1] else 4]
+    assert widths == ([c, 8 * cfg.width + 1, 3] if align == 1 else aligned)
     x, light = torch.rand(2, c, r, r), torch.rand(2, 4)
     extra = torch.rand(2, fast.in_channels - c, r, r) * 100
     cl = torch.channels_last

@@ -17,7 +17,9 @@ convolves the concatenation of that with the skip. Both steps are linear, so for
 * **Aligned channels** (``align=8``, for tensor cores). Tensor-core convolutions want
   channel counts that are multiples of 8; cuDNN pads others itself, a pass over the tensor
   each time. So the maps' input channels, the bottleneck's features + light plane and the
-  3 output colours are padded with zero-weight channels: the same numbers, aligned shapes.
+  3 output colours are padded with zero-weight channels (to 4 for a sub-pixel output
+  convolution, whose 4 phases a colour make that 16 channels): the same numbers, aligned
+  shapes.
   The padded input channels may hold anything finite (``trainer.infer.GraphedRenderer``
   leaves them zero); the output is sliced back to 3 channels inside the sigmoid's kernel.
 
@@ -253,7 +255,10 @@ class SubpixelRenderer(nn.Module):
         self.dec0 = Conv(folded.decoder[0][0].weight, folded.decoder[0][0].bias)
         convs = [(b[0].weight, b[0].bias, cfg.skips) for b in folded.decoder[1:]]
         self.colours = folded.out.weight.shape[0]
-        width = round_up(self.colours, align)
+        # a sub-pixel output convolution has 4 channels a colour (its phases): 4 colours
+        # (3 and a zero one) make 16 channels, aligned, where 8 would make 32
+        last_subpixel = self.b << len(convs) >= subpixel_from
+        width = round_up(self.colours, max(1, align // 4) if last_subpixel else align)
         out_w, out_b = (padded(t, 0, width) for t in (folded.out.weight, folded.out.bias))
         convs.append((out_w, out_b, False))
         self.levels = nn.ModuleList(
