@@ -126,20 +126,17 @@ def job_row(name: str, url: str, label: str | None = None) -> dict:
         row.update(failed=0, workers=0, age_s=None)
         return row
     live = [w for w in state["workers"].values() if w["status"] in ("idle", "busy")]
+    running = state["effective_status"] == "running"
     row.update(
         status=state["effective_status"],
         frames_done=state["frames_done"] + state["frames_skipped"],
         frames_per_s=state["frames_per_s"],
         # what the ETA runs at (rendered in the last RATE_WINDOW_S), shown while running
-        frames_per_s_now=state.get("frames_per_s_now", 0.0)
-        if state["effective_status"] == "running"
-        else 0.0,
-        eta_s=state["eta_s"] if state["effective_status"] == "running" else None,
+        frames_per_s_now=state.get("frames_per_s_now", 0.0) if running else 0.0,
+        eta_s=state["eta_s"] if running else None,
         failed=sum(1 for f in state["failures"].values() if f["final"]),
         workers=len(live),
-        waiting=sum(w["status"] == "starting" for w in state["workers"].values())
-        if state["effective_status"] == "running"
-        else 0,
+        waiting=sum(w["status"] == "starting" for w in state["workers"].values()) if running else 0,
         age_s=time.time() - state["started"],
         started=state["started"],
         state=state,
