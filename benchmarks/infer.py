@@ -32,7 +32,9 @@ them); inputs are real maps and suns from the benchmark store (``benchmarks.trai
 At another ``--resolution`` the store's 400² maps are resized to it (nearest: speed does not
 depend on the values).
 Times are medians over ``--iters`` after warm-up, each synchronised on CUDA; ``max |diff|`` is
-the largest difference of each mode's batch-1 image from eager fp32 (display units, [0, 1]).
+the largest difference of each mode's batch-1 image from eager fp32 (display units, [0, 1]);
+``build s`` the seconds a CUDA-graph row took to compile, autotune and capture at both batch
+sizes (what a device call spends before timing it).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import statistics
+import sys
 import tempfile
 import time
 
@@ -144,11 +147,15 @@ def main() -> None:
 
     r = args.resolution
     print(f"device: {device_name(args.device)}; {r}², batch {args.batch} for frames/s")
-    print(f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'max |diff|':>12}", flush=True)
+    head = f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'max |diff|':>12}{'build s':>9}"
+    print(head, flush=True)
 
-    def report(name: str, one: float, many: float, err: float) -> None:
-        """One row, printed as soon as it is measured (compiled rows take minutes each)."""
-        print(f"{name:<32}{one * 1e3:>16.3f}{args.batch / many:>12.1f}{err:>12.4f}", flush=True)
+    def report(name: str, one: float, many: float, err: float, build: float | None = None):
+        """One row, printed as soon as it is measured (compiled rows take minutes each);
+        ``build``: the seconds a graph row took to compile, tune and capture."""
+        built = "-" if build is None else f"{build:.0f}"
+        row = f"{name:<32}{one * 1e3:>16.3f}{args.batch / many:>12.1f}{err:>12.4f}{built:>9}"
+        print(row, flush=True)
 
     with torch.inference_mode():
         reference = model(x_all[:1], l_all[:1]).float()
@@ -174,11 +181,15 @@ def main() -> None:
     def graph_row(name, **fast):
         if args.only not in name:
             return
+        start = time.perf_counter()
         g1 = GraphedRenderer(model, 1, **fast)
+        # on stderr, so that a run stopped while building says how far it got
+        print(f"{name}: batch 1 built in {time.perf_counter() - start:.0f} s", file=sys.stderr)
         gb = GraphedRenderer(model, args.batch, **fast)
+        build = time.perf_counter() - start
         one = timed(lambda: g1(x_all[:1], l_all[:1]), args.iters, cuda)
         many = timed(lambda: gb(x_all, l_all), args.iters, cuda)
-        report(name, one, many, error(g1(x_all[:1], l_all[:1])))
+        report(name, one, many, error(g1(x_all[:1], l_all[:1])), build)
 
     def onnx_row(name, net):
         """The folded network exported (``trainer.export.save_onnx``) and run by ONNX
