@@ -699,14 +699,16 @@ def test_the_node_of_a_worker_released_at_the_tail_is_taken_down_while_the_job_r
 
 def test_a_released_workers_node_holding_uncommitted_results_is_kept(tmp_path, monkeypatch):
     """2 materials in one shard at 128² (their arrays, about 0.4 MB each, live in the object
-    store of the worker's node, not inline in the driver), the second 20 s slower: the worker
-    that rendered the first is released, but its results wait for the shard's commit, so the
-    autoscaler does not take its node down (Ray keeps a node holding the primary copy of an
-    object), and nothing is rendered twice."""
+    store of the worker's node, not inline in the driver), the first 10 s slower and the second
+    20 s: the worker that rendered the first is released, but its results wait for the shard's
+    commit, so the autoscaler does not take its node down (Ray keeps a node holding the primary
+    copy of an object), and nothing is rendered twice. The first material's 12 s give the
+    second node time to come up on a loaded machine: a worker placed after the first material
+    ended would find the second taken by the first worker, and be released holding nothing."""
     from tests.ray_autoscaler import autoscaling_cluster
 
     out = tmp_path / "set.zarr"
-    faults = {"slow_s": 2, "slow_materials": {"1": 20}}
+    faults = {"slow_s": 2, "slow_materials": {"0": 10, "1": 20}}
     monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps(faults))
     size = ["--suns", "2", "--shard-size", "4", "--resolution", "128", "--samples", "2"]
     with autoscaling_cluster(node_cpus=1, max_nodes=2, idle_timeout_s=3) as (address, log):
@@ -715,15 +717,15 @@ def test_a_released_workers_node_holding_uncommitted_results_is_kept(tmp_path, m
         monitor = log.read_text()
     assert r.returncode == 0, r.stderr[-3000:]
     assert "0 tasks queued, 1 running: releasing 1 idle worker (w" in r.stdout
+    workers = job(out)["workers"].values()
+    assert sorted((w["status"], w["materials"]) for w in workers) == [
+        ("released", 1), ("stopped", 1)
+    ], (workers, re.findall(r".*(?:Adding|Removing) .*", monitor))  # fmt: skip
     # the node may go once the shard is committed (the job's shutdown can outlast the idle
     # timeout), not before
     committed_at = (out / "commits" / "000000.json").stat().st_mtime
     assert idle_removals_before(monitor, committed_at) == [], monitor[-3000:]
     assert "results were lost" not in r.stderr
-    workers = job(out)["workers"].values()
-    assert sorted((w["status"], w["materials"]) for w in workers) == [
-        ("released", 1), ("stopped", 1)
-    ]  # fmt: skip
     assert_exactly_once(out, 2)
 
 
