@@ -237,8 +237,8 @@ class GraphedRenderer:
     The :func:`fast_network` (compiled with ``compile=True``) is captured, so no autocast
     casts run per call. ``__call__(x (N, C, H, W) float, light (N, 4))`` copies into static
     inputs, replays, and returns the static ``(N, 3, H, W) bfloat16`` output (overwritten by
-    the next call). CUDA only: measured by ``benchmarks.infer`` on an H100 and an H200, not
-    exercised by the CPU test suite."""
+    the next call); :meth:`replay` renders what the static inputs hold. CUDA only: measured
+    by ``benchmarks.infer`` on an H100 and an H200, not exercised by the CPU test suite."""
 
     def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3, **fast):
         if not torch.cuda.is_available() or next(model.parameters()).device.type != "cuda":
@@ -266,6 +266,11 @@ class GraphedRenderer:
     def __call__(self, x: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         self.x[:, : self.channels].copy_(x)
         self.light.copy_(light)
+        return self.replay()
+
+    def replay(self) -> torch.Tensor:
+        """Render what the static inputs hold now: for a producer that writes its frames into
+        ``x[:, :channels]`` (channels_last bfloat16) and ``light`` itself, with no copy in."""
         self.graph.replay()
         return self.out
 
