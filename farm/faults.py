@@ -12,8 +12,9 @@ and the actor never calls in here. Keys:
 - ``hold_while``: a path; each task waits while that file exists, after creating the file
   ``<path>.held`` to say so. Set in one Ray node's environment only, it keeps that node's
   worker busy for as long as a test needs, and tells the test when it is;
-- ``hold_materials``: ``{"while": path, "materials": [...]}``; a task of those materials
-  waits while that file exists (a job that cannot end before a test lets it);
+- ``hold_materials``: ``{"while": path, "materials": [...]}``, or a list of such holds; a
+  task of those materials waits while that file exists (a job that cannot end before a test
+  lets it; with a list, materials let go one after another);
 - ``wait_for``: a path; each task waits until that file exists (another node's ``.held``
   file: this node's worker cannot finish the job before that node's worker has a task);
 - ``trace``: a path; each task appends ``<worker> <material>`` to it as it starts;
@@ -59,9 +60,10 @@ class Faults:
             open(f"{hold}.held", "w").close()
             while os.path.exists(hold):
                 time.sleep(0.1)
-        held = f.get("hold_materials", {})
-        while material in held.get("materials", []) and os.path.exists(held["while"]):
-            time.sleep(0.1)
+        holds = f.get("hold_materials", [])
+        for held in [holds] if isinstance(holds, dict) else holds:
+            while material in held["materials"] and os.path.exists(held["while"]):
+                time.sleep(0.1)
         if worker in f.get("bad_workers", []):
             raise RenderError(f"injected fault: worker {worker} is bad")
         if material in f.get("fail_materials", []):

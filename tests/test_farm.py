@@ -10,6 +10,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from datetime import datetime
 from pathlib import Path
@@ -671,61 +672,128 @@ def test_workers_waiting_for_room_make_an_autoscaling_cluster_add_nodes(tmp_path
     assert {w["status"] for w in workers} <= {"stopped", "released"}, workers
 
 
+class Output:
+    """A running process's stdout and stderr, each read on a thread, for a test to wait on."""
+
+    def __init__(self, proc: subprocess.Popen):
+        self.proc, self.out, self.err = proc, [], []
+        self.readers = [
+            threading.Thread(target=self._read, args=(stream, lines), daemon=True)
+            for stream, lines in [(proc.stdout, self.out), (proc.stderr, self.err)]
+        ]
+        for reader in self.readers:
+            reader.start()
+
+    @staticmethod
+    def _read(stream, lines: list[str]) -> None:
+        for line in stream:
+            lines.append(line)
+
+    def stdout(self) -> str:
+        return "".join(self.out)
+
+    def wait(self, timeout: float) -> tuple[int, str, str]:
+        """The exit status, stdout and stderr once the process ends."""
+        code = self.proc.wait(timeout)
+        for reader in self.readers:
+            reader.join(10)
+        return code, self.stdout(), "".join(self.err)
+
+
+IDLE_REMOVAL = "Removing 1 nodes of type cpu (idle)"
+
+
+def traced(trace: Path) -> list[tuple[str, int]]:
+    """The ``(worker, material)`` of each task that the ``trace`` fault's file says started."""
+    lines = trace.read_text().splitlines() if trace.exists() else []
+    return [(worker, int(material)) for worker, material in map(str.split, lines)]
+
+
 def test_the_node_of_a_worker_released_at_the_tail_is_taken_down_while_the_job_renders(
     tmp_path, monkeypatch
 ):
-    """``--workers 2`` on 3 materials, each 2 s and the last 20 s more, on the autoscaling
-    cluster with a 3 s idle timeout: the worker left idle at the tail is released, and the
-    autoscaler takes its node down while the other still renders the last material."""
+    """``--workers 2`` on 3 materials on the autoscaling cluster (3 s idle timeout): the first
+    is held until the other worker has started a task, and the last until a node has been
+    taken down. The worker left idle at the tail is released, and its node goes while the
+    other worker still renders the last material."""
     from tests.ray_autoscaler import autoscaling_cluster
 
-    out = tmp_path / "set.zarr"
-    faults = {"slow_s": 2, "slow_materials": {"2": 20}}
+    out, trace = tmp_path / "set.zarr", tmp_path / "trace"
+    first, last = tmp_path / "hold-0", tmp_path / "hold-2"
+    first.touch()
+    last.touch()
+    holds = [{"while": str(first), "materials": [0]}, {"while": str(last), "materials": [2]}]
+    faults = {"trace": str(trace), "hold_materials": holds}
     monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps(faults))  # the nodes read it
     with autoscaling_cluster(node_cpus=1, max_nodes=2, idle_timeout_s=3) as (address, log):
-        r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2", "--no-ray-dashboard",
-                 "--placement-timeout", "120", "--address", address, "-o", out)  # fmt: skip
-        ended = time.time()
-        monitor = log.read_text()
-    assert r.returncode == 0, r.stderr[-3000:]
-    assert "0 tasks queued, 1 running: releasing 1 idle worker (w" in r.stdout
+        args = ["-m", "uniform:3", *TINY, "--workers", "2", "--no-ray-dashboard"]
+        args += ["--placement-timeout", "120", "--address", address, "-o", out]
+        proc = farm("submit", *args, wait=False)
+        try:
+            output = Output(proc)
+            workers = lambda: {worker for worker, _ in traced(trace)}  # noqa: E731
+            wait_until(lambda: len(workers()) == 2, 150, "the other worker never started")
+            first.unlink()
+            wait_until(lambda: IDLE_REMOVAL in log.read_text(), 90, "no node taken down")
+            last.unlink()  # the last material renders only now
+            code, stdout, stderr = output.wait(120)
+        finally:
+            proc.kill()
+    assert code == 0, stderr[-3000:]
+    assert "0 tasks queued, 1 running: releasing 1 idle worker (w" in stdout
     assert sorted(w["status"] for w in job(out)["workers"].values()) == ["released", "stopped"]
     assert_exactly_once(out, 3)
-    removed = re.search(r"^(\S+ \S+),\d+\s.*Removing 1 nodes of type cpu \(idle\)", monitor, re.M)
-    assert removed, monitor[-3000:]
-    at = time.mktime(time.strptime(removed.group(1), "%Y-%m-%d %H:%M:%S"))
-    assert at < ended - 2, (removed.group(0), time.ctime(ended))  # before the last render ended
+
+
+#: how long the kept-node test holds the job after the release: five idle timeouts
+KEPT_S = 15
 
 
 def test_a_released_workers_node_holding_uncommitted_results_is_kept(tmp_path, monkeypatch):
     """2 materials in one shard at 128² (their arrays, about 0.4 MB each, live in the object
-    store of the worker's node, not inline in the driver), the first 10 s slower and the second
-    20 s: the worker that rendered the first is released, but its results wait for the shard's
-    commit, so the autoscaler does not take its node down (Ray keeps a node holding the primary
-    copy of an object), and nothing is rendered twice. The first material's 12 s give the
-    second node time to come up on a loaded machine: a worker placed after the first material
-    ended would find the second taken by the first worker, and be released holding nothing."""
+    store of the worker's node, not inline in the driver), one a worker: the first is held
+    until the second has started on the other worker, so that the two run on two nodes. The
+    worker that rendered the first is released, but its results wait for the shard's commit,
+    held ``KEPT_S`` seconds after the release (the second material's hold): the autoscaler (3
+    s idle timeout) does not take its node down (Ray keeps a node holding the primary copy of
+    an object), and nothing is rendered twice."""
     from tests.ray_autoscaler import autoscaling_cluster
 
-    out = tmp_path / "set.zarr"
-    faults = {"slow_s": 2, "slow_materials": {"0": 10, "1": 20}}
+    out, trace = tmp_path / "set.zarr", tmp_path / "trace"
+    first, second = tmp_path / "hold-0", tmp_path / "hold-1"
+    first.touch()
+    second.touch()
+    holds = [{"while": str(first), "materials": [0]}, {"while": str(second), "materials": [1]}]
+    faults = {"trace": str(trace), "hold_materials": holds}
     monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps(faults))
     size = ["--suns", "2", "--shard-size", "4", "--resolution", "128", "--samples", "2"]
+    released = "0 tasks queued, 1 running: releasing 1 idle worker (w"
     with autoscaling_cluster(node_cpus=1, max_nodes=2, idle_timeout_s=3) as (address, log):
-        r = farm("submit", "-m", "uniform:2", *size, "--workers", "2", "--no-ray-dashboard",
-                 "--placement-timeout", "120", "--address", address, "-o", out)  # fmt: skip
+        args = ["-m", "uniform:2", *size, "--workers", "2", "--no-ray-dashboard"]
+        args += ["--placement-timeout", "120", "--address", address, "-o", out]
+        proc = farm("submit", *args, wait=False)
+        try:
+            output = Output(proc)
+            started = lambda: [material for _, material in traced(trace)]  # noqa: E731
+            wait_until(lambda: 1 in started(), 150, "material 1 never started")
+            first.unlink()
+            wait_until(lambda: released in output.stdout(), 60, "no worker released")
+            time.sleep(KEPT_S)
+            second.unlink()
+            code, stdout, stderr = output.wait(120)
+        finally:
+            proc.kill()
         monitor = log.read_text()
-    assert r.returncode == 0, r.stderr[-3000:]
-    assert "0 tasks queued, 1 running: releasing 1 idle worker (w" in r.stdout
+    assert code == 0, stderr[-3000:]
     workers = job(out)["workers"].values()
     assert sorted((w["status"], w["materials"]) for w in workers) == [
         ("released", 1), ("stopped", 1)
-    ], (workers, re.findall(r".*(?:Adding|Removing) .*", monitor))  # fmt: skip
+    ], workers  # fmt: skip
     # the node may go once the shard is committed (the job's shutdown can outlast the idle
     # timeout), not before
     committed_at = (out / "commits" / "000000.json").stat().st_mtime
     assert idle_removals_before(monitor, committed_at) == [], monitor[-3000:]
-    assert "results were lost" not in r.stderr
+    assert "results were lost" not in stderr
     assert_exactly_once(out, 2)
 
 
@@ -736,7 +804,7 @@ def idle_removals_before(monitor: str, t: float) -> list[str]:
     for line in monitor.splitlines():
         if m := re.match(r"(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3})", line):
             stamp = datetime.strptime(m[1], "%Y-%m-%d %H:%M:%S").timestamp() + int(m[2]) / 1e3
-        if "Removing 1 nodes of type cpu (idle)" in line and (stamp is None or stamp < t):
+        if IDLE_REMOVAL in line and (stamp is None or stamp < t):
             out.append(line)
     return out
 
@@ -760,7 +828,8 @@ def kill_the_nodes_but_that_of(out, worker: str) -> int:
 
 def test_results_lost_with_a_node_after_a_release_are_rendered_again(tmp_path, monkeypatch):
     """8 materials in one shard at 128² (their arrays in the object store of their worker's
-    node), the last 12 s slower, ``--workers 2``: the worker idle at the tail is released, then
+    node), the first held until both workers have a task, the last 12 s slower, ``--workers
+    2``: the worker idle at the tail is released, then
     its node dies (killed here, as a node lost to a preemption) with the results waiting for
     the shard's commit. The commit finds them lost, the shard's materials are queued again,
     and the job ends with every sample once. (It mostly starts a worker again, up to its
@@ -768,8 +837,15 @@ def test_results_lost_with_a_node_after_a_release_are_rendered_again(tmp_path, m
     the suite's load it did not, cause not found, so that is not asserted.)"""
     from tests.ray_autoscaler import autoscaling_cluster
 
-    out = tmp_path / "set.zarr"
-    faults = {"slow_s": 0.5, "slow_materials": {"7": 12}}
+    out, trace, first = tmp_path / "set.zarr", tmp_path / "trace", tmp_path / "hold-0"
+    first.touch()  # material 0 waits until both workers render: each holds results
+    hold = {"while": str(first), "materials": [0]}
+    faults = {
+        "slow_s": 0.5,
+        "slow_materials": {"7": 12},
+        "trace": str(trace),
+        "hold_materials": hold,
+    }
     monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps(faults))
     size = ["--suns", "2", "--shard-size", "16", "--resolution", "128", "--samples", "2"]
     with autoscaling_cluster(node_cpus=1, max_nodes=2) as (address, _):
@@ -777,6 +853,9 @@ def test_results_lost_with_a_node_after_a_release_are_rendered_again(tmp_path, m
         args += ["--placement-timeout", "120", "--address", address, "-o", out]
         proc = farm("submit", *args, wait=False)
         try:
+            workers = lambda: {worker for worker, _ in traced(trace)}  # noqa: E731
+            wait_until(lambda: len(workers()) == 2, 150, "the other worker never started")
+            first.unlink()
             lines = []
             for line in proc.stdout:
                 lines.append(line)
