@@ -709,6 +709,38 @@ def traced(trace: Path) -> list[tuple[str, int]]:
     return [(worker, int(material)) for worker, material in map(str.split, lines)]
 
 
+def plant_holds(tmp_path: Path, monkeypatch, held: list[int], **faults) -> tuple[Path, list]:
+    """Faults in the environment that the autoscaler's nodes inherit: ``faults``, a trace, and
+    a hold on each of the ``held`` materials (a file each, removed to let it go). Returns the
+    trace's path and the hold files."""
+    trace, holds = tmp_path / "trace", [tmp_path / f"hold-{m}" for m in held]
+    for hold in holds:
+        hold.touch()
+    pairs = zip(holds, held, strict=True)
+    faults["hold_materials"] = [{"while": str(h), "materials": [m]} for h, m in pairs]
+    monkeypatch.setenv(FAULTS_ENV, json.dumps({**faults, "trace": str(trace)}))
+    return trace, holds
+
+
+@contextlib.contextmanager
+def job_on_two_nodes(address: str, out: Path, materials: int, size: list[str], trace, first):
+    """``farm submit --workers 2`` on ``materials`` on the autoscaling cluster at ``address``;
+    yields its :class:`Output` once both workers have started a task (the ``first`` material
+    held meanwhile, so that the first worker cannot render everything before the second node
+    comes up) and the first material is let go; kills the job at the end."""
+    args = ["-m", f"uniform:{materials}", *size, "--workers", "2", "--no-ray-dashboard"]
+    args += ["--placement-timeout", "120", "--address", address, "-o", out]
+    proc = farm("submit", *args, wait=False)
+    try:
+        output = Output(proc)
+        two = lambda: len({worker for worker, _ in traced(trace)}) == 2  # noqa: E731
+        wait_until(two, 150, "the second worker never started a task")
+        first.unlink()
+        yield output
+    finally:
+        proc.kill()
+
+
 def test_the_node_of_a_worker_released_at_the_tail_is_taken_down_while_the_job_renders(
     tmp_path, monkeypatch
 ):
@@ -718,27 +750,15 @@ def test_the_node_of_a_worker_released_at_the_tail_is_taken_down_while_the_job_r
     other worker still renders the last material."""
     from tests.ray_autoscaler import autoscaling_cluster
 
-    out, trace = tmp_path / "set.zarr", tmp_path / "trace"
-    first, last = tmp_path / "hold-0", tmp_path / "hold-2"
-    first.touch()
-    last.touch()
-    holds = [{"while": str(first), "materials": [0]}, {"while": str(last), "materials": [2]}]
-    faults = {"trace": str(trace), "hold_materials": holds}
-    monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps(faults))  # the nodes read it
-    with autoscaling_cluster(node_cpus=1, max_nodes=2, idle_timeout_s=3) as (address, log):
-        args = ["-m", "uniform:3", *TINY, "--workers", "2", "--no-ray-dashboard"]
-        args += ["--placement-timeout", "120", "--address", address, "-o", out]
-        proc = farm("submit", *args, wait=False)
-        try:
-            output = Output(proc)
-            workers = lambda: {worker for worker, _ in traced(trace)}  # noqa: E731
-            wait_until(lambda: len(workers()) == 2, 150, "the other worker never started")
-            first.unlink()
-            wait_until(lambda: IDLE_REMOVAL in log.read_text(), 90, "no node taken down")
-            last.unlink()  # the last material renders only now
-            code, stdout, stderr = output.wait(120)
-        finally:
-            proc.kill()
+    out = tmp_path / "set.zarr"
+    trace, (first, last) = plant_holds(tmp_path, monkeypatch, [0, 2])
+    with (
+        autoscaling_cluster(node_cpus=1, max_nodes=2, idle_timeout_s=3) as (address, log),
+        job_on_two_nodes(address, out, 3, TINY, trace, first) as output,
+    ):
+        wait_until(lambda: IDLE_REMOVAL in log.read_text(), 90, "no node taken down")
+        last.unlink()  # the last material renders only now
+        code, stdout, stderr = output.wait(120)
     assert code == 0, stderr[-3000:]
     assert "0 tasks queued, 1 running: releasing 1 idle worker (w" in stdout
     assert sorted(w["status"] for w in job(out)["workers"].values()) == ["released", "stopped"]
@@ -751,38 +771,26 @@ KEPT_S = 15
 
 def test_a_released_workers_node_holding_uncommitted_results_is_kept(tmp_path, monkeypatch):
     """2 materials in one shard at 128² (their arrays, about 0.4 MB each, live in the object
-    store of the worker's node, not inline in the driver), one a worker: the first is held
-    until the second has started on the other worker, so that the two run on two nodes. The
+    store of the worker's node, not inline in the driver), one on each worker: the first is
+    held until the second has started on the other worker, so that the two run on two nodes. The
     worker that rendered the first is released, but its results wait for the shard's commit,
     held ``KEPT_S`` seconds after the release (the second material's hold): the autoscaler (3
     s idle timeout) does not take its node down (Ray keeps a node holding the primary copy of
     an object), and nothing is rendered twice."""
     from tests.ray_autoscaler import autoscaling_cluster
 
-    out, trace = tmp_path / "set.zarr", tmp_path / "trace"
-    first, second = tmp_path / "hold-0", tmp_path / "hold-1"
-    first.touch()
-    second.touch()
-    holds = [{"while": str(first), "materials": [0]}, {"while": str(second), "materials": [1]}]
-    faults = {"trace": str(trace), "hold_materials": holds}
-    monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps(faults))
+    out = tmp_path / "set.zarr"
+    trace, (first, second) = plant_holds(tmp_path, monkeypatch, [0, 1])
     size = ["--suns", "2", "--shard-size", "4", "--resolution", "128", "--samples", "2"]
     released = "0 tasks queued, 1 running: releasing 1 idle worker (w"
-    with autoscaling_cluster(node_cpus=1, max_nodes=2, idle_timeout_s=3) as (address, log):
-        args = ["-m", "uniform:2", *size, "--workers", "2", "--no-ray-dashboard"]
-        args += ["--placement-timeout", "120", "--address", address, "-o", out]
-        proc = farm("submit", *args, wait=False)
-        try:
-            output = Output(proc)
-            started = lambda: [material for _, material in traced(trace)]  # noqa: E731
-            wait_until(lambda: 1 in started(), 150, "material 1 never started")
-            first.unlink()
-            wait_until(lambda: released in output.stdout(), 60, "no worker released")
-            time.sleep(KEPT_S)
-            second.unlink()
-            code, stdout, stderr = output.wait(120)
-        finally:
-            proc.kill()
+    with (
+        autoscaling_cluster(node_cpus=1, max_nodes=2, idle_timeout_s=3) as (address, log),
+        job_on_two_nodes(address, out, 2, size, trace, first) as output,
+    ):
+        wait_until(lambda: released in output.stdout(), 60, "no worker released")
+        time.sleep(KEPT_S)
+        second.unlink()
+        code, stdout, stderr = output.wait(120)
         monitor = log.read_text()
     assert code == 0, stderr[-3000:]
     workers = job(out)["workers"].values()
@@ -829,45 +837,28 @@ def kill_the_nodes_but_that_of(out, worker: str) -> int:
 def test_results_lost_with_a_node_after_a_release_are_rendered_again(tmp_path, monkeypatch):
     """8 materials in one shard at 128² (their arrays in the object store of their worker's
     node), the first held until both workers have a task, the last 12 s slower, ``--workers
-    2``: the worker idle at the tail is released, then
-    its node dies (killed here, as a node lost to a preemption) with the results waiting for
-    the shard's commit. The commit finds them lost, the shard's materials are queued again,
-    and the job ends with every sample once. (It mostly starts a worker again, up to its
-    --workers, for the queue the worker left cannot take at once; in about 1 run in 3 under
-    the suite's load it did not, cause not found, so that is not asserted.)"""
+    2``: the worker idle at the tail is released, then its node dies (killed here, as a node
+    lost to a preemption) with the results waiting for the shard's commit. The commit finds
+    them lost, the shard's materials are queued again, and the job ends with every sample
+    once. (It mostly starts a worker again, up to its --workers, for the queue the worker
+    left cannot take at once; in about 1 run in 3 under the suite's load it did not, cause
+    not found, so that is not asserted.)"""
     from tests.ray_autoscaler import autoscaling_cluster
 
-    out, trace, first = tmp_path / "set.zarr", tmp_path / "trace", tmp_path / "hold-0"
-    first.touch()  # material 0 waits until both workers render: each holds results
-    hold = {"while": str(first), "materials": [0]}
-    faults = {
-        "slow_s": 0.5,
-        "slow_materials": {"7": 12},
-        "trace": str(trace),
-        "hold_materials": hold,
-    }
-    monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps(faults))
+    out = tmp_path / "set.zarr"
+    # material 0 waits until both workers render: each then holds results
+    trace, (first,) = plant_holds(tmp_path, monkeypatch, [0], slow_s=0.5, slow_materials={"7": 12})
     size = ["--suns", "2", "--shard-size", "16", "--resolution", "128", "--samples", "2"]
-    with autoscaling_cluster(node_cpus=1, max_nodes=2) as (address, _):
-        args = ["-m", "uniform:8", *size, "--workers", "2", "--no-ray-dashboard"]
-        args += ["--placement-timeout", "120", "--address", address, "-o", out]
-        proc = farm("submit", *args, wait=False)
-        try:
-            workers = lambda: {worker for worker, _ in traced(trace)}  # noqa: E731
-            wait_until(lambda: len(workers()) == 2, 150, "the other worker never started")
-            first.unlink()
-            lines = []
-            for line in proc.stdout:
-                lines.append(line)
-                if released := re.search(r"releasing 1 idle worker \((w\d)\)", line):
-                    other = {"w0": "w1", "w1": "w0"}[released.group(1)]
-                    assert kill_the_nodes_but_that_of(out, other) == 1
-                    break
-            rest, err = proc.communicate(timeout=240)
-        finally:
-            proc.kill()
-    stdout = "".join(lines) + rest
-    assert proc.returncode == 0, err[-3000:]
+    with (
+        autoscaling_cluster(node_cpus=1, max_nodes=2) as (address, _),
+        job_on_two_nodes(address, out, 8, size, trace, first) as output,
+    ):
+        released = lambda: re.search(r"releasing 1 idle worker \((w\d)\)", output.stdout())  # noqa: E731
+        wait_until(released, 120, "no worker released")
+        other = {"w0": "w1", "w1": "w0"}[released().group(1)]
+        assert kill_the_nodes_but_that_of(out, other) == 1
+        code, stdout, err = output.wait(240)
+    assert code == 0, err[-3000:]
     assert "shard 0: its results were lost" in err, stdout + err[-2000:]
     assert_exactly_once(out, 8)
     assert "released" in [w["status"] for w in job(out)["workers"].values()]
