@@ -53,6 +53,7 @@ class Scale:
     fixed_epochs: int
     batch: int
     timing_count: int  # renders timed per Cycles setting
+    workers: int = 0  # Blender workers a render job (0: the farm's default, one a CPU)
 
 
 SCALES = {
@@ -78,13 +79,14 @@ SCALES = {
         test=(3, 2),  # 5 materials: the fewest that get intervals (trainer.intervals)
         suns=2,
         fixed=(6, 2),
-        baselines=(1, 2),
+        baselines=(1,),  # raw and OIDN: every step and comparison of the report
         reference_spp=16,
         reference_count=2,
         epochs=1,
         fixed_epochs=1,
         batch=2,
         timing_count=1,
+        workers=1,  # a few frames a job: one Blender load, not one a CPU
     ),
 }
 
@@ -110,7 +112,8 @@ class Plan:
     def renders(self) -> list[tuple[str, list[str]]]:
         """``(store name, farm submit arguments)`` in the order they are rendered."""
         s = self.scale
-        common = ["--resolution", str(s.resolution), "--no-ray-dashboard"]
+        common = ["--resolution", str(s.resolution), "--no-ray-dashboard",
+                  *(["--workers", str(s.workers)] if s.workers else [])]  # fmt: skip
         sets = lambda u, p: [*(["-m", f"uniform:{u}"] if u else []),  # noqa: E731
                              *(["-m", f"procedural:{p}"] if p else [])]  # fmt: skip
         test = [*sets(*s.test), "--seed", "1", "--suns", str(s.suns)]
