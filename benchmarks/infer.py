@@ -2,7 +2,7 @@
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
         [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--streams]
-        [--resolution 400] [--only TEXT]
+        [--resolution 400] [--only TEXT] [--rounds K]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
 rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
@@ -37,11 +37,16 @@ the largest difference of each mode's batch-1 image from eager fp32 (display uni
 sizes (what a device call spends before timing it). ``frames/s`` includes copying the fp32
 NCHW batch into a graph row's bf16 channels_last input; ``in place`` is the same graph's
 replay alone (``GraphedRenderer.replay``), for a producer that writes its frames there.
+``--rounds K`` then times every row again, K rounds of every row in turn, and prints each
+row's medians and its batch-1 time over the first row's: rows built and timed minutes apart
+meet different machine states, and on the lent GPUs the same row has moved by 5 % between
+two runs on one machine (``docs/benchmarks.md``).
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import importlib.util
 import statistics
 import sys
@@ -75,11 +80,43 @@ def timed(fn, iters: int, cuda: bool) -> float:
     return statistics.median(times)
 
 
+def interleaved(rows, rounds: int, clock) -> dict[str, list[float]]:
+    """``{name: seconds, one a round}`` of ``rows`` (``(name, fn)``), timed by ``clock(fn)``
+    one after the other, round after round: a drift of the machine over the run (clocks, heat,
+    a neighbour's load) falls on every row alike, so ratios between rows hold where rows timed
+    once each, minutes apart, can differ by more than the effect measured."""
+    times = {name: [] for name, _ in rows}
+    for _ in range(rounds):
+        for name, fn in rows:
+            times[name].append(clock(fn))
+    return times
+
+
+def rounds_table(one: dict[str, list[float]], many: dict[str, list[float]], batch: int) -> str:
+    """The ``--rounds`` table: per row the median ms a frame at batch 1, its range over the
+    rounds, the median frames/s batched, and the batch-1 median over the first row's."""
+    first = statistics.median(next(iter(one.values())))
+    lines = [f"{'mode':<32}{'ms/frame (b=1)':>16}{'range':>16}{'frames/s':>12}{'b=1 ratio':>11}"]
+    for name, t in one.items():
+        med, span = statistics.median(t), f"{min(t) * 1e3:.3f}-{max(t) * 1e3:.3f}"
+        rate = batch / statistics.median(many[name])
+        lines.append(f"{name:<32}{med * 1e3:>16.3f}{span:>16}{rate:>12.1f}{med / first:>11.3f}")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--store", default=DEFAULT)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--iters", type=int, default=20)
+    ap.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        metavar="K",
+        help="after the rows, time them again K times in turn and print medians and ratios "
+        "(ratios that a drift of the machine does not bias)",
+    )
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
     ap.add_argument("--resolution", type=int, default=400, help="a multiple of 16 (default 400)")
     ap.add_argument(
@@ -163,6 +200,7 @@ def main() -> None:
 
     with torch.inference_mode():
         reference = model(x_all[:1], l_all[:1]).float()
+    measured = []  # (name, batch-1 call, batched call) of each row, for --rounds
 
     def error(out: torch.Tensor) -> float:
         """Largest difference from the eager fp32 image, in [0, 1] display units."""
@@ -178,8 +216,9 @@ def main() -> None:
             with torch.inference_mode(), torch.autocast(device.type, torch.bfloat16, enabled=bf16):
                 return net(x, light)
 
-        one = timed(lambda: run(x1, l_all[:1]), args.iters, cuda)
-        many = timed(lambda: run(xb, l_all), args.iters, cuda)
+        measured.append((name, lambda: run(x1, l_all[:1]), lambda: run(xb, l_all)))
+        one = timed(measured[-1][1], args.iters, cuda)
+        many = timed(measured[-1][2], args.iters, cuda)
         report(name, one, many, error(run(x1, l_all[:1])))
 
     def graph_row(name, **fast):
@@ -191,8 +230,9 @@ def main() -> None:
         print(f"{name}: batch 1 built in {time.perf_counter() - start:.0f} s", file=sys.stderr)
         gb = GraphedRenderer(model, args.batch, **fast)
         build = time.perf_counter() - start
-        one = timed(lambda: g1(x_all[:1], l_all[:1]), args.iters, cuda)
-        many = timed(lambda: gb(x_all, l_all), args.iters, cuda)
+        measured.append((name, lambda: g1(x_all[:1], l_all[:1]), lambda: gb(x_all, l_all)))
+        one = timed(measured[-1][1], args.iters, cuda)
+        many = timed(measured[-1][2], args.iters, cuda)
         replay = timed(gb.replay, args.iters, cuda)  # the input copied in by the line above
         report(name, one, many, error(g1(x_all[:1], l_all[:1])), build, replay)
 
@@ -214,8 +254,9 @@ def main() -> None:
             return session.run(["image"], {"x": x, "light": light})[0]
 
         x1, l1, xb, lb = (t.numpy() for t in (x_all[:1], l_all[:1], x_all, l_all))
-        one = timed(lambda: run(x1, l1), args.iters, cuda)
-        many = timed(lambda: run(xb, lb), args.iters, cuda)
+        measured.append((name, lambda: run(x1, l1), lambda: run(xb, lb)))
+        one = timed(measured[-1][1], args.iters, cuda)
+        many = timed(measured[-1][2], args.iters, cuda)
         report(name, one, many, error(torch.from_numpy(run(x1, l1))))
 
     folded = fold_batchnorm(model)  # its own weights: the rewrite below copies them
@@ -226,7 +267,8 @@ def main() -> None:
     onnx_row("ONNX Runtime fp32 (CPU)", folded.to(memory_format=torch.contiguous_format))
     if cuda:
         torch.backends.cudnn.benchmark = True
-        eager_row("eager bf16 channels_last", model, True, torch.channels_last)
+        # a copy: each row keeps its own network, in its own format, for --rounds
+        eager_row("eager bf16 channels_last", copy.deepcopy(model), True, torch.channels_last)
         eager_row("  + BatchNorm folded", folded, True, torch.channels_last)
         graph_row("  + bf16 weights, CUDA graph")
         x1 = f", channels x{args.align}" if args.align != 8 else ""  # rows not at the default
@@ -259,6 +301,12 @@ def main() -> None:
             rewrite_row(
                 f"subpixel from {args.subpixel_from}², compiled", subpixel_from=args.subpixel_from
             )
+    if args.rounds > 1 and measured:
+        clock = lambda fn: timed(fn, args.iters, cuda)  # noqa: E731
+        one = interleaved([(n, f) for n, f, _ in measured], args.rounds, clock)
+        many = interleaved([(n, f) for n, _, f in measured], args.rounds, clock)
+        print(f"\nthe rows again, {args.rounds} rounds in turn (medians):")
+        print(rounds_table(one, many, args.batch), flush=True)
 
 
 if __name__ == "__main__":
