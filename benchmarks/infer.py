@@ -115,7 +115,8 @@ def main() -> None:
         default=1,
         metavar="K",
         help="after the rows, time them again K times in turn and print medians and ratios "
-        "(ratios that a drift of the machine does not bias)",
+        "(ratios that a drift of the machine does not bias); every row's network and CUDA "
+        "graphs stay in memory to the end, so pick a few rows with --only",
     )
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
     ap.add_argument("--resolution", type=int, default=400, help="a multiple of 16 (default 400)")
@@ -200,7 +201,14 @@ def main() -> None:
 
     with torch.inference_mode():
         reference = model(x_all[:1], l_all[:1]).float()
-    measured = []  # (name, batch-1 call, batched call) of each row, for --rounds
+    measured = []  # (name, batch-1 call, batched call) of each row, kept for --rounds
+
+    def measure(name, one, many) -> tuple[float, float]:
+        """Seconds of ``one()`` and ``many()``; with ``--rounds``, the row is kept (and with it
+        its network and CUDA graphs) to be timed again at the end."""
+        if args.rounds > 1:
+            measured.append((name, one, many))
+        return timed(one, args.iters, cuda), timed(many, args.iters, cuda)
 
     def error(out: torch.Tensor) -> float:
         """Largest difference from the eager fp32 image, in [0, 1] display units."""
@@ -216,9 +224,7 @@ def main() -> None:
             with torch.inference_mode(), torch.autocast(device.type, torch.bfloat16, enabled=bf16):
                 return net(x, light)
 
-        measured.append((name, lambda: run(x1, l_all[:1]), lambda: run(xb, l_all)))
-        one = timed(measured[-1][1], args.iters, cuda)
-        many = timed(measured[-1][2], args.iters, cuda)
+        one, many = measure(name, lambda: run(x1, l_all[:1]), lambda: run(xb, l_all))
         report(name, one, many, error(run(x1, l_all[:1])))
 
     def graph_row(name, **fast):
@@ -230,9 +236,7 @@ def main() -> None:
         print(f"{name}: batch 1 built in {time.perf_counter() - start:.0f} s", file=sys.stderr)
         gb = GraphedRenderer(model, args.batch, **fast)
         build = time.perf_counter() - start
-        measured.append((name, lambda: g1(x_all[:1], l_all[:1]), lambda: gb(x_all, l_all)))
-        one = timed(measured[-1][1], args.iters, cuda)
-        many = timed(measured[-1][2], args.iters, cuda)
+        one, many = measure(name, lambda: g1(x_all[:1], l_all[:1]), lambda: gb(x_all, l_all))
         replay = timed(gb.replay, args.iters, cuda)  # the input copied in by the line above
         report(name, one, many, error(g1(x_all[:1], l_all[:1])), build, replay)
 
@@ -254,9 +258,7 @@ def main() -> None:
             return session.run(["image"], {"x": x, "light": light})[0]
 
         x1, l1, xb, lb = (t.numpy() for t in (x_all[:1], l_all[:1], x_all, l_all))
-        measured.append((name, lambda: run(x1, l1), lambda: run(xb, lb)))
-        one = timed(measured[-1][1], args.iters, cuda)
-        many = timed(measured[-1][2], args.iters, cuda)
+        one, many = measure(name, lambda: run(x1, l1), lambda: run(xb, lb))
         report(name, one, many, error(torch.from_numpy(run(x1, l1))))
 
     folded = fold_batchnorm(model)  # its own weights: the rewrite below copies them
@@ -301,7 +303,7 @@ def main() -> None:
             rewrite_row(
                 f"subpixel from {args.subpixel_from}², compiled", subpixel_from=args.subpixel_from
             )
-    if args.rounds > 1 and measured:
+    if measured:
         clock = lambda fn: timed(fn, args.iters, cuda)  # noqa: E731
         one = interleaved([(n, f) for n, f, _ in measured], args.rounds, clock)
         many = interleaved([(n, f) for n, _, f in measured], args.rounds, clock)
