@@ -173,6 +173,8 @@ def main() -> None:
         help="run only the rows whose name contains TEXT (eager fp32 stays the reference)",
     )
     args = ap.parse_args()
+    if args.rounds < 1:
+        ap.error(f"--rounds must be at least 1, not {args.rounds}")
     if args.resolution < 16 or args.resolution % 16:
         ap.error(f"--resolution {args.resolution} is not a positive multiple of 16")
     device = pick_device(args.device)
