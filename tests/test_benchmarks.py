@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import itertools
+import subprocess
+import sys
 
 from benchmarks.infer import interleaved, rounds_table
 
@@ -24,3 +26,10 @@ def test_rounds_time_every_row_in_turn_and_the_table_reads_their_medians():
     # medians: a 3 ms at b=1, 4 / 0.03 frames/s; b 4 ms, 4 / 0.01; ratios to the first row
     assert lines[1].split() == ["a", "3.000", "1.000-5.000", "133.3", "1.000"]
     assert lines[2].split() == ["b", "4.000", "2.000-6.000", "400.0", "1.333"]
+
+
+def test_rounds_below_one_are_refused_before_any_work():
+    cmd = [sys.executable, "-m", "benchmarks.infer", "--rounds", "0", "--store", "/no/store.zarr"]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1].endswith("--rounds must be at least 1, not 0")
