@@ -1,8 +1,8 @@
 """Inference benchmark at 400² (or ``--resolution``): ms per frame at batch 1, frames/s batched.
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
-        [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--streams]
-        [--resolution 400] [--only TEXT] [--rounds K]
+        [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--edge-ring]
+        [--streams] [--resolution 400] [--only TEXT] [--rounds K]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
 rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
@@ -23,9 +23,11 @@ default: ``trainer.infer.fast_network``) with zero-weight channels; ``--align 1`
 model's own counts. ``--ring-gemm`` and ``--wide-ring`` add the compiled rewrite with each
 ring's grouped convolution as a batched matrix product (``trainer.fastnet.strip_gemm``), and
 with the sub-pixel convolutions on zero-padded inputs and the ring two deep
-(``trainer.fastnet.UpConv``). ``--streams`` adds the network compiled segment by segment on
-two CUDA streams, the skip convolutions and the light MLP beside the critical path, every
-level plain (``trainer.streamnet``; for batch 1).
+(``trainer.fastnet.UpConv``). ``--edge-ring`` adds the compiled rewrite whose rings are
+corrections from the edges of each level's input (``trainer.fastnet.edges``). ``--streams``
+adds the network compiled segment by segment on two CUDA streams, the skip convolutions and
+the light MLP beside the critical path, every level plain (``trainer.streamnet``; for
+batch 1).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -161,6 +163,12 @@ def main() -> None:
         "convolutions read zero-padded inputs, with rings two deep (CUDA)",
     )
     ap.add_argument(
+        "--edge-ring",
+        action="store_true",
+        help="add a compiled subpixel row whose rings are corrections computed from the "
+        "edges of each level's input (trainer.fastnet.edges; CUDA)",
+    )
+    ap.add_argument(
         "--streams",
         action="store_true",
         help="add a compiled row on two CUDA streams: skip convolutions and the light MLP "
@@ -290,6 +298,8 @@ def main() -> None:
             rewrite_row(
                 f"subpixel compiled{kinds}", ring_gemm=args.ring_gemm, wide_ring=args.wide_ring
             )
+        if args.edge_ring:
+            rewrite_row("subpixel compiled, edge ring", edge_ring=True)
         if args.streams:
             graph_row(
                 f"two streams, compiled + graph{x1}", compile=True, streams=True, align=args.align

@@ -45,6 +45,9 @@ def main() -> None:
     ap.add_argument("--align", type=int, default=8, help="with --subpixel: channels padded to x N")
     ap.add_argument("--ring-gemm", action="store_true", help="with --subpixel: rings as GEMMs")
     ap.add_argument("--wide-ring", action="store_true", help="with --subpixel: rings two deep")
+    ap.add_argument(
+        "--edge-ring", action="store_true", help="with --subpixel: rings as edge corrections"
+    )
     args = ap.parse_args()
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)
@@ -57,6 +60,7 @@ def main() -> None:
         "align": args.align,
         "ring_gemm": args.ring_gemm,
         "wide_ring": args.wide_ring,
+        "edge_ring": args.edge_ring,
     }
     plain, net = fast_network(model, **fast), fast_network(model, compile=args.compile, **fast)
     width = getattr(plain, "in_channels", cfg.in_channels)  # aligned: fed padded, as graphed

@@ -1,4 +1,4 @@
-"""Benchmark helpers that decide what a table says, on fake clocks."""
+"""Benchmark helpers that decide what a table says (on fake clocks), and the kernel plan."""
 
 from __future__ import annotations
 
@@ -33,3 +33,42 @@ def test_rounds_below_one_are_refused_before_any_work():
     r = subprocess.run(cmd, capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1].endswith("--rounds must be at least 1, not 0")
+
+
+def test_kernel_plan_lists_the_launches_of_the_compiled_network_without_a_gpu():
+    """benchmarks.kernel_plan: Inductor's Triton program for the sub-pixel network with edge
+    rings, planned on this CPU: every convolution an extern launch (4 encoder, the
+    bottleneck's 2, 4 sub-pixel and 3 skip convolutions), each ring one batched product
+    with its ends as the addend, and fused Triton kernels between them."""
+    cmd = [sys.executable, "-m", "benchmarks.kernel_plan", "--subpixel", "--edge-ring"]
+    cmd += ["--resolution", "32", "--width", "8", "--batch", "2"]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    names = [line.split()[1:3] for line in r.stdout.splitlines()[1:-1]]
+    assert names.count(["extern", "convolution"]) == 13
+    assert names.count(["extern", "baddbmm"]) == 4
+    fused = [n[0] for n in names if n[0].startswith("triton_")]
+    assert any("pixel_shuffle" in n and "sigmoid" in n for n in fused)  # the output level's
+    assert r.stdout.splitlines()[-1].endswith("M elements in all")
+
+
+def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite():
+    from benchmarks.kernel_plan import launches
+
+    source = (
+        "def call(args):\n"
+        "    buf0 = extern_kernels.convolution(arg0_1, arg1_1, stride=(1, 1))\n"
+        "    triton_poi_fused_relu_0.run(buf0, buf1, 4096, stream=stream0)\n"
+        "    triton_poi_fused_pad_1.run(buf1, buf2, 16, 256, stream=stream0)\n"
+        "    extern_kernels.bmm(reinterpret_tensor(buf2, (4, 2), (2, 1), 0), arg2_1, out=buf3)\n"
+    )
+    assert launches(source) == [
+        ("extern convolution", 0),
+        ("triton_poi_fused_relu_0", 4096),
+        ("triton_poi_fused_pad_1", 4096),
+        ("extern bmm", 0),
+    ]
+    cmd = [sys.executable, "-m", "benchmarks.kernel_plan", "--edge-ring"]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.strip().endswith("--edge-ring is a form of the --subpixel rewrite")

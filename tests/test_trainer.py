@@ -233,6 +233,8 @@ def test_upconv_is_upsampling_then_convolution(size):
     for gemm in (True, False):
         up.phases.gemm = up.gemm_ring = gemm
         torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
+    up.edge_ring = True  # the ring as a correction from the edges of z (the others ignored)
+    torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
     if size < 2:
         y = torch.zeros_like(want)
         with pytest.raises(ValueError, match="a ring 2 deep needs an input at least 2 wide"):
@@ -288,6 +290,9 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
     assert got.shape == want.shape
     torch.testing.assert_close(got, want, atol=1e-5, rtol=0)
     torch.testing.assert_close(got_wide, want, atol=1e-5, rtol=0)
+    with torch.no_grad():  # the rings as corrections from the edges
+        got_edges = fast.rings(edge=True)(x.contiguous(memory_format=cl), light)
+    torch.testing.assert_close(got_edges, want, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="fold the BatchNorm first"):
         SubpixelRenderer(model)
 
@@ -355,6 +360,7 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             "unaligned": {"subpixel": True, "align": 1},
             "all plain": {"subpixel": True, "subpixel_from": 64},
             "ring GEMMs, wide": {"subpixel": True, "ring_gemm": True, "wide_ring": True},
+            "edge ring": {"subpixel": True, "edge_ring": True},
             "two streams": {"streams": True},
             "two streams, sub-pixel": {"streams": True, "subpixel": True},
         }
@@ -369,18 +375,20 @@ def test_bf16_fast_networks_stay_close_to_fp32():
 
 
 @pytest.mark.parametrize(
-    ("gemm_at", "subpixel_from", "align"), [(0, 0, 1), (64, 0, 1), (0, 8, 1), (0, 0, 8)]
+    ("gemm_at", "subpixel_from", "align", "edge"),
+    [(0, 0, 1, False), (64, 0, 1, False), (0, 8, 1, False), (0, 0, 8, False), (0, 0, 8, True)],
 )
-def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align):
+def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align, edge):
     """``--compile`` must see the rewrite whole: Dynamo traces it with ``fullgraph=True``
     (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here); with
-    ``gemm_at``, the rings run as matrix products and two deep too."""
+    ``gemm_at``, the rings run as matrix products and two deep too; ``edge``: the rings as
+    corrections from the edges."""
     from trainer.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()
     model = NeuralRenderer(ModelConfig(resolution=32)).eval()
     net = SubpixelRenderer(fold_batchnorm(model), subpixel_from, align).gemm_at(gemm_at)
-    net.rings(gemm=gemm_at > 0, wide=gemm_at > 0)
+    net.rings(gemm=gemm_at > 0, wide=gemm_at > 0, edge=edge)
     x, light = torch.rand(1, model.config.in_channels, 32, 32), torch.rand(1, 4)
     traced = torch.compile(net, backend="eager", fullgraph=True, dynamic=False)
     with torch.no_grad():

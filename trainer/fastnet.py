@@ -11,7 +11,8 @@ convolves the concatenation of that with the skip. Both steps are linear, so for
   output channels, then ``pixel_shuffle``. ``z`` is replicate-padded first, as the upsampling
   clamps at the edge; that is exact everywhere but the outermost ring of the output, where the
   original convolution sees its zero padding. The ring is recomputed exactly from thin strips
-  of ``up(z)`` (:func:`ring`).
+  of ``up(z)`` (:func:`ring`), or corrected from the edge lines of ``z`` (:func:`edges`,
+  ``SubpixelRenderer.rings(edge=True)``).
 * **Light plane.** The 128 light channels are one plane repeated, so their weights are summed
   into one input channel.
 * **Aligned channels** (``align=8``, for tensor cores). Tensor-core convolutions want
@@ -121,6 +122,61 @@ def ring(
     return y
 
 
+def edge_weights(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(O, I, 3, 3)`` → the weights :func:`edges` takes: ``(4, 3·I, 2·O)``, one matrix a
+    side (top, bottom, left, right) that maps 3 taps along an edge line of ``z`` (rows in
+    ``(tap, channel)`` order) to the 2 output phases along it (columns in ``(phase,
+    channel)`` order), and ``(4, I, O)``, the corner taps (top-left, bottom-left, top-right,
+    bottom-right)."""
+    lines = [w[:, :, 0], w[:, :, 2], w[:, :, :, 0], w[:, :, :, 2]]  # (O, I, 3) taps a side
+    taps = TAPS.to(w.device)
+    sides = [torch.einsum("qbt,oct->bcqo", taps, v.double()) for v in lines]
+    o, i = w.shape[:2]
+    side = torch.stack([s.reshape(3 * i, 2 * o) for s in sides]).to(w.dtype)
+    corners = w[:, :, [0, 2, 0, 2], [0, 0, 2, 2]].permute(2, 1, 0)
+    return side, corners.contiguous()
+
+
+def edges(z: torch.Tensor, side: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """What ``conv(up(z), w, padding=1)`` differs by from its sub-pixel form on a
+    replicate-padded ``z``, for a square ``z`` h wide and ``(side, corners) =
+    edge_weights(w)``: the ``(N, O, 2h, 2h)`` correction to subtract, zero but on the outer
+    ring.
+
+    Outside the upsampled image the sub-pixel form sees its edge rows and columns repeated,
+    where the convolution sees zeros. So the ring's error is the outer taps of ``w`` applied
+    to the upsampled edge lines: along each edge a 3-tap convolution of the edge line of
+    ``z`` itself (sub-pixel again: 2 phases a pixel), the four edges in one batched matrix
+    product. A corner pixel's corner tap is in both of its edges' lines, so the top and
+    bottom lines' ends start from minus that tap (the product adds onto them). About 12/h of
+    the sub-pixel convolution's work, and no upsampled strip.
+
+    Why one product with the ends as its addend: Inductor inlines this correction into the
+    pointwise kernel that adds the level's parts (a few reads of the small lines buffer);
+    computing the ends as a separate sum made the correction read more buffers than
+    Inductor inlines (``realize_acc_reads_threshold``), and torch 2.11 wrote it out whole,
+    a pass over the level (``docs/benchmarks.md``)."""
+    n, c, h = z.shape[:3]
+    if z.shape[3] != h:
+        raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
+    o, last = corners.shape[2], 2 * h - 1
+    points = torch.stack([z[:, :, 0, 0], z[:, :, -1, 0], z[:, :, 0, -1], z[:, :, -1, -1]])
+    k = torch.bmm(points, corners)  # (4, N, O): the corner taps, x = 0 then x = 2h - 1
+    ends = F.pad(k[:2, :, None], (0, 0, 0, last)) + F.pad(k[2:, :, None], (0, 0, last, 0))
+    ends = torch.cat([-ends, ends.new_zeros(ends.shape)])  # (4, N, 2h, O)
+    lines = torch.stack([z[:, :, 0], z[:, :, -1], z[:, :, :, 0], z[:, :, :, -1]])
+    lines = F.pad(lines.transpose(2, 3), (0, 0, 1, 1), mode="replicate")  # (4, N, h + 2, C)
+    cols = torch.cat([lines[:, :, b : b + h] for b in range(3)], 3).reshape(4, n * h, 3 * c)
+    d = torch.baddbmm(ends.view(4, n * h, 2 * o), cols, side).view(4, n, 2 * h, o)
+    d = d.transpose(2, 3)  # (4, N, O, 2h): top, bottom, left, right
+    return (
+        F.pad(d[0, :, :, None], (0, 0, 0, last))
+        + F.pad(d[1, :, :, None], (0, 0, last, 0))
+        + F.pad(d[2, ..., None], (0, last))
+        + F.pad(d[3, ..., None], (last, 0))
+    )
+
+
 class Conv(nn.Module):
     """A 3x3 convolution with optional bias, stride and zero or replicate padding.
 
@@ -168,10 +224,16 @@ class UpConv(nn.Module):
     def __init__(self, weight: torch.Tensor):
         super().__init__()
         self.ring = nn.Parameter(ring_weight(weight.detach()), requires_grad=False)
+        side, corners = edge_weights(weight.detach())
+        self.side = nn.Parameter(side, requires_grad=False)
+        self.corners = nn.Parameter(corners, requires_grad=False)
         self.phases = Conv(subpixel_weight(weight.detach()), pad="replicate")
-        self.gemm_ring = self.wide_ring = False
+        self.gemm_ring = self.wide_ring = self.edge_ring = False
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
+        if self.edge_ring:
+            y = F.pixel_shuffle(self.phases(z, "replicate"), 2)
+            return y - edges(z, self.side, self.corners)
         depth = 2 if self.wide_ring and z.shape[2] >= 2 else 1
         y = F.pixel_shuffle(self.phases(z, "zeros" if depth == 2 else "replicate"), 2)
         return ring(z, self.ring, y, self.gemm_ring, depth)
@@ -294,10 +356,11 @@ class SubpixelRenderer(nn.Module):
             conv.gemm = size <= largest
         return self
 
-    def rings(self, gemm: bool = False, wide: bool = False) -> SubpixelRenderer:
+    def rings(self, gemm: bool = False, wide: bool = False, edge: bool = False) -> SubpixelRenderer:
         """Run the rings' grouped convolutions as batched matrix products (``gemm``), and
-        two deep on zero-padded phases (``wide``: :class:`UpConv`); returns self."""
+        two deep on zero-padded phases (``wide``), or the ring as a correction from the
+        edges (``edge``, :func:`edges`): :class:`UpConv`; returns self."""
         for module in self.modules():
             if isinstance(module, UpConv):
-                module.gemm_ring, module.wide_ring = gemm, wide
+                module.gemm_ring, module.wide_ring, module.edge_ring = gemm, wide, edge
         return self

@@ -201,6 +201,7 @@ def fast_network(
     align: int = 8,
     ring_gemm: bool = False,
     wide_ring: bool = False,
+    edge_ring: bool = False,
     streams: bool = False,
 ) -> torch.nn.Module:
     """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
@@ -209,11 +210,11 @@ def fast_network(
     GEMMs; decoder levels on inputs narrower than ``subpixel_from`` keep the original form;
     its channel counts, ``in_channels`` included, are padded to multiples of ``align`` with
     zero-weight channels: on an H100, 1.12x the frames batched and 0.76x the time at batch 1
-    of ``align=1``, ``docs/benchmarks.md``; ``ring_gemm`` and ``wide_ring``: its rings as
-    ``trainer.fastnet.SubpixelRenderer.rings`` says). ``streams``: the skip convolutions and
-    the light MLP on a second CUDA stream (``trainer.streamnet``), with the levels of
-    ``subpixel`` and ``subpixel_from``, or every level plain without ``subpixel``; compiled
-    segment by segment.
+    of ``align=1``, ``docs/benchmarks.md``; ``ring_gemm``, ``wide_ring`` and ``edge_ring``: its
+    rings as ``trainer.fastnet.SubpixelRenderer.rings`` says). ``streams``: the skip
+    convolutions and the light MLP on a second CUDA stream (``trainer.streamnet``), with the
+    levels of ``subpixel`` and ``subpixel_from``, or every level plain without ``subpixel``;
+    compiled segment by segment.
     ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
     around tuned convolutions; minutes of autotuning at first use). Feed it bf16 channels_last
     inputs."""
@@ -221,7 +222,7 @@ def fast_network(
     if subpixel or streams:
         plain_from = subpixel_from if subpixel else model.config.resolution
         net = SubpixelRenderer(net, plain_from, align).gemm_at(gemm_at)
-        net.rings(gemm=ring_gemm, wide=wide_ring)
+        net.rings(gemm=ring_gemm, wide=wide_ring, edge=edge_ring)
     if streams:
         net = StreamedRenderer(net)
     net = net.to(torch.bfloat16, memory_format=torch.channels_last)
@@ -238,7 +239,12 @@ class GraphedRenderer:
     casts run per call. ``__call__(x (N, C, H, W) float, light (N, 4))`` copies into static
     inputs, replays, and returns the static ``(N, 3, H, W) bfloat16`` output (overwritten by
     the next call); :meth:`replay` renders what the static inputs hold. CUDA only: measured
-    by ``benchmarks.infer`` on an H100 and an H200, not exercised by the CPU test suite."""
+    by ``benchmarks.infer`` on an H100 and an H200, not exercised by the CPU test suite.
+
+    The fastest forms measured on the H100s (``docs/benchmarks.md``): at batch 1 every level
+    plain, ``compile=True, subpixel=True, subpixel_from=<resolution>`` (0.935x the compiled
+    original's time, rows timed in turn); batched the sub-pixel rewrite, ``compile=True,
+    subpixel=True``."""
 
     def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3, **fast):
         if not torch.cuda.is_available() or next(model.parameters()).device.type != "cuda":

@@ -1,0 +1,124 @@
+"""The kernels Inductor plans for the compiled fast network, worked out on a CPU machine.
+
+    .venv/bin/python -m benchmarks.kernel_plan [--subpixel] [--edge-ring] [--batch 8]
+        [--resolution 400] [--width 64] [--subpixel-from N] [--align 8]
+
+Compiles ``trainer.infer.fast_network`` (bf16, channels_last) with Inductor's Triton
+backend on the CPU and prints, in launch order, what the generated program calls: each
+extern kernel (cuDNN convolutions, cuBLAS products on a GPU) and each fused Triton kernel
+with the elements it covers; then the fused kernels' elements in all (about the
+pointwise passes' traffic, in elements). The
+plan is made before any kernel runs, so no GPU and no working Triton CPU driver are needed:
+which pointwise work Inductor fuses, and which intermediate tensors it writes out, can be
+checked here before a device call measures it.
+
+Inductor's fusion choices change between torch versions. To see the plan a device will
+run, run this with the device's torch (``gpu.sh`` prints it), for example in a
+separate virtual environment: ``python3.11 -m venv /tmp/t && /tmp/t/bin/pip install
+torch==2.11.0 numpy``, then ``PYTHONPATH=. /tmp/t/bin/python -m benchmarks.kernel_plan``.
+Its dtype and sizes are those of the device's run; the choice of each convolution's
+algorithm is not (that is the device's cuDNN, at run time).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+
+import torch
+
+from trainer.infer import fast_network
+from trainer.model import ModelConfig, NeuralRenderer
+
+#: a kernel launch in Inductor's generated ``call``: a fused Triton kernel or an extern one
+LAUNCH = re.compile(r"^\s*(?:\w+ = )?(?:(triton_\w+)\.run\((.*)\)|extern_kernels\.(\w+)\()")
+
+
+def plan_source(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> str:
+    """The Python program Inductor generates for ``net(x, light)`` on the CPU with its
+    Triton backend, captured before it is loaded (it could not run here)."""
+    import torch._inductor.config as inductor_config
+    import torch.utils._triton as triton_utils
+    from torch._inductor import graph
+
+    captured = []
+    codegen = graph.GraphLowering.codegen
+
+    def keep(self, *args, **kwargs):
+        out = codegen(self, *args, **kwargs)
+        captured.append(out[0] if isinstance(out, tuple) else out)
+        return out
+
+    hash_fn = triton_utils.triton_hash_with_backend
+    torch._dynamo.reset()
+    # the Triton kernels' cache key asks the (absent) GPU driver for its target
+    triton_utils.triton_hash_with_backend = lambda: "kernel-plan"
+    graph.GraphLowering.codegen = keep
+    try:
+        with inductor_config.patch(cpu_backend="triton", compile_threads=1):
+            compiled = torch.compile(net, dynamic=False)
+            try:
+                with torch.no_grad():
+                    compiled(x, light)
+            except Exception:  # loading or running the program: it was captured before
+                if not captured:
+                    raise
+    finally:
+        graph.GraphLowering.codegen = codegen
+        triton_utils.triton_hash_with_backend = hash_fn
+        torch._dynamo.reset()
+    source = captured[-1]
+    return str(getattr(source, "value", source))
+
+
+def launches(source: str) -> list[tuple[str, int]]:
+    """``(kernel, elements)`` of each launch in the program's ``call``, in order; an extern
+    kernel as ``extern <name>`` with 0 elements."""
+    out = []
+    for line in source[source.index("def call(") :].splitlines():
+        m = LAUNCH.match(line)
+        if m and m.group(1):
+            sizes = [int(v) for v in re.findall(r"(?<![\w.])(\d+)(?=,)", m.group(2) + ",")]
+            out.append((m.group(1), sizes[-1] * (sizes[-2] if len(sizes) > 1 else 1)))
+        elif m:
+            out.append((f"extern {m.group(3)}", 0))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--resolution", type=int, default=400)
+    ap.add_argument("--width", type=int, default=64)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--subpixel", action="store_true", help="the trainer.fastnet rewrite")
+    ap.add_argument("--edge-ring", action="store_true", help="with --subpixel: edge rings")
+    ap.add_argument("--subpixel-from", type=int, default=0, metavar="N")
+    ap.add_argument("--align", type=int, default=8, metavar="N")
+    args = ap.parse_args()
+    if args.edge_ring and not args.subpixel:
+        ap.error("--edge-ring is a form of the --subpixel rewrite")
+    model = NeuralRenderer(ModelConfig(resolution=args.resolution, width=args.width)).eval()
+    net = fast_network(
+        model,
+        subpixel=args.subpixel,
+        subpixel_from=args.subpixel_from,
+        align=args.align,
+        edge_ring=args.edge_ring,
+    )
+    r = args.resolution
+    channels = getattr(net, "in_channels", model.config.in_channels)
+    x = torch.rand(args.batch, channels, r, r, dtype=torch.bfloat16)
+    light = torch.rand(args.batch, 4, dtype=torch.bfloat16)
+    plan = launches(plan_source(net, x.contiguous(memory_format=torch.channels_last), light))
+    print(f"torch {torch.__version__}; {r}², width {args.width}, batch {args.batch}")
+    for i, (name, elements) in enumerate(plan):
+        print(f"{i:>4}  {name[:100]:<100} {elements or '':>12}")
+    fused = [e for n, e in plan if not n.startswith("extern")]
+    print(
+        f"{len(plan)} launches: {len(plan) - len(fused)} extern, {len(fused)} fused Triton "
+        f"kernels covering {sum(fused) / 1e6:,.1f} M elements in all"
+    )
+
+
+if __name__ == "__main__":
+    main()
