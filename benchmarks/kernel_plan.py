@@ -16,8 +16,9 @@ Inductor's fusion choices change between torch versions. To see the plan a devic
 run, run this with the device's torch (``gpu.sh`` prints it), for example in a
 separate virtual environment: ``python3.11 -m venv /tmp/t && /tmp/t/bin/pip install
 torch==2.11.0 numpy``, then ``PYTHONPATH=. /tmp/t/bin/python -m benchmarks.kernel_plan``.
-Its dtype and sizes are those of the device's run; the choice of each convolution's
-algorithm is not (that is the device's cuDNN, at run time).
+It compiles with ``fast_network``'s Inductor options (``trainer.infer.compile_options``)
+but the autotuning, and the dtype and sizes of the device's run; the choice of each
+convolution's algorithm is the device's (cuDNN, at run time).
 """
 
 from __future__ import annotations
@@ -27,16 +28,19 @@ import re
 
 import torch
 
-from trainer.infer import fast_network
+from trainer.infer import compile_options, fast_network
 from trainer.model import ModelConfig, NeuralRenderer
 
 #: a kernel launch in Inductor's generated ``call``: a fused Triton kernel or an extern one
 LAUNCH = re.compile(r"^\s*(?:\w+ = )?(?:(triton_\w+)\.run\((.*)\)|extern_kernels\.(\w+)\()")
 
 
-def plan_source(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> str:
+def plan_source(
+    net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor, options: dict | None = None
+) -> str:
     """The Python program Inductor generates for ``net(x, light)`` on the CPU with its
-    Triton backend, captured before it is loaded (it could not run here)."""
+    Triton backend and ``options`` (Inductor's), captured before it is loaded (it could not
+    run here)."""
     import torch._inductor.config as inductor_config
     import torch.utils._triton as triton_utils
     from torch._inductor import graph
@@ -56,7 +60,7 @@ def plan_source(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> s
     graph.GraphLowering.codegen = keep
     try:
         with inductor_config.patch(cpu_backend="triton", compile_threads=1):
-            compiled = torch.compile(net, dynamic=False)
+            compiled = torch.compile(net, dynamic=False, options=options or {})
             try:
                 with torch.no_grad():
                     compiled(x, light)
@@ -109,7 +113,12 @@ def main() -> None:
     channels = getattr(net, "in_channels", model.config.in_channels)
     x = torch.rand(args.batch, channels, r, r, dtype=torch.bfloat16)
     light = torch.rand(args.batch, 4, dtype=torch.bfloat16)
-    plan = launches(plan_source(net, x.contiguous(memory_format=torch.channels_last), light))
+    # fast_network's options but the autotuning: the GPU chooses its algorithms itself
+    options = compile_options(args.edge_ring)
+    tuning = ("max_autotune", "coordinate_descent_tuning")
+    options = {k: v for k, v in options.items() if k not in tuning}
+    x = x.contiguous(memory_format=torch.channels_last)
+    plan = launches(plan_source(net, x, light, options))
     print(f"torch {torch.__version__}; {r}², width {args.width}, batch {args.batch}")
     for i, (name, elements) in enumerate(plan):
         print(f"{i:>4}  {name[:100]:<100} {elements or '':>12}")

@@ -374,6 +374,18 @@ def test_bf16_fast_networks_stay_close_to_fp32():
         assert err < max(2 * plain, 0.01), (name, float(err), float(plain))
 
 
+def test_level_fusion_is_asked_for_edge_rings_on_the_torch_versions_checked():
+    """trainer.infer.compile_options: max-autotune always; Inductor's raised inlining limits
+    only for edge rings, and only on a torch whose Inductor compiles that plan (2.11)."""
+    from trainer.infer import LEVEL_FUSION, compile_options
+
+    base = {"max_autotune": True, "coordinate_descent_tuning": True}
+    assert compile_options(False, "2.11.0+cu130") == base
+    assert compile_options(True, "2.11.0+cu130") == base | LEVEL_FUSION
+    assert compile_options(True, "2.13.0+cpu") == base
+    assert compile_options(True, "2.1.0") == base  # not 2.11
+
+
 @pytest.mark.parametrize(
     ("gemm_at", "subpixel_from", "align", "edge"),
     [(0, 0, 1, False), (64, 0, 1, False), (0, 8, 1, False), (0, 0, 8, False), (0, 0, 8, True)],

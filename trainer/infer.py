@@ -216,8 +216,8 @@ def fast_network(
     levels of ``subpixel`` and ``subpixel_from``, or every level plain without ``subpixel``;
     compiled segment by segment.
     ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
-    around tuned convolutions; minutes of autotuning at first use). Feed it bf16 channels_last
-    inputs."""
+    around tuned convolutions; minutes of autotuning at first use; :func:`compile_options`).
+    Feed it bf16 channels_last inputs."""
     net = fold_batchnorm(model)
     if subpixel or streams:
         plain_from = subpixel_from if subpixel else model.config.resolution
@@ -228,8 +228,38 @@ def fast_network(
     net = net.to(torch.bfloat16, memory_format=torch.channels_last)
     if not compile:
         return net
-    options = {"mode": "max-autotune-no-cudagraphs", "dynamic": False}
-    return net.compile_segments(**options) if streams else torch.compile(net, **options)
+    if streams:
+        return net.compile_segments(mode="max-autotune-no-cudagraphs", dynamic=False)
+    return torch.compile(net, dynamic=False, options=compile_options(edge_ring))
+
+
+#: Inductor's limits on the pointwise work it inlines into one kernel (its defaults: 4, 30
+#: and 8), raised for the sub-pixel levels with edge rings: with them each level's sum, edge
+#: correction and ReLU and the next level's replicate padding are one kernel that writes
+#: only the padded tensor; with the defaults the level's output is written, then read again
+#: by a padding pass (``benchmarks.kernel_plan``, ``docs/benchmarks.md``)
+LEVEL_FUSION = {
+    "realize_reads_threshold": 8,
+    "realize_opcount_threshold": 100,
+    "realize_acc_reads_threshold": 16,
+}
+#: the torch versions whose Inductor was seen to compile :data:`LEVEL_FUSION`'s plan: 2.11,
+#: the lent GPUs'. torch 2.13's fails an assertion (``vr must not be None``) on a replicate
+#: padding fused over a ``pixel_shuffle``, even with its default limits, so elsewhere the
+#: defaults stand
+LEVEL_FUSION_TORCH = ("2.11.",)
+
+
+def compile_options(edge_ring: bool = False, version: str = torch.__version__) -> dict:
+    """The Inductor options :func:`fast_network` compiles with: ``max-autotune-no-cudagraphs``
+    and, for edge rings on a torch ``version`` of :data:`LEVEL_FUSION_TORCH`,
+    :data:`LEVEL_FUSION`."""
+    from torch._inductor import list_mode_options
+
+    options = list_mode_options("max-autotune-no-cudagraphs")
+    if edge_ring and version.startswith(LEVEL_FUSION_TORCH):
+        options |= LEVEL_FUSION
+    return options
 
 
 class GraphedRenderer:
