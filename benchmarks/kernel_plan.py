@@ -6,19 +6,19 @@
 Compiles ``trainer.infer.fast_network`` (bf16, channels_last) with Inductor's Triton
 backend on the CPU and prints, in launch order, what the generated program calls: each
 extern kernel (cuDNN convolutions, cuBLAS products on a GPU) and each fused Triton kernel
-with the elements it covers; then the fused kernels' elements in all (about the
-pointwise passes' traffic, in elements). The
-plan is made before any kernel runs, so no GPU and no working Triton CPU driver are needed:
-which pointwise work Inductor fuses, and which intermediate tensors it writes out, can be
-checked here before a device call measures it.
+with the elements it covers; then the fused kernels' elements in all (a stand-in for the
+pointwise passes' traffic). The plan is made before any kernel runs, so no GPU and no
+working Triton CPU driver are needed: which pointwise work Inductor fuses, and which
+intermediate tensors it writes out, can be checked here before a device call measures it.
 
 Inductor's fusion choices change between torch versions. To see the plan a device will
-run, run this with the device's torch (``gpu.sh`` prints it), for example in a
-separate virtual environment: ``python3.11 -m venv /tmp/t && /tmp/t/bin/pip install
-torch==2.11.0 numpy``, then ``PYTHONPATH=. /tmp/t/bin/python -m benchmarks.kernel_plan``.
-It compiles with ``fast_network``'s Inductor options (``trainer.infer.compile_options``)
-but the autotuning, and the dtype and sizes of the device's run; the choice of each
-convolution's algorithm is the device's (cuDNN, at run time).
+run, run this with the device's torch (``gpu.sh`` prints it), for example in a separate
+virtual environment: ``python3.11 -m venv /tmp/t && /tmp/t/bin/pip install torch==2.11.0
+numpy zarr tenacity click``, then ``PYTHONPATH=. /tmp/t/bin/python -m
+benchmarks.kernel_plan``. It compiles with ``fast_network``'s Inductor options
+(``trainer.infer.compile_options``) but the autotuning, at the dtype and sizes of the
+device's run; the choice of each convolution's algorithm is the device's (cuDNN, at run
+time).
 """
 
 from __future__ import annotations
