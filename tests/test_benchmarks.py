@@ -72,3 +72,14 @@ def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite(
     r = subprocess.run(cmd, capture_output=True, text=True)
     assert r.returncode == 2
     assert r.stderr.strip().endswith("--edge-ring is a form of the --subpixel rewrite")
+
+
+def test_input_copy_times_copy_and_the_compiled_copy_after_checking_their_values():
+    cmd = [sys.executable, "-m", "benchmarks.input_copy", "--batch", "1", "--resolution", "16"]
+    r = subprocess.run([*cmd, "--iters", "2"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = [line.split() for line in r.stdout.splitlines()[1:]]
+    assert [row[0] for row in rows] == ["copy_", "Inductor-compiled"]
+    assert all(float(row[1]) > 0 and row[2] == "ms" and float(row[3]) > 0 for row in rows)
+    bad = subprocess.run([*cmd, "--iters", "0"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "must be positive" in bad.stderr
