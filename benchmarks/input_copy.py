@@ -18,10 +18,13 @@ import argparse
 import torch
 
 from benchmarks.infer import timed
+from trainer.fastnet import round_up
 from trainer.infer import pick_device
+from trainer.model import ModelConfig
 
-#: the maps' channels and the aligned input's (trainer.fastnet.SubpixelRenderer, align 8)
-CHANNELS, WIDTH = 10, 16
+#: the maps' channels and the graph input's, aligned as ``fast_network`` aligns them
+CHANNELS = ModelConfig().in_channels
+WIDTH = round_up(CHANNELS, 8)
 
 
 def copy_in(dst: torch.Tensor, src: torch.Tensor) -> None:
