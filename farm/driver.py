@@ -522,6 +522,8 @@ class Loop:
             log.warning("shard %d: its results were lost (%s); rendering it again", shard, why)
             self.sched.requeue(materials)
             self.bar.total += len(layout.shard_samples(shard))
+            if not self.cancelled:  # now, not at the next resize: by then the idle take it
+                self.grow()
         except RayError as exc:
             cause = getattr(exc, "cause", None) or exc
             error = f"{type(cause).__name__}: {str(cause).splitlines()[0] if str(cause) else ''}"

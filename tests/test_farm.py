@@ -838,10 +838,9 @@ def test_results_lost_with_a_node_after_a_release_are_rendered_again(tmp_path, m
     node), the first held until both workers have a task, the last 12 s slower, ``--workers
     2``: the worker idle at the tail is released, then its node dies (killed here, as a node
     lost to a preemption) with the results waiting for the shard's commit. The commit finds
-    them lost, the shard's materials are queued again, and the job ends with every sample
-    once. (It mostly starts a worker again, up to its --workers, for the queue the worker
-    left cannot take at once; in about 1 run in 3 under the suite's load it did not, cause
-    not found, so that is not asserted.)"""
+    them lost, the shard's materials are queued again, and the job starts a worker again at
+    once (up to its --workers) for those the idle worker left will not take; it ends with
+    every sample once."""
     from tests.ray_autoscaler import autoscaling_cluster
 
     out = tmp_path / "set.zarr"
@@ -859,6 +858,7 @@ def test_results_lost_with_a_node_after_a_release_are_rendered_again(tmp_path, m
         code, stdout, err = output.wait(240)
     assert code == 0, err[-3000:]
     assert "shard 0: its results were lost" in err, stdout + err[-2000:]
+    assert "8 tasks queued: starting 1 workers again (--workers 2)" in stdout, stdout
     assert_exactly_once(out, 8)
     assert "released" in [w["status"] for w in job(out)["workers"].values()]
 
