@@ -2,6 +2,7 @@
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
         [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--edge-ring]
+        [--zero-edge-ring]
         [--streams] [--resolution 400] [--only TEXT] [--rounds K]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
@@ -24,7 +25,9 @@ model's own counts. ``--ring-gemm`` and ``--wide-ring`` add the compiled rewrite
 ring's grouped convolution as a batched matrix product (``trainer.fastnet.strip_gemm``), and
 with the sub-pixel convolutions on zero-padded inputs and the ring two deep
 (``trainer.fastnet.UpConv``). ``--edge-ring`` adds the compiled rewrite whose rings are
-corrections from the edges of each level's input (``trainer.fastnet.edges``). ``--streams``
+corrections from the edges of each level's input (``trainer.fastnet.edges``);
+``--zero-edge-ring`` the same with the sub-pixel convolutions on zero-padded inputs and the
+corrections two deep (``trainer.fastnet.zero_edges``). ``--streams``
 adds the network compiled segment by segment on two CUDA streams, the skip convolutions and
 the light MLP beside the critical path, every level plain (``trainer.streamnet``; for
 batch 1).
@@ -169,6 +172,13 @@ def main() -> None:
         "edges of each level's input (trainer.fastnet.edges; CUDA)",
     )
     ap.add_argument(
+        "--zero-edge-ring",
+        action="store_true",
+        help="add a compiled subpixel row whose sub-pixel convolutions read zero-padded "
+        "inputs, with rings as two-deep corrections from the edges (trainer.fastnet."
+        "zero_edges; CUDA)",
+    )
+    ap.add_argument(
         "--streams",
         action="store_true",
         help="add a compiled row on two CUDA streams: skip convolutions and the light MLP "
@@ -300,6 +310,8 @@ def main() -> None:
             )
         if args.edge_ring:
             rewrite_row("subpixel compiled, edge ring", edge_ring=True)
+        if args.zero_edge_ring:
+            rewrite_row("subpixel compiled, zero-padded edge ring", edge_ring=True, wide_ring=True)
         if args.streams:
             graph_row(
                 f"two streams, compiled + graph{x1}", compile=True, streams=True, align=args.align

@@ -44,7 +44,12 @@ def main() -> None:
     )
     ap.add_argument("--align", type=int, default=8, help="with --subpixel: channels padded to x N")
     ap.add_argument("--ring-gemm", action="store_true", help="with --subpixel: rings as GEMMs")
-    ap.add_argument("--wide-ring", action="store_true", help="with --subpixel: rings two deep")
+    ap.add_argument(
+        "--wide-ring",
+        action="store_true",
+        help="with --subpixel: rings two deep "
+        "(with --edge-ring: edge corrections two deep on zero-padded phases)",
+    )
     ap.add_argument(
         "--edge-ring", action="store_true", help="with --subpixel: rings as edge corrections"
     )

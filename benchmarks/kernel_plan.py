@@ -1,7 +1,7 @@
 """The kernels Inductor plans for the compiled fast network, worked out on a CPU machine.
 
-    .venv/bin/python -m benchmarks.kernel_plan [--subpixel] [--edge-ring] [--batch 8]
-        [--resolution 400] [--width 64] [--subpixel-from N] [--align 8]
+    .venv/bin/python -m benchmarks.kernel_plan [--subpixel] [--edge-ring [--wide-ring]]
+        [--batch 8] [--resolution 400] [--width 64] [--subpixel-from N] [--align 8]
 
 Compiles ``trainer.infer.fast_network`` (bf16, channels_last) with Inductor's Triton
 backend on the CPU and prints, in launch order, what the generated program calls: each
@@ -96,11 +96,16 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--subpixel", action="store_true", help="the trainer.fastnet rewrite")
     ap.add_argument("--edge-ring", action="store_true", help="with --subpixel: edge rings")
+    ap.add_argument(
+        "--wide-ring", action="store_true", help="with --edge-ring: two deep, zero-padded phases"
+    )
     ap.add_argument("--subpixel-from", type=int, default=0, metavar="N")
     ap.add_argument("--align", type=int, default=8, metavar="N")
     args = ap.parse_args()
     if args.edge_ring and not args.subpixel:
         ap.error("--edge-ring is a form of the --subpixel rewrite")
+    if args.wide_ring and not args.edge_ring:
+        ap.error("--wide-ring here is a form of --edge-ring")
     model = NeuralRenderer(ModelConfig(resolution=args.resolution, width=args.width)).eval()
     net = fast_network(
         model,
@@ -108,13 +113,14 @@ def main() -> None:
         subpixel_from=args.subpixel_from,
         align=args.align,
         edge_ring=args.edge_ring,
+        wide_ring=args.wide_ring,
     )
     r = args.resolution
     channels = getattr(net, "in_channels", model.config.in_channels)
     x = torch.rand(args.batch, channels, r, r, dtype=torch.bfloat16)
     light = torch.rand(args.batch, 4, dtype=torch.bfloat16)
     # fast_network's options but the autotuning: the GPU chooses its algorithms itself
-    options = compile_options(args.edge_ring)
+    options = compile_options(args.edge_ring and not args.wide_ring)
     tuning = ("max_autotune", "coordinate_descent_tuning")
     options = {k: v for k, v in options.items() if k not in tuning}
     x = x.contiguous(memory_format=torch.channels_last)

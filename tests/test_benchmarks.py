@@ -37,18 +37,22 @@ def test_rounds_below_one_are_refused_before_any_work():
 
 def test_kernel_plan_lists_the_launches_of_the_compiled_network_without_a_gpu():
     """benchmarks.kernel_plan: Inductor's Triton program for the sub-pixel network with edge
-    rings, planned on this CPU: every convolution an extern launch (4 encoder, the
-    bottleneck's 2, 4 sub-pixel and 3 skip convolutions), each ring one batched product
-    with its ends as the addend, and fused Triton kernels between them."""
+    rings on zero-padded phases, planned on this CPU: every convolution an extern launch (4
+    encoder, the bottleneck's 2, 4 sub-pixel and 3 skip convolutions); each ring two
+    gathers from its level's input (the taps along the edges, the corners) and two batched
+    products; each level's sum, correction and activation one kernel, and no padded copy."""
     cmd = [sys.executable, "-m", "benchmarks.kernel_plan", "--subpixel", "--edge-ring"]
-    cmd += ["--resolution", "32", "--width", "8", "--batch", "2"]
+    cmd += ["--wide-ring", "--resolution", "32", "--width", "8", "--batch", "2"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     names = [line.split()[1:3] for line in r.stdout.splitlines()[1:-1]]
     assert names.count(["extern", "convolution"]) == 13
-    assert names.count(["extern", "baddbmm"]) == 4
+    assert names.count(["extern", "baddbmm"]) == names.count(["extern", "bmm"]) == 4
     fused = [n[0] for n in names if n[0].startswith("triton_")]
-    assert any("pixel_shuffle" in n and "sigmoid" in n for n in fused)  # the output level's
+    assert sum("_index_" in n for n in fused) == 8
+    levels = [n for n in fused if "pixel_shuffle" in n]
+    assert len(levels) == 4 and "sigmoid" in levels[-1]  # the output level's, last
+    assert not any("pad2d" in n for n in fused)  # no replicate padding pass
     assert r.stdout.splitlines()[-1].endswith("M elements in all")
 
 
@@ -68,10 +72,13 @@ def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite(
         ("triton_poi_fused_pad_1", 4096),
         ("extern bmm", 0),
     ]
-    cmd = [sys.executable, "-m", "benchmarks.kernel_plan", "--edge-ring"]
-    r = subprocess.run(cmd, capture_output=True, text=True)
-    assert r.returncode == 2
-    assert r.stderr.strip().endswith("--edge-ring is a form of the --subpixel rewrite")
+    cmd = [sys.executable, "-m", "benchmarks.kernel_plan"]
+    for extra, says in (
+        (["--edge-ring"], "--edge-ring is a form of the --subpixel rewrite"),
+        (["--subpixel", "--wide-ring"], "--wide-ring here is a form of --edge-ring"),
+    ):
+        r = subprocess.run([*cmd, *extra], capture_output=True, text=True)
+        assert r.returncode == 2 and r.stderr.strip().endswith(says), r.stderr
 
 
 def test_input_copy_times_copy_and_the_compiled_copy_after_checking_their_values():

@@ -227,14 +227,16 @@ def test_upconv_is_upsampling_then_convolution(size):
     torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
     up.phases.gemm = True  # the im2col GEMM form of the same convolution
     torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
-    up.gemm_ring = True  # and the ring's grouped convolution as a batched matrix product
+    up.set_ring(gemm=True)  # and the ring's grouped convolution as a batched matrix product
     torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
-    up.wide_ring = True  # zero-padded phases, the ring two deep (replicate below 2 wide)
-    for gemm in (True, False):
-        up.phases.gemm = up.gemm_ring = gemm
+    for gemm in (True, False):  # zero-padded phases, the ring two deep (replicate below 2 wide)
+        up.phases.gemm = gemm
+        up.set_ring(gemm=gemm, wide=True)
         torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
-    up.edge_ring = True  # the ring as a correction from the edges of z (the others ignored)
-    torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
+    for wide in (False, True):  # the ring as a correction from the edges of z, one deep on
+        up.set_ring(edge=True, wide=wide)  # replicate-padded phases, two on zero-padded ones
+        assert hasattr(up, "zero_side") == wide  # those weights are made when asked for
+        torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
     if size < 2:
         y = torch.zeros_like(want)
         with pytest.raises(ValueError, match="a ring 2 deep needs an input at least 2 wide"):
@@ -290,9 +292,10 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
     assert got.shape == want.shape
     torch.testing.assert_close(got, want, atol=1e-5, rtol=0)
     torch.testing.assert_close(got_wide, want, atol=1e-5, rtol=0)
-    with torch.no_grad():  # the rings as corrections from the edges
-        got_edges = fast.rings(edge=True)(x.contiguous(memory_format=cl), light)
-    torch.testing.assert_close(got_edges, want, atol=1e-5, rtol=0)
+    for wide in (False, True):  # the rings as corrections from the edges, on replicate-
+        with torch.no_grad():  # or zero-padded phases
+            got_edges = fast.rings(edge=True, wide=wide)(x.contiguous(memory_format=cl), light)
+        torch.testing.assert_close(got_edges, want, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="fold the BatchNorm first"):
         SubpixelRenderer(model)
 
@@ -361,6 +364,7 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             "all plain": {"subpixel": True, "subpixel_from": 64},
             "ring GEMMs, wide": {"subpixel": True, "ring_gemm": True, "wide_ring": True},
             "edge ring": {"subpixel": True, "edge_ring": True},
+            "edge ring, zero-padded": {"subpixel": True, "edge_ring": True, "wide_ring": True},
             "two streams": {"streams": True},
             "two streams, sub-pixel": {"streams": True, "subpixel": True},
         }
@@ -388,13 +392,20 @@ def test_level_fusion_is_asked_for_edge_rings_on_the_torch_versions_checked():
 
 @pytest.mark.parametrize(
     ("gemm_at", "subpixel_from", "align", "edge"),
-    [(0, 0, 1, False), (64, 0, 1, False), (0, 8, 1, False), (0, 0, 8, False), (0, 0, 8, True)],
+    [
+        (0, 0, 1, False),
+        (64, 0, 1, False),
+        (0, 8, 1, False),
+        (0, 0, 8, False),
+        (0, 0, 8, True),
+        (64, 0, 8, True),
+    ],
 )
 def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align, edge):
     """``--compile`` must see the rewrite whole: Dynamo traces it with ``fullgraph=True``
     (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here); with
     ``gemm_at``, the rings run as matrix products and two deep too; ``edge``: the rings as
-    corrections from the edges."""
+    corrections from the edges (with ``gemm_at``, two deep on zero-padded phases)."""
     from trainer.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()

@@ -12,7 +12,10 @@ convolves the concatenation of that with the skip. Both steps are linear, so for
   clamps at the edge; that is exact everywhere but the outermost ring of the output, where the
   original convolution sees its zero padding. The ring is recomputed exactly from thin strips
   of ``up(z)`` (:func:`ring`), or corrected from the edge lines of ``z`` (:func:`edges`,
-  ``SubpixelRenderer.rings(edge=True)``).
+  ``SubpixelRenderer.rings(edge=True)``). With a zero-padded ``z`` (the convolution's own
+  padding, no padded copy written) the sub-pixel form is wrong on the two outer rings, and
+  those are corrected from the same edge lines (:func:`zero_edges`, ``rings(edge=True,
+  wide=True)``).
 * **Light plane.** The 128 light channels are one plane repeated, so their weights are summed
   into one input channel.
 * **Aligned channels** (``align=8``, for tensor cores). Tensor-core convolutions want
@@ -177,6 +180,76 @@ def edges(z: torch.Tensor, side: torch.Tensor, corners: torch.Tensor) -> torch.T
     )
 
 
+#: ``OUTER[e][p][k]``: ``TAPS[p][a]`` for the low-resolution tap ``a`` on edge ``e`` (0: the
+#: first row or column, ``a = 0``; 1: the last, ``a = 2``) less the original tap ``k`` that
+#: the zero padding hides from the output's outermost line (phase 0 at the first edge, 1 at
+#: the last): what :func:`zero_edges` weighs an edge line with across the edge
+OUTER = torch.stack([TAPS[:, 0], TAPS[:, 2]]) - torch.tensor(
+    [[[1.0, 0, 0], [0, 0, 0]], [[0, 0, 0], [0, 0, 1.0]]], dtype=torch.float64
+)
+
+
+def zero_edge_weights(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(O, I, 3, 3)`` → the weights :func:`zero_edges` takes: ``(4, 3·I, 4·O)``, a matrix a
+    side (top, bottom, left, right) from 3 taps along an edge line of ``z`` (rows in ``(tap,
+    channel)`` order) to the 2 x 2 outputs of one low-resolution pixel of the edge (columns
+    in ``(phase along, phase across, channel)`` order), and ``(4, I, 4·O)``, the corner pixels'
+    terms (top-left, bottom-left, top-right, bottom-right) in the same column order."""
+    taps, outer, v = TAPS.to(w.device), OUTER.to(w.device), w.double()
+    o, i = w.shape[:2]
+    sides = [torch.einsum("pk,qbl,ockl->bcqpo", outer[e], taps, v) for e in (0, 1)]
+    sides += [torch.einsum("pak,ql,ockl->acpqo", taps, outer[e], v) for e in (0, 1)]
+    corners = []
+    for a, b in ((0, 0), (2, 0), (0, 2), (2, 2)):  # as each corner's two edges count it
+        k = torch.einsum("pk,ql,ockl->cqpo", taps[:, a], taps[:, b], v)
+        k[:, b // 2, a // 2] -= v[:, :, a, b].T  # the one tap hidden from the corner pixel
+        corners.append(k.reshape(i, 4 * o))
+    side = torch.stack([s.reshape(3 * i, 4 * o) for s in sides]).to(w.dtype)
+    return side, torch.stack(corners).to(w.dtype)
+
+
+def zero_edges(z: torch.Tensor, side: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
+    """What ``conv(up(z), w, padding=1)`` differs by from its sub-pixel form on a
+    zero-padded ``z``, for a square ``z`` h wide and ``(side, corners) =
+    zero_edge_weights(w)``: the ``(N, O, 2h, 2h)`` correction to add, zero but on the two
+    outer rings. The phases then convolve ``z`` with the convolution's own zero padding, so
+    no level writes a padded copy of its output.
+
+    The zero padding hides from the sub-pixel phases of the edge pixels the replicated edge
+    lines that the upsampling's clamp gives them: the phases' taps on a padding line, applied
+    to the edge line it repeats, 2 x 2 outputs for each pixel of the edge. Less, on the
+    outermost line, what :func:`edges` corrects (the original convolution's own zero
+    padding). Each side is a 3-tap product along its edge line, the four in one batched
+    matrix product; each corner pixel of the padding is on two sides' lines, so the corners'
+    terms go in once less, as the product's addend, as in :func:`edges`."""
+    n, c, h = z.shape[:3]
+    if z.shape[3] != h:
+        raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
+    o4, last, m = corners.shape[2], h - 1, h + 2
+    # each edge line of z with its ends repeated, as indices into z's pixels: one gather
+    i = torch.arange(4 * m, device=z.device)
+    side_of, t = i // m, (i % m - 1).clamp(0, last)
+    row = torch.where(side_of == 0, 0, torch.where(side_of == 1, last, t))
+    col = torch.where(side_of < 2, t, torch.where(side_of == 2, 0, last))
+    at = (row * h + col).view(4, m).unfold(1, 3, 1)  # (4, h, 3): the taps along each line
+    taps = z.permute(0, 2, 3, 1).reshape(n, h * h, c)[:, at]  # (N, 4, h, 3, C)
+    cols = taps.transpose(0, 1).reshape(4, n * h, 3 * c)
+    # the corner pixels: the top and bottom lines' middle taps at their two ends
+    points = taps[:, :2, [0, last], 1].permute(2, 1, 0, 3).reshape(4, n, c)
+    k = torch.bmm(points, corners)  # (4, N, 4·O): top-left, bottom-left, top-right, bottom-right
+    ends = F.pad(k[:2, :, None], (0, 0, 0, last)) + F.pad(k[2:, :, None], (0, 0, last, 0))
+    ends = F.pad(-ends, (0, 0, 0, 0, 0, 0, 0, 2))  # (4, N, h, 4·O): none on the columns
+    d = torch.baddbmm(ends.view(4, n * h, o4), cols, side).view(4, n, 2 * h, 2, o4 // 4)
+    rows, columns = d[:2].permute(0, 1, 4, 3, 2), d[2:].permute(0, 1, 4, 2, 3)
+    far = 2 * h - 2
+    return (
+        F.pad(rows[0], (0, 0, 0, far))
+        + F.pad(rows[1], (0, 0, far, 0))
+        + F.pad(columns[0], (0, far))
+        + F.pad(columns[1], (far, 0))
+    )
+
+
 class Conv(nn.Module):
     """A 3x3 convolution with optional bias, stride and zero or replicate padding.
 
@@ -216,10 +289,7 @@ class Conv(nn.Module):
 
 class UpConv(nn.Module):
     """``conv(up(z), weight, padding=1)`` (no bias) of a square ``z`` without building
-    ``up(z)``. ``gemm_ring``: the ring's convolution as a matrix product (:func:`ring`).
-    ``wide_ring``: the phases on a zero-padded ``z`` (no padding pass over it), which is
-    wrong on the output's two outer rings, so the ring is recomputed two deep (for a ``z`` at
-    least 2 wide; a narrower one takes the replicate padding)."""
+    ``up(z)``; its ring as :meth:`set_ring` says."""
 
     def __init__(self, weight: torch.Tensor):
         super().__init__()
@@ -230,7 +300,24 @@ class UpConv(nn.Module):
         self.phases = Conv(subpixel_weight(weight.detach()), pad="replicate")
         self.gemm_ring = self.wide_ring = self.edge_ring = False
 
+    def set_ring(self, gemm: bool = False, wide: bool = False, edge: bool = False) -> None:
+        """``gemm``: the ring's convolution as a matrix product (:func:`ring`). ``wide``: the
+        phases on a zero-padded ``z`` (no padding pass over it), which is wrong on the
+        output's two outer rings, so the ring is recomputed two deep (for a ``z`` at least 2
+        wide; a narrower one takes the replicate padding). ``edge``: the ring as a correction
+        from the edge lines of ``z`` (:func:`edges`), and with ``wide`` two deep on the
+        zero-padded phases (:func:`zero_edges`, whose weights are made here)."""
+        self.gemm_ring, self.wide_ring, self.edge_ring = gemm, wide, edge
+        if edge and wide and not hasattr(self, "zero_side"):
+            o = self.ring.shape[0] // 2
+            side, corners = zero_edge_weights(self.ring[:o].detach())
+            self.zero_side = nn.Parameter(side, requires_grad=False)
+            self.zero_corners = nn.Parameter(corners, requires_grad=False)
+
     def forward(self, z: torch.Tensor) -> torch.Tensor:
+        if self.edge_ring and self.wide_ring:
+            y = F.pixel_shuffle(self.phases(z, "zeros"), 2)
+            return y + zero_edges(z, self.zero_side, self.zero_corners)
         if self.edge_ring:
             y = F.pixel_shuffle(self.phases(z, "replicate"), 2)
             return y - edges(z, self.side, self.corners)
@@ -359,8 +446,9 @@ class SubpixelRenderer(nn.Module):
     def rings(self, gemm: bool = False, wide: bool = False, edge: bool = False) -> SubpixelRenderer:
         """Run the rings' grouped convolutions as batched matrix products (``gemm``), and
         two deep on zero-padded phases (``wide``), or the ring as a correction from the
-        edges (``edge``, :func:`edges`): :class:`UpConv`; returns self."""
+        edges (``edge``, :func:`edges`; with ``wide``, :func:`zero_edges`):
+        :meth:`UpConv.set_ring`; returns self."""
         for module in self.modules():
             if isinstance(module, UpConv):
-                module.gemm_ring, module.wide_ring, module.edge_ring = gemm, wide, edge
+                module.set_ring(gemm, wide, edge)
         return self

@@ -211,10 +211,11 @@ def fast_network(
     its channel counts, ``in_channels`` included, are padded to multiples of ``align`` with
     zero-weight channels: on an H100, 1.12x the frames batched and 0.76x the time at batch 1
     of ``align=1``, ``docs/benchmarks.md``; ``ring_gemm``, ``wide_ring`` and ``edge_ring``: its
-    rings as ``trainer.fastnet.SubpixelRenderer.rings`` says). ``streams``: the skip
-    convolutions and the light MLP on a second CUDA stream (``trainer.streamnet``), with the
-    levels of ``subpixel`` and ``subpixel_from``, or every level plain without ``subpixel``;
-    compiled segment by segment.
+    rings as ``trainer.fastnet.SubpixelRenderer.rings`` says; ``edge_ring`` with ``wide_ring``:
+    corrections two deep on zero-padded phases, ``trainer.fastnet.zero_edges``). ``streams``:
+    the skip convolutions and the light MLP on a second CUDA stream (``trainer.streamnet``),
+    with the levels of ``subpixel`` and ``subpixel_from``, or every level plain without
+    ``subpixel``; compiled segment by segment.
     ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
     around tuned convolutions; minutes of autotuning at first use; :func:`compile_options`).
     Feed it bf16 channels_last inputs."""
@@ -230,14 +231,17 @@ def fast_network(
         return net
     if streams:
         return net.compile_segments(mode="max-autotune-no-cudagraphs", dynamic=False)
-    return torch.compile(net, dynamic=False, options=compile_options(edge_ring))
+    options = compile_options(edge_ring and not wide_ring)
+    return torch.compile(net, dynamic=False, options=options)
 
 
 #: Inductor's limits on the pointwise work it inlines into one kernel (its defaults: 4, 30
-#: and 8), raised for the sub-pixel levels with edge rings: with them each level's sum, edge
-#: correction and ReLU and the next level's replicate padding are one kernel that writes
-#: only the padded tensor; with the defaults the level's output is written, then read again
-#: by a padding pass (``benchmarks.kernel_plan``, ``docs/benchmarks.md``)
+#: and 8), raised for the sub-pixel levels with edge rings on replicate-padded phases: with
+#: them each level's sum, edge correction and ReLU and the next level's replicate padding are
+#: one kernel that writes only the padded tensor; with the defaults the level's output is
+#: written, then read again by a padding pass (``benchmarks.kernel_plan``,
+#: ``docs/benchmarks.md``). Edge rings on zero-padded phases (``wide_ring``) write no padded
+#: copy and get the same plan with the defaults
 LEVEL_FUSION = {
     "realize_reads_threshold": 8,
     "realize_opcount_threshold": 100,
@@ -252,8 +256,8 @@ LEVEL_FUSION_TORCH = ("2.11.",)
 
 def compile_options(edge_ring: bool = False, version: str = torch.__version__) -> dict:
     """The Inductor options :func:`fast_network` compiles with: ``max-autotune-no-cudagraphs``
-    and, for edge rings on a torch ``version`` of :data:`LEVEL_FUSION_TORCH`,
-    :data:`LEVEL_FUSION`."""
+    and, for edge rings on replicate-padded phases (``edge_ring``) on a torch ``version`` of
+    :data:`LEVEL_FUSION_TORCH`, :data:`LEVEL_FUSION`."""
     from torch._inductor import list_mode_options
 
     options = list_mode_options("max-autotune-no-cudagraphs")
