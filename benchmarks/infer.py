@@ -2,7 +2,7 @@
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
         [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--edge-ring]
-        [--zero-edge-ring]
+        [--zero-edge-ring] [--conv-relu]
         [--streams] [--resolution 400] [--only TEXT] [--rounds K]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
@@ -27,7 +27,9 @@ with the sub-pixel convolutions on zero-padded inputs and the ring two deep
 (``trainer.fastnet.UpConv``). ``--edge-ring`` adds the compiled rewrite whose rings are
 corrections from the edges of each level's input (``trainer.fastnet.edges``);
 ``--zero-edge-ring`` the same with the sub-pixel convolutions on zero-padded inputs and the
-corrections two deep (``trainer.fastnet.zero_edges``). ``--streams``
+corrections two deep (``trainer.fastnet.zero_edges``). ``--conv-relu`` adds the compiled
+rewrite (with the zero-padded edge ring when that is asked for) whose encoder convolutions
+run with their ReLU in one cuDNN call (``trainer.convrelu``). ``--streams``
 adds the network compiled segment by segment on two CUDA streams, the skip convolutions and
 the light MLP beside the critical path, every level plain (``trainer.streamnet``; for
 batch 1).
@@ -179,6 +181,12 @@ def main() -> None:
         "zero_edges; CUDA)",
     )
     ap.add_argument(
+        "--conv-relu",
+        action="store_true",
+        help="add a compiled subpixel row (with --zero-edge-ring: of that form) whose encoder "
+        "convolutions run with their ReLU in one cuDNN call (trainer.convrelu; CUDA)",
+    )
+    ap.add_argument(
         "--streams",
         action="store_true",
         help="add a compiled row on two CUDA streams: skip convolutions and the light MLP "
@@ -312,6 +320,14 @@ def main() -> None:
             rewrite_row("subpixel compiled, edge ring", edge_ring=True)
         if args.zero_edge_ring:
             rewrite_row("subpixel compiled, zero-padded edge ring", edge_ring=True, wide_ring=True)
+        if args.conv_relu:
+            zero = args.zero_edge_ring
+            rewrite_row(
+                f"subpixel compiled{', zero-padded edge ring' * zero}, conv+ReLU",
+                edge_ring=zero,
+                wide_ring=zero,
+                conv_relu=True,
+            )
         if args.streams:
             graph_row(
                 f"two streams, compiled + graph{x1}", compile=True, streams=True, align=args.align

@@ -19,6 +19,9 @@ from torch.profiler import ProfilerActivity, profile
 from trainer.infer import fast_network
 from trainer.model import ModelConfig, NeuralRenderer
 
+#: the profiler's names of the operators that run one convolution each
+CONVOLUTIONS = ("aten::convolution", "aten::cudnn_convolution_relu")
+
 
 def conv_flops(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> dict:
     """``{str((input shape, weight shape)): FLOPs}`` of the convolutions of one eager forward,
@@ -53,7 +56,12 @@ def main() -> None:
     ap.add_argument(
         "--edge-ring", action="store_true", help="with --subpixel: rings as edge corrections"
     )
+    ap.add_argument(
+        "--conv-relu", action="store_true", help="with --subpixel: conv + ReLU in one cuDNN call"
+    )
     args = ap.parse_args()
+    if args.conv_relu and not args.subpixel:
+        ap.error("--conv-relu is a form of the --subpixel rewrite")
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)
     fmt = torch.channels_last
@@ -66,8 +74,11 @@ def main() -> None:
         "ring_gemm": args.ring_gemm,
         "wide_ring": args.wide_ring,
         "edge_ring": args.edge_ring,
+        "conv_relu": args.conv_relu,
     }
-    plain, net = fast_network(model, **fast), fast_network(model, compile=args.compile, **fast)
+    net = fast_network(model, compile=args.compile, **fast)
+    # the same convolutions, each through aten::conv2d, whose FLOPs the profiler counts
+    plain = fast_network(model, **(fast | {"conv_relu": False}))
     width = getattr(plain, "in_channels", cfg.in_channels)  # aligned: fed padded, as graphed
     x = torch.rand(args.batch, width, 400, 400, device="cuda", dtype=torch.bfloat16)
     x = x.contiguous(memory_format=fmt)
@@ -100,7 +111,7 @@ def main() -> None:
     shown = 0
     for r in prof.key_averages(group_by_input_shape=True):
         key = str((r.input_shapes[0], r.input_shapes[1])) if len(r.input_shapes) > 1 else ""
-        if r.key == "aten::convolution" and key in flops:
+        if r.key in CONVOLUTIONS and key in flops:
             ms = r.device_time_total / 3 / 1e3
             print(f"{key:<60}{ms:>8.3f}{flops[key] / ms / 1e9:>9.0f}")
             shown += 1

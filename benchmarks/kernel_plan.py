@@ -1,7 +1,7 @@
 """The kernels Inductor plans for the compiled fast network, worked out on a CPU machine.
 
     .venv/bin/python -m benchmarks.kernel_plan [--subpixel] [--edge-ring [--wide-ring]]
-        [--batch 8] [--resolution 400] [--width 64] [--subpixel-from N] [--align 8]
+        [--conv-relu] [--batch 8] [--resolution 400] [--width 64] [--subpixel-from N] [--align 8]
 
 Compiles ``trainer.infer.fast_network`` (bf16, channels_last) with Inductor's Triton
 backend on the CPU and prints, in launch order, what the generated program calls: each
@@ -32,7 +32,11 @@ from trainer.infer import compile_options, fast_network
 from trainer.model import ModelConfig, NeuralRenderer
 
 #: a kernel launch in Inductor's generated ``call``: a fused Triton kernel or an extern one
-LAUNCH = re.compile(r"^\s*(?:\w+ = )?(?:(triton_\w+)\.run\((.*)\)|extern_kernels\.(\w+)\()")
+#: (one of Inductor's, or an operator it calls as it is, such as ``shaderball.conv_relu``)
+LAUNCH = re.compile(
+    r"^\s*(?:\w+ = )?(?:(triton_\w+)\.run\((.*)\)"
+    r"|(?:extern_kernels|torch\.ops\.(?!aten\.)\w+)\.(\w+)(?:\.default)?\()"
+)
 
 
 def plan_source(
@@ -99,6 +103,9 @@ def main() -> None:
     ap.add_argument(
         "--wide-ring", action="store_true", help="with --edge-ring: two deep, zero-padded phases"
     )
+    ap.add_argument(
+        "--conv-relu", action="store_true", help="with --subpixel: conv + ReLU as one operator"
+    )
     ap.add_argument("--subpixel-from", type=int, default=0, metavar="N")
     ap.add_argument("--align", type=int, default=8, metavar="N")
     args = ap.parse_args()
@@ -106,6 +113,8 @@ def main() -> None:
         ap.error("--edge-ring is a form of the --subpixel rewrite")
     if args.wide_ring and not args.edge_ring:
         ap.error("--wide-ring here is a form of --edge-ring")
+    if args.conv_relu and not args.subpixel:
+        ap.error("--conv-relu is a form of the --subpixel rewrite")
     model = NeuralRenderer(ModelConfig(resolution=args.resolution, width=args.width)).eval()
     net = fast_network(
         model,
@@ -114,6 +123,7 @@ def main() -> None:
         align=args.align,
         edge_ring=args.edge_ring,
         wide_ring=args.wide_ring,
+        conv_relu=args.conv_relu,
     )
     r = args.resolution
     channels = getattr(net, "in_channels", model.config.in_channels)

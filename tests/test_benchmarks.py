@@ -37,16 +37,20 @@ def test_rounds_below_one_are_refused_before_any_work():
 
 def test_kernel_plan_lists_the_launches_of_the_compiled_network_without_a_gpu():
     """benchmarks.kernel_plan: Inductor's Triton program for the sub-pixel network with edge
-    rings on zero-padded phases, planned on this CPU: every convolution an extern launch (4
-    encoder, the bottleneck's 2, 4 sub-pixel and 3 skip convolutions); each ring two
+    rings on zero-padded phases and fused ReLUs, planned on this CPU: every convolution an
+    extern launch (4 encoder, the bottleneck's 2, 4 sub-pixel and 3 skip convolutions; 5 of
+    them with their ReLU, no pass of it left); each ring two
     gathers from its level's input (the taps along the edges, the corners) and two batched
     products; each level's sum, correction and activation one kernel, and no padded copy."""
     cmd = [sys.executable, "-m", "benchmarks.kernel_plan", "--subpixel", "--edge-ring"]
-    cmd += ["--wide-ring", "--resolution", "32", "--width", "8", "--batch", "2"]
+    cmd += ["--wide-ring", "--conv-relu", "--resolution", "32", "--width", "8", "--batch", "2"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     names = [line.split()[1:3] for line in r.stdout.splitlines()[1:-1]]
-    assert names.count(["extern", "convolution"]) == 13
+    # with their ReLU in one operator: the encoder's 4 and the bottleneck's last
+    assert names.count(["extern", "conv_relu"]) == 5
+    assert names[:4] == [["extern", "conv_relu"]] * 4  # the encoder's: no pass between them
+    assert names.count(["extern", "convolution"]) == 13 - 5
     assert names.count(["extern", "baddbmm"]) == names.count(["extern", "bmm"]) == 4
     fused = [n[0] for n in names if n[0].startswith("triton_")]
     assert sum("_index_" in n for n in fused) == 8
@@ -76,6 +80,7 @@ def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite(
     for extra, says in (
         (["--edge-ring"], "--edge-ring is a form of the --subpixel rewrite"),
         (["--subpixel", "--wide-ring"], "--wide-ring here is a form of --edge-ring"),
+        (["--conv-relu"], "--conv-relu is a form of the --subpixel rewrite"),
     ):
         r = subprocess.run([*cmd, *extra], capture_output=True, text=True)
         assert r.returncode == 2 and r.stderr.strip().endswith(says), r.stderr

@@ -296,6 +296,9 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
         with torch.no_grad():  # or zero-padded phases
             got_edges = fast.rings(edge=True, wide=wide)(x.contiguous(memory_format=cl), light)
         torch.testing.assert_close(got_edges, want, atol=1e-5, rtol=0)
+    with torch.no_grad():  # and the ReLUs after convolutions in one operator with them
+        got_fused = fast.fuse_relus()(x.contiguous(memory_format=cl), light)
+    torch.testing.assert_close(got_fused, want, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="fold the BatchNorm first"):
         SubpixelRenderer(model)
 
@@ -365,6 +368,12 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             "ring GEMMs, wide": {"subpixel": True, "ring_gemm": True, "wide_ring": True},
             "edge ring": {"subpixel": True, "edge_ring": True},
             "edge ring, zero-padded": {"subpixel": True, "edge_ring": True, "wide_ring": True},
+            "zero-padded, conv+ReLU": {
+                "subpixel": True,
+                "edge_ring": True,
+                "wide_ring": True,
+                "conv_relu": True,
+            },
             "two streams": {"streams": True},
             "two streams, sub-pixel": {"streams": True, "subpixel": True},
         }
@@ -376,6 +385,28 @@ def test_bf16_fast_networks_stay_close_to_fp32():
     assert 0 < plain < 0.02, errors
     for name, err in errors.items():
         assert err < max(2 * plain, 0.01), (name, float(err), float(plain))
+
+
+def test_conv_relu_is_one_operator_that_compiles_and_gives_convolution_then_relu():
+    """trainer.convrelu.conv_relu (on CUDA one cuDNN call; here conv2d then relu): the same
+    numbers, its fake implementation's shapes and strides those of the real one
+    (``torch.library.opcheck``), traced whole by Dynamo; ``fast_network`` refuses it for the
+    original network, which has no such operator."""
+    from trainer.convrelu import conv_relu
+    from trainer.infer import fast_network
+
+    x = torch.randn(2, 8, 9, 9).contiguous(memory_format=torch.channels_last)
+    w, b = torch.randn(4, 8, 3, 3), torch.randn(4)
+    for stride, bias, inp in ((1, b, x), (2, b, x), (2, None, x.contiguous())):
+        want = F.relu(F.conv2d(inp, w, bias, stride, 1))
+        got = conv_relu(inp, w, bias, stride)
+        assert got.stride() == want.stride()
+        torch.testing.assert_close(got, want, atol=0, rtol=0)
+        torch.library.opcheck(conv_relu, (inp, w, bias, stride))
+    traced = torch.compile(lambda t: conv_relu(t, w, b, 2) * 2, backend="eager", fullgraph=True)
+    torch.testing.assert_close(traced(x), 2 * F.relu(F.conv2d(x, w, b, 2, 1)))
+    with pytest.raises(ValueError, match="conv_relu is a form of the subpixel"):
+        fast_network(NeuralRenderer(ModelConfig(resolution=16, width=8)), conv_relu=True)
 
 
 def test_level_fusion_is_asked_for_edge_rings_on_the_torch_versions_checked():
@@ -405,13 +436,14 @@ def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align, edg
     """``--compile`` must see the rewrite whole: Dynamo traces it with ``fullgraph=True``
     (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here); with
     ``gemm_at``, the rings run as matrix products and two deep too; ``edge``: the rings as
-    corrections from the edges (with ``gemm_at``, two deep on zero-padded phases)."""
+    corrections from the edges (with ``gemm_at``, two deep on zero-padded phases), and the
+    ReLUs after convolutions in one operator with them."""
     from trainer.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()
     model = NeuralRenderer(ModelConfig(resolution=32)).eval()
     net = SubpixelRenderer(fold_batchnorm(model), subpixel_from, align).gemm_at(gemm_at)
-    net.rings(gemm=gemm_at > 0, wide=gemm_at > 0, edge=edge)
+    net.rings(gemm=gemm_at > 0, wide=gemm_at > 0, edge=edge).fuse_relus(edge)
     x, light = torch.rand(1, model.config.in_channels, 32, 32), torch.rand(1, 4)
     traced = torch.compile(net, backend="eager", fullgraph=True, dynamic=False)
     with torch.no_grad():

@@ -44,6 +44,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from trainer.convrelu import conv_relu
 from trainer.model import LIGHT_CHANNELS, NeuralRenderer
 
 # TAPS[p][a][k]: weight of the original tap k (row offset k - 1 on the upsampled grid) that
@@ -263,7 +264,14 @@ class Conv(nn.Module):
         super().__init__()
         self.weight = nn.Parameter(weight.detach().clone(), requires_grad=False)
         self.bias = None if bias is None else nn.Parameter(bias.detach().clone(), False)
-        self.stride, self.pad, self.gemm = stride, pad, False
+        self.stride, self.pad, self.gemm, self.fused_relu = stride, pad, False, False
+
+    def relu(self, x: torch.Tensor) -> torch.Tensor:
+        """``relu(self(x))``; with ``fused_relu`` (and zero padding, no GEMM) one operator,
+        on CUDA one cuDNN call (:func:`trainer.convrelu.conv_relu`)."""
+        if self.fused_relu and self.pad == "zeros" and not self.gemm:
+            return conv_relu(x, self.weight, self.bias, self.stride)
+        return F.relu(self(x))
 
     def forward(self, x: torch.Tensor, pad: str | None = None) -> torch.Tensor:
         """``pad`` overrides the padding given at construction."""
@@ -421,11 +429,11 @@ class SubpixelRenderer(nn.Module):
         if x.shape[1] < self.in_channels:
             x = F.pad(x, (0, 0, 0, 0, 0, self.in_channels - x.shape[1]))
         for enc in self.encoder:
-            x = F.relu(enc(x))
+            x = enc.relu(x)
             skips.append(x)
         plane = self.light(light).view(-1, 1, self.b, self.b).to(x.dtype)
         x = F.relu(self.fuse(torch.cat([x, plane.expand(-1, self.planes, -1, -1)], 1)))
-        x = F.relu(self.dec0(torch.cat([x, skips[-1]], 1) if self.config.skips else x))
+        x = self.dec0.relu(torch.cat([x, skips[-1]], 1) if self.config.skips else x)
         *decoder, out = self.levels
         for i, level in enumerate(decoder):
             x = F.relu(level(x, skips[-2 - i] if self.config.skips else None))
@@ -441,6 +449,15 @@ class SubpixelRenderer(nn.Module):
             sized += level.convs(self.b << i)
         for conv, size in sized:
             conv.gemm = size <= largest
+        return self
+
+    def fuse_relus(self, fused: bool = True) -> SubpixelRenderer:
+        """Run the convolutions whose outputs only convolutions read (the encoder's and the
+        bottleneck's last) with their ReLU in one operator (:meth:`Conv.relu`): on CUDA
+        nothing rewrites their outputs; a ReLU that a pointwise kernel reads next is fused
+        there by Inductor already. Returns self."""
+        for conv in [*self.encoder, self.dec0]:
+            conv.fused_relu = fused
         return self
 
     def rings(self, gemm: bool = False, wide: bool = False, edge: bool = False) -> SubpixelRenderer:

@@ -203,6 +203,7 @@ def fast_network(
     wide_ring: bool = False,
     edge_ring: bool = False,
     streams: bool = False,
+    conv_relu: bool = False,
 ) -> torch.nn.Module:
     """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
     channels_last. ``subpixel``: the exact rewrite of ``trainer.fastnet`` (no upsampled or
@@ -215,15 +216,19 @@ def fast_network(
     corrections two deep on zero-padded phases, ``trainer.fastnet.zero_edges``). ``streams``:
     the skip convolutions and the light MLP on a second CUDA stream (``trainer.streamnet``),
     with the levels of ``subpixel`` and ``subpixel_from``, or every level plain without
-    ``subpixel``; compiled segment by segment.
+    ``subpixel``; compiled segment by segment. ``conv_relu`` (with ``subpixel`` or
+    ``streams``): the encoder's convolutions and the bottleneck's last with their ReLU in one
+    operator, on CUDA one cuDNN call (``trainer.fastnet.SubpixelRenderer.fuse_relus``).
     ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
     around tuned convolutions; minutes of autotuning at first use; :func:`compile_options`).
     Feed it bf16 channels_last inputs."""
+    if conv_relu and not (subpixel or streams):
+        raise ValueError("conv_relu is a form of the subpixel (or streams) network")
     net = fold_batchnorm(model)
     if subpixel or streams:
         plain_from = subpixel_from if subpixel else model.config.resolution
         net = SubpixelRenderer(net, plain_from, align).gemm_at(gemm_at)
-        net.rings(gemm=ring_gemm, wide=wide_ring, edge=edge_ring)
+        net.rings(gemm=ring_gemm, wide=wide_ring, edge=edge_ring).fuse_relus(conv_relu)
     if streams:
         net = StreamedRenderer(net)
     net = net.to(torch.bfloat16, memory_format=torch.channels_last)

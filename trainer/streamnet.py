@@ -134,7 +134,7 @@ class StreamedRenderer(nn.Module):
             x = F.pad(x, (0, 0, 0, 0, 0, self.in_channels - x.shape[1]))
         features = []
         for enc in self.encoder:
-            x = F.relu(enc(x))
+            x = enc.relu(x)
             features.append(x)
         return features
 
