@@ -259,10 +259,15 @@ def main() -> None:
         if args.only not in name:
             return
         start = time.perf_counter()
-        g1 = GraphedRenderer(model, 1, **fast)
-        # on stderr, so that a run stopped while building says how far it got
-        print(f"{name}: batch 1 built in {time.perf_counter() - start:.0f} s", file=sys.stderr)
-        gb = GraphedRenderer(model, args.batch, **fast)
+        try:  # a form this machine's torch or cuDNN cannot run costs its row, not the others
+            g1 = GraphedRenderer(model, 1, **fast)
+            # on stderr, so that a run stopped while building says how far it got
+            print(f"{name}: batch 1 built in {time.perf_counter() - start:.0f} s", file=sys.stderr)
+            gb = GraphedRenderer(model, args.batch, **fast)
+        except Exception as exc:  # any build failure: reported, and the run goes on
+            why = (str(exc).strip().splitlines() or [""])[0][:300]
+            print(f"{name}: not built: {type(exc).__name__}: {why}", file=sys.stderr)
+            return
         build = time.perf_counter() - start
         one, many = measure(name, lambda: g1(x_all[:1], l_all[:1]), lambda: gb(x_all, l_all))
         replay = timed(gb.replay, args.iters, cuda)  # the input copied in by the line above
