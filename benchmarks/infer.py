@@ -99,6 +99,17 @@ def interleaved(rows, rounds: int, clock) -> dict[str, list[float]]:
     return times
 
 
+def built(name: str, build):
+    """``build()``, or ``None`` when it raises, said in one line on stderr: a form that this
+    machine's torch or cuDNN cannot run costs its own row, not the rows after it."""
+    try:
+        return build()
+    except Exception as exc:  # any failure to build: reported, and the run goes on
+        why = (str(exc).strip().splitlines() or [""])[0][:300]
+        print(f"{name}: not built: {type(exc).__name__}: {why}", file=sys.stderr)
+        return None
+
+
 def rounds_table(one: dict[str, list[float]], many: dict[str, list[float]], batch: int) -> str:
     """The ``--rounds`` table: per row the median ms a frame at batch 1, its range over the
     rounds, the median frames/s batched, and the batch-1 median over the first row's."""
@@ -259,14 +270,11 @@ def main() -> None:
         if args.only not in name:
             return
         start = time.perf_counter()
-        try:  # a form this machine's torch or cuDNN cannot run costs its row, not the others
-            g1 = GraphedRenderer(model, 1, **fast)
-            # on stderr, so that a run stopped while building says how far it got
-            print(f"{name}: batch 1 built in {time.perf_counter() - start:.0f} s", file=sys.stderr)
-            gb = GraphedRenderer(model, args.batch, **fast)
-        except Exception as exc:  # any build failure: reported, and the run goes on
-            why = (str(exc).strip().splitlines() or [""])[0][:300]
-            print(f"{name}: not built: {type(exc).__name__}: {why}", file=sys.stderr)
+        if (g1 := built(name, lambda: GraphedRenderer(model, 1, **fast))) is None:
+            return
+        # on stderr, so that a run stopped while building says how far it got
+        print(f"{name}: batch 1 built in {time.perf_counter() - start:.0f} s", file=sys.stderr)
+        if (gb := built(name, lambda: GraphedRenderer(model, args.batch, **fast))) is None:
             return
         build = time.perf_counter() - start
         one, many = measure(name, lambda: g1(x_all[:1], l_all[:1]), lambda: gb(x_all, l_all))

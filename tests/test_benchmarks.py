@@ -28,6 +28,18 @@ def test_rounds_time_every_row_in_turn_and_the_table_reads_their_medians():
     assert lines[2].split() == ["b", "4.000", "2.000-6.000", "400.0", "1.333"]
 
 
+def test_a_row_that_cannot_be_built_says_why_in_one_line_and_the_run_goes_on(capsys):
+    from benchmarks.infer import built
+
+    def fails():
+        raise RuntimeError("cuDNN: no valid execution plan\n  (the details)")
+
+    assert built("conv+ReLU", fails) is None
+    assert built("plain", lambda: 7) == 7
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["conv+ReLU: not built: RuntimeError: cuDNN: no valid execution plan"]
+
+
 def test_rounds_below_one_are_refused_before_any_work():
     cmd = [sys.executable, "-m", "benchmarks.infer", "--rounds", "0", "--store", "/no/store.zarr"]
     r = subprocess.run(cmd, capture_output=True, text=True)
