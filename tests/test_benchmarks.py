@@ -6,6 +6,8 @@ import itertools
 import subprocess
 import sys
 
+import pytest
+
 from benchmarks.infer import interleaved, rounds_table
 
 
@@ -72,7 +74,10 @@ def test_kernel_plan_lists_the_launches_of_the_compiled_network_without_a_gpu():
     assert r.stdout.splitlines()[-1].endswith("M elements in all")
 
 
-def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite():
+def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite(
+    monkeypatch, capsys
+):
+    from benchmarks import kernel_plan
     from benchmarks.kernel_plan import launches
 
     source = (
@@ -88,14 +93,16 @@ def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite(
         ("triton_poi_fused_pad_1", 4096),
         ("extern bmm", 0),
     ]
-    cmd = [sys.executable, "-m", "benchmarks.kernel_plan"]
     for extra, says in (
         (["--edge-ring"], "--edge-ring is a form of the --subpixel rewrite"),
         (["--subpixel", "--wide-ring"], "--wide-ring here is a form of --edge-ring"),
         (["--conv-relu"], "--conv-relu is a form of the --subpixel rewrite"),
     ):
-        r = subprocess.run([*cmd, *extra], capture_output=True, text=True)
-        assert r.returncode == 2 and r.stderr.strip().endswith(says), r.stderr
+        monkeypatch.setattr(sys, "argv", ["kernel_plan", *extra])
+        with pytest.raises(SystemExit) as exit_:
+            kernel_plan.main()
+        err = capsys.readouterr().err.strip()
+        assert exit_.value.code == 2 and err.endswith(says), err
 
 
 def test_input_copy_times_copy_and_the_compiled_copy_after_checking_their_values():
