@@ -32,6 +32,11 @@ class ShardAssembly:
         del self.waiting[shard]
         return shard, [got[m] for m in members]
 
+    def keep(self, shard: int, results: dict[int, object]) -> None:
+        """Put back the ``results`` (by material) of ``shard`` whose commit failed: what
+        survived waits again for the materials rendered anew."""
+        self.waiting.setdefault(shard, {}).update(results)
+
     def kill(self, material: int) -> int:
         """``material`` failed for good: its shard will not be written."""
         shard = self.shard_of(material)

@@ -15,8 +15,9 @@ attempt kept for the report, and per-worker failure counts. A task whose failure
 ``max_attempts`` leaves its shard uncommitted (a resubmit renders it again). A worker running
 one task longer than ``task_timeout_s x (suns + 1)`` is killed (the worker itself enforces the
 timeout per sun; this guards against one stuck elsewhere). A commit whose results were lost
-(their node went away first) sends the shard's materials back to the queue; one that fails
-otherwise leaves the shard uncommitted and is reported. Resume: committed shards are skipped.
+(their node went away first) sends the materials whose results Ray holds as lost back to the
+queue, and the shard's other results wait for them again; one that fails otherwise leaves
+the shard uncommitted and is reported. Resume: committed shards are skipped.
 One driver at a time: :mod:`farm.lease`.
 """
 
@@ -303,7 +304,7 @@ class Loop:
         self.tickets = 0  # the last task's ticket (what a revocation names)
         self.recalled: set = set()  # refs of recalled tasks' runs: their outcome is dropped
         self.whole: collections.deque = collections.deque()  # (shard, arrays refs)
-        self.commits: dict[object, int] = {}
+        self.commits: dict[object, tuple[int, list]] = {}  # ref -> (shard, its results)
         self.max_commits = max_commits
         self.failed_commits: dict[int, str] = {}
         self.cancelled = False  # a cancel request was seen: dispatch nothing more
@@ -505,25 +506,19 @@ class Loop:
                 {"kind": specs[i].kind, "source_id": specs[i].source_id, "spec": specs[i].to_dict()}
                 for i in layout.shard_materials(shard)
             ]
-            self.commits[self.pool.commit(shard, records, arrays)] = shard
+            self.commits[self.pool.commit(shard, records, arrays)] = (shard, arrays)
 
     def committed(self, ref) -> None:
         """A commit ended: count the shard, or send its materials back, or record why not."""
         import ray
         from ray.exceptions import ObjectLostError, RayError
 
-        shard = self.commits.pop(ref)
+        shard, arrays = self.commits.pop(ref)
         layout = self.job.layout
         try:
             report = ray.get(ref)
-        except ObjectLostError as exc:  # its results' node went away: render them again
-            materials = layout.shard_materials(shard)
-            why = type(exc).__name__
-            log.warning("shard %d: its results were lost (%s); rendering it again", shard, why)
-            self.sched.requeue(materials)
-            self.bar.total += len(layout.shard_samples(shard))
-            if not self.cancelled:  # now, not at the next resize: by then the idle take it
-                self.grow()
+        except ObjectLostError as exc:  # a node holding results went away: render those again
+            self.results_lost(shard, arrays, type(exc).__name__)
         except RayError as exc:
             cause = getattr(exc, "cause", None) or exc
             error = f"{type(cause).__name__}: {str(cause).splitlines()[0] if str(cause) else ''}"
@@ -538,6 +533,22 @@ class Loop:
             self.state.frames_done += len(layout.shard_samples(shard))
         self.start_commits()
         self.postfix()
+
+    def results_lost(self, shard: int, arrays: list, why: str) -> None:
+        """``shard``'s commit found results lost: the materials whose results Ray holds as
+        lost go back to the queue and the others wait again for them; when none can be told
+        lost, the whole shard goes back."""
+        members = list(self.job.layout.shard_materials(shard))
+        lost = self.pool.lost(arrays) or list(range(len(members)))
+        pairs = enumerate(zip(members, arrays, strict=True))
+        self.shards.keep(shard, {m: a for i, (m, a) in pairs if i not in lost})
+        materials = [members[i] for i in lost]
+        log.warning("shard %d: the results of %d of its %d materials were lost (%s); rendering "
+                    "them again", shard, len(materials), len(members), why)  # fmt: skip
+        self.sched.requeue(materials)
+        self.bar.total += len(materials) * self.job.layout.suns_per_material
+        if not self.cancelled:  # now, not at the next resize: by then the idle take them
+            self.grow()
 
     def postfix(self) -> None:
         self.bar.set_postfix(

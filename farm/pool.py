@@ -248,6 +248,23 @@ class WorkerPool:
         """Start writing ``shard`` from its materials' array refs; returns the report's ref."""
         return self.commit_fn.remote(self.cfg.out, None, shard, records, *arrays)
 
+    def lost(self, refs: list) -> list[int]:
+        """Indices of ``refs`` whose objects Ray holds as lost (their node went away and they
+        cannot be made again), asked without waiting: a ``get`` with no time to wait raises
+        Ray's object-lost error at once for those (the owner, this process, stored it) and
+        times out for those on another node, whose bytes so stay where they are."""
+        from ray.exceptions import GetTimeoutError, ObjectLostError
+
+        out = []
+        for i, ref in enumerate(refs):
+            try:
+                self.ray.get(ref, timeout=0)
+            except ObjectLostError:
+                out.append(i)
+            except GetTimeoutError:
+                pass
+        return out
+
     def replace(self, wid: str, status: str) -> None:
         """Remove ``wid`` (``dead`` or ``blocklisted``) and start a worker in its place."""
         if wid in self.actors:

@@ -198,6 +198,14 @@ def test_shard_assembly_returns_a_whole_shard_in_material_order_and_drops_dead_o
     assert shards.waiting == {2: {5: {"m": 5}}}
 
 
+def test_a_shards_surviving_results_wait_again_for_the_lost_ones_rendered_anew():
+    layout = Layout(num_materials=6, suns_per_material=2, resolution=16, shard_size=6)
+    shards = ShardAssembly(layout)  # 3 materials a shard; shard 0's commit lost material 1
+    shards.keep(0, {0: {"m": 0}, 2: {"m": 2}})
+    assert shards.add(1, {"m": "1 again"}) == (0, [{"m": 0}, {"m": "1 again"}, {"m": 2}])
+    assert 0 not in shards.waiting
+
+
 def test_a_job_is_sized_to_the_cluster_and_its_materials():
     from farm.sizing import initial, room
 
