@@ -130,7 +130,7 @@ def main() -> None:
     x = torch.rand(args.batch, channels, r, r, dtype=torch.bfloat16)
     light = torch.rand(args.batch, 4, dtype=torch.bfloat16)
     # fast_network's options but the autotuning: the GPU chooses its algorithms itself
-    options = compile_options(args.edge_ring and not args.wide_ring)
+    options = compile_options(args.edge_ring, wide_ring=args.wide_ring)
     tuning = ("max_autotune", "coordinate_descent_tuning")
     options = {k: v for k, v in options.items() if k not in tuning}
     x = x.contiguous(memory_format=torch.channels_last)

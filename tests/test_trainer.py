@@ -417,6 +417,7 @@ def test_level_fusion_is_asked_for_edge_rings_on_the_torch_versions_checked():
     base = {"max_autotune": True, "coordinate_descent_tuning": True}
     assert compile_options(False, "2.11.0+cu130") == base
     assert compile_options(True, "2.11.0+cu130") == base | LEVEL_FUSION
+    assert compile_options(True, "2.11.0+cu130", wide_ring=True) == base  # zero-padded: none
     assert compile_options(True, "2.13.0+cpu") == base
     assert compile_options(True, "2.1.0") == base  # not 2.11
 

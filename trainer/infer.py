@@ -236,7 +236,7 @@ def fast_network(
         return net
     if streams:
         return net.compile_segments(mode="max-autotune-no-cudagraphs", dynamic=False)
-    options = compile_options(edge_ring and not wide_ring)
+    options = compile_options(edge_ring, wide_ring=wide_ring)
     return torch.compile(net, dynamic=False, options=options)
 
 
@@ -259,14 +259,16 @@ LEVEL_FUSION = {
 LEVEL_FUSION_TORCH = ("2.11.",)
 
 
-def compile_options(edge_ring: bool = False, version: str = torch.__version__) -> dict:
+def compile_options(
+    edge_ring: bool = False, version: str = torch.__version__, *, wide_ring: bool = False
+) -> dict:
     """The Inductor options :func:`fast_network` compiles with: ``max-autotune-no-cudagraphs``
-    and, for edge rings on replicate-padded phases (``edge_ring``) on a torch ``version`` of
-    :data:`LEVEL_FUSION_TORCH`, :data:`LEVEL_FUSION`."""
+    and, for edge rings on replicate-padded phases (``edge_ring`` without ``wide_ring``) on a
+    torch ``version`` of :data:`LEVEL_FUSION_TORCH`, :data:`LEVEL_FUSION`."""
     from torch._inductor import list_mode_options
 
     options = list_mode_options("max-autotune-no-cudagraphs")
-    if edge_ring and version.startswith(LEVEL_FUSION_TORCH):
+    if edge_ring and not wide_ring and version.startswith(LEVEL_FUSION_TORCH):
         options |= LEVEL_FUSION
     return options
 
