@@ -358,10 +358,11 @@ def test_the_job_page_in_chromium_follows_a_running_job_and_cancels_it(tmp_path)
             page.screenshot(path=str(ARTIFACTS / "dashboard-job.png"), full_page=True)
             page.on("dialog", lambda d: d.accept())
             page.click("button:has-text('cancel')")
-            page.wait_for_function(
-                "document.getElementById('cancel-msg') === null || "
-                "document.getElementById('cancel-msg').textContent.includes('requested')"
+            page.wait_for_function(  # a refresh shows the request, the button gone
+                "document.getElementById('cancel-msg').textContent.includes('requested by') && "
+                "!document.querySelector('#live button')"
             )
+            page.screenshot(path=str(ARTIFACTS / "dashboard-job-cancel.png"))
             hold.unlink()  # the tasks in flight end; those not started are dropped
             stdout, stderr = job.communicate(timeout=120)
             assert job.returncode == 0, stderr[-2000:]
@@ -487,11 +488,20 @@ def test_store_settings_show_as_people_read_them():
 
 
 def test_farm_cancel_asks_a_running_job_and_refuses_others(tmp_path):
+    from farm.dashboard import pages
+    from farm.dashboard.app import Dashboard
+
     synthetic_job(tmp_path / "run.zarr")
     synthetic_job(tmp_path / "done.zarr", status="done")
+    dash = Dashboard([str(tmp_path)], [])
+    assert "cancelJob(" in pages.render("job_live", **dash.job_context("0/run.zarr"))
     r = farm("cancel", tmp_path / "run.zarr")
     assert r.returncode == 0 and "cancel requested" in r.stdout
-    assert json.loads((tmp_path / "run.zarr" / "farm" / "cancel.json").read_text())["by"]
+    by = json.loads((tmp_path / "run.zarr" / "farm" / "cancel.json").read_text())["by"]
+    # the page's refreshes keep saying so, and offer no second cancel, until the job stops
+    fragment = pages.render("job_live", **dash.job_context("0/run.zarr"))
+    assert re.search(f'<span id="cancel-msg">cancel requested by\\s+{re.escape(by)} at ', fragment)
+    assert "cancelJob(" not in fragment
     r = farm("cancel", tmp_path / "done.zarr")
     assert r.returncode == 1 and r.stderr.strip() == (
         f"Error: {tmp_path / 'done.zarr'}: the job is done, not running"
