@@ -29,6 +29,7 @@ from render_jobs.specs import derive_seed
 from storage.reader import Store
 from tests.conftest import s3_env
 from tests.flaky_proxy import FlakyProxy
+from tests.ray_local import add_local_node, local_cluster
 from tests.test_farm import BIN, TINY, descendants, farm
 
 pytestmark = pytest.mark.slow
@@ -79,8 +80,6 @@ def a_busy_actor(opts: dict, root: int | None = None) -> psutil.Process | None:
 def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(
     s3, monkeypatch, tmp_path
 ):
-    from ray.cluster_utils import Cluster
-
     endpoint, opts = s3
     args = ["submit", "-m", f"uniform:{MATERIALS}", *TINY, "--workers", "3"]
     hold = tmp_path / "hold"
@@ -96,10 +95,9 @@ def test_a_job_through_kills_a_lost_node_a_flaky_store_and_a_killed_driver(
         )
         for k, v in env.items():  # the nodes' workers (and commit tasks) inherit these
             monkeypatch.setenv(k, v)
-        loopback = {"node_ip_address": "127.0.0.1"}
-        cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, **loopback})
-        cluster.add_node(num_cpus=1, **loopback)
-        doomed = cluster.add_node(num_cpus=1, **loopback)
+        cluster = local_cluster(1)
+        add_local_node(cluster, 1)
+        doomed = add_local_node(cluster, 1)
         try:
             cluster.wait_for_nodes()
             argv = [*args, "--address", cluster.address, "--no-ray-dashboard", "-o", URL]

@@ -327,7 +327,7 @@ def test_the_job_page_in_chromium_follows_a_running_job_and_cancels_it(tmp_path)
     from playwright.sync_api import sync_playwright
 
     out, hold = tmp_path / "out" / "live.zarr", tmp_path / "hold"
-    args = ["submit", "-m", "uniform:30", *TINY, "--workers", "2", "--no-ray-dashboard", "-o", out]
+    args = ["submit", "-m", "uniform:30", *TINY, "--workers", "2", "-o", out]
     hold.touch()  # the last 5 shards wait until the cancel: the job cannot end before it
     held = {"while": str(hold), "materials": list(range(20, 30))}
     job = farm(*args, faults={"slow_s": 2.0, "hold_materials": held}, wait=False)

@@ -29,20 +29,25 @@ from storage.reader import Store
 from storage.verify import verify
 from tests.conftest import s3_env
 from tests.flaky_proxy import FlakyProxy
+from tests.ray_local import add_local_node, local_cluster
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
 TINY = ["--suns", "2", "--shard-size", "4", "--resolution", "32", "--samples", "2"]
 
 
-def farm(*args, faults=None, wait=True, timeout=300, env=None):
+def farm(*args, faults=None, wait=True, timeout=300, env=None, ray_dashboard=False):
     """The ``farm`` command, Ray's token authentication off unless ``env`` says otherwise (a
-    ``None`` value removes a variable)."""
+    ``None`` value removes a variable). A ``submit`` starts its embedded Ray without Ray's
+    dashboard unless ``ray_dashboard``: that costs each job about 2 s, and CPU beside the
+    renders, on this 2-core machine; the default is run in ``test_submit_resume_and_refusal``."""
     env = {**os.environ, "RAY_AUTH_MODE": "disabled", **(env or {})}
     env = {k: v for k, v in env.items() if v is not None}
     if faults is not None:
         env["SHADERBALL_FARM_FAULTS"] = json.dumps(faults)
     cmd = [str(BIN / "farm"), *map(str, args)]
+    if args and args[0] == "submit" and not ray_dashboard and "--no-ray-dashboard" not in cmd:
+        cmd.append("--no-ray-dashboard")
     if not wait:
         return subprocess.Popen(
             cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
@@ -99,6 +104,7 @@ def test_submit_resume_and_refusal(tmp_path):
     r = farm(
         "submit", "-m", "uniform:3", "-m", "procedural:2", *TINY, "--recycle-after", "2", "-o", out,
         env={"RAY_AUTH_MODE": None},  # as people run it: Ray's default, token authentication
+        ray_dashboard=True,  # and the farm's: the embedded Ray with its dashboard
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert "10 rendered" in r.stdout and "ray dashboard: http" in r.stdout
@@ -237,7 +243,7 @@ def test_a_job_no_worker_can_be_placed_for_stops_failed_and_says_why(tmp_path):
     the job stops in one line, and its state, ``farm status`` and the dashboard say why."""
     out = tmp_path / "set.zarr"
     r = farm("submit", "-m", "uniform:2", *TINY, "--gpus-per-worker", "1",
-             "--placement-timeout", "3", "--no-ray-dashboard", "-o", out)  # fmt: skip
+             "--placement-timeout", "3", "-o", out)  # fmt: skip
     why = "no live worker for 3 s: Ray could not place a worker needing 1 CPU(s) and 1 GPU(s)"
     assert r.returncode == 1 and r.stderr.strip().splitlines()[-1] == f"Error: {why}", r.stderr
     st = job(out)
@@ -255,20 +261,14 @@ def test_a_worker_waiting_for_room_is_given_up_when_the_queue_runs_dry(tmp_path,
     holds every task left (the last one slowed 8 s), the waiting one is given up (on an
     autoscaling cluster it is a node asked for) and ends ``unplaced``; the job renders
     everything and takes no 15 s waiting for it to close."""
-    from ray.cluster_utils import Cluster
-
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
-    head = {
-        "num_cpus": 1,
-        "node_ip_address": "127.0.0.1",
-        # the last material is slow: the queue stays empty for longer than a resize period
-        "env_vars": {FAULTS_ENV: json.dumps({"slow_materials": {"2": 8}})},
-    }  # the faults reach the workers through their node
-    cluster = Cluster(initialize_head=True, head_node_args=head)
+    # the last material is slow: the queue stays empty for longer than a resize period (the
+    # faults reach the workers through their node)
+    cluster = local_cluster(1, {FAULTS_ENV: json.dumps({"slow_materials": {"2": 8}})})
     out = tmp_path / "set.zarr"
     try:
         cluster.wait_for_nodes()
-        r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2", "--no-ray-dashboard",
+        r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2",
                  "--address", cluster.address, "-o", out)  # fmt: skip
     finally:
         cluster.shutdown()
@@ -287,7 +287,7 @@ def test_an_idle_worker_is_released_at_the_tail_and_a_retry_after_it_still_runs(
     whose first try fails too), and the job ends with every sample once."""
     out = tmp_path / "set.zarr"
     faults = {"slow_materials": {"2": 10}, "flaky_materials": [2]}
-    r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2", "--no-ray-dashboard",
+    r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2",
              "-o", out, faults=faults)  # fmt: skip
     assert r.returncode == 0, r.stderr[-3000:]
     assert "0 tasks queued, 1 running: releasing 1 idle worker (w" in r.stdout + r.stderr
@@ -545,20 +545,12 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
     waits on a file that is never removed, and says so; the head's worker waits for that
     (``wait_for``), so it cannot finish the job first. The node goes mid-task however loaded
     the machine is, the head's worker takes that task over and the job ends whole."""
-    from ray.cluster_utils import Cluster
-
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
     monkeypatch.delenv(FAULTS_ENV, raising=False)
     hold = tmp_path / "hold"
     hold.touch()
-    loopback = {"node_ip_address": "127.0.0.1"}
-    head_env = {FAULTS_ENV: json.dumps({"wait_for": f"{hold}.held"})}
-    cluster = Cluster(
-        initialize_head=True,
-        head_node_args={"num_cpus": 1, "env_vars": head_env, **loopback},
-    )
-    node_env = {FAULTS_ENV: json.dumps({"hold_while": str(hold)})}
-    node = cluster.add_node(num_cpus=1, env_vars=node_env, **loopback)
+    cluster = local_cluster(1, {FAULTS_ENV: json.dumps({"wait_for": f"{hold}.held"})})
+    node = add_local_node(cluster, 1, {FAULTS_ENV: json.dumps({"hold_while": str(hold)})})
     out = tmp_path / "set.zarr"
     args = ["submit", "-m", "uniform:8", *TINY, "--workers", "2", "-o", out]
     try:
@@ -601,25 +593,19 @@ def test_a_job_without_workers_given_grows_onto_a_node_that_joins(tmp_path, monk
     worker, not one for each of the head's CPUs. That worker waits (``wait_for``) until a
     worker on the new node holds a task (``hold_while``'s file): the job cannot end unless
     the farm started one there."""
-    from ray.cluster_utils import Cluster
-
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
     monkeypatch.delenv(FAULTS_ENV, raising=False)
     hold = tmp_path / "hold"
     hold.touch()
     held = Path(f"{hold}.held")
-    loopback = {"node_ip_address": "127.0.0.1"}
-    head_env = {FAULTS_ENV: json.dumps({"wait_for": str(held)})}
-    cluster = Cluster(
-        initialize_head=True, head_node_args={"num_cpus": 2, "env_vars": head_env, **loopback}
-    )
+    cluster = local_cluster(2, {FAULTS_ENV: json.dumps({"wait_for": str(held)})})
     out = tmp_path / "set.zarr"
     other = subprocess.Popen([sys.executable, "-c", HOLD_ONE_CPU, cluster.address],
                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)  # fmt: skip
     try:
         cluster.wait_for_nodes()
         assert other.stdout.readline().strip() == "held"  # another job holds one CPU
-        proc = farm("submit", "-m", "uniform:6", *TINY, "--no-ray-dashboard", "-o", out,
+        proc = farm("submit", "-m", "uniform:6", *TINY, "-o", out,
                     "--address", cluster.address, wait=False)  # fmt: skip
         try:
             state = out / "farm" / "job.json"
@@ -627,8 +613,7 @@ def test_a_job_without_workers_given_grows_onto_a_node_that_joins(tmp_path, monk
                 w["status"] == "busy" for w in job(out)["workers"].values()
             ), 120, "the head's worker never got a task")  # fmt: skip
             assert len(job(out)["workers"]) == 1  # the one CPU the other job leaves free
-            node_env = {FAULTS_ENV: json.dumps({"hold_while": str(hold)})}
-            cluster.add_node(num_cpus=1, env_vars=node_env, **loopback)
+            add_local_node(cluster, 1, {FAULTS_ENV: json.dumps({"hold_while": str(hold)})})
             wait_until(held.exists, 120, "no worker started on the node that joined")
             hold.unlink()
             stdout, stderr = proc.communicate(timeout=240)
@@ -656,7 +641,7 @@ def test_workers_waiting_for_room_make_an_autoscaling_cluster_add_nodes(tmp_path
     # the nodes' environment is the head's: the actors on them read the fault from there
     monkeypatch.setenv("SHADERBALL_FARM_FAULTS", json.dumps({"slow_s": 3}))
     with autoscaling_cluster(node_cpus=1, max_nodes=3) as (address, monitor_log):
-        r = farm("submit", "-m", "uniform:2", *TINY, "--workers", "3", "--no-ray-dashboard",
+        r = farm("submit", "-m", "uniform:2", *TINY, "--workers", "3",
                  "--placement-timeout", "120", "--address", address, "-o", out)  # fmt: skip
         added = re.findall(r"Adding (\d+) node\(s\) of type (\w+)", monitor_log.read_text())
     assert r.returncode == 0, r.stderr[-3000:]
@@ -873,7 +858,7 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
     out = tmp_path / "set.zarr"
     args = ["submit", "-m", "uniform:10", *TINY, "--workers", "2", "-o", out]
     # material 9 (the last shard's) keeps the job running until the signal
-    proc = farm(*args, faults={"slow_materials": {"9": 60}}, wait=False)
+    proc = farm(*args, faults={"slow_materials": {"9": 60}}, wait=False, ray_dashboard=True)
     ray = []
     try:
         wait_for_commits(out, 2)
@@ -925,7 +910,7 @@ def test_sigterm_stops_the_job_cleanly_and_the_same_command_resumes(tmp_path):
         return not any(psutil.pid_exists(pid) for pid in workers)
 
     wait_until(gone, 10, f"render workers {workers} outlived the driver")
-    r = farm(*args, "--no-ray-dashboard")
+    r = farm(*args)
     assert r.returncode == 0, r.stderr
     assert "resuming: " in r.stdout
     assert_exactly_once(out, 10)
@@ -957,7 +942,7 @@ def test_a_farm_job_over_a_flaky_object_store_commits_every_sample_once(s3, tmp_
     retries off): the project's retries are logged, the job ends whole, with the same data as
     the same job written locally; a bucket that denies access fails at once."""
     endpoint, opts = s3
-    args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "--no-ray-dashboard"]
+    args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1"]
     with FlakyProxy.past_client_retries(
         endpoint, every=12, method="PUT", deny="/denied.zarr"
     ) as proxy:
@@ -1002,14 +987,11 @@ def test_an_object_store_out_of_reach_fails_in_one_line_after_one_round_of_retri
 def test_the_embedded_farm_starts_its_own_ray_beside_a_running_cluster(tmp_path):
     """Without --address or RAY_ADDRESS the farm starts its own local Ray, even while a
     cluster started on the same machine runs (with no address Ray would join that one)."""
-    from ray.cluster_utils import Cluster
-
-    head = {"num_cpus": 1, "node_ip_address": "127.0.0.1"}
-    cluster = Cluster(initialize_head=True, head_node_args=head)
+    cluster = local_cluster(1)
     saved = os.environ.pop("RAY_ADDRESS", None)
     try:
         out = tmp_path / "own.zarr"
-        r = farm("submit", "-m", "uniform:1", *TINY, "--workers", "1", "--no-ray-dashboard",
+        r = farm("submit", "-m", "uniform:1", *TINY, "--workers", "1",
                  "-o", out)  # fmt: skip
         assert r.returncode == 0, r.stderr[-2000:]
         assert_exactly_once(out, 1)

@@ -21,6 +21,7 @@ import yaml
 
 from storage.reader import Store
 from tests.conftest import free_port, s3_env
+from tests.ray_local import add_local_node, local_cluster
 
 ROOT = Path(__file__).resolve().parent.parent
 K8S = ROOT / "k8s"
@@ -179,8 +180,6 @@ def test_yamllint_and_hadolint(tmp_path):
 
 @pytest.mark.slow
 def test_the_dev_rayjob_and_trainjob_commands_run_here(s3, tmp_path, monkeypatch):
-    from ray.cluster_utils import Cluster
-
     endpoint, opts = s3
     docs = {d["kind"]: d for d in rendered("dev")}
     entrypoint = docs["RayJob"]["spec"]["entrypoint"]
@@ -189,9 +188,8 @@ def test_the_dev_rayjob_and_trainjob_commands_run_here(s3, tmp_path, monkeypatch
     store_env = s3_env(endpoint, RAY_AUTH_MODE="disabled")
     for k, v in store_env.items():  # the nodes' workers get them, as the pods get the Secret
         monkeypatch.setenv(k, v)
-    loopback = {"node_ip_address": "127.0.0.1"}
-    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, **loopback})
-    cluster.add_node(num_cpus=2, **loopback)  # the head renders nothing, as in the RayCluster
+    cluster = local_cluster(0)
+    add_local_node(cluster, 2)  # the head renders nothing, as in the RayCluster
     try:
         cluster.wait_for_nodes()
         env = {**os.environ, "PATH": f"{BIN}:{os.environ['PATH']}", "RAY_ADDRESS": cluster.address}

@@ -24,6 +24,7 @@ from benchmarks.quality_report import (
 from storage.reader import Store
 from storage.schema import Layout
 from storage.writer import create_store, write_shard
+from tests.ray_local import local_cluster
 from tests.storage_helpers import synthetic_payload
 
 LAYOUT = Layout(num_materials=4, suns_per_material=2, resolution=16, shard_size=4)
@@ -150,11 +151,8 @@ def test_a_work_record_write_that_fails_leaves_the_old_record_and_no_part(tmp_pa
 def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
     """Every step on real stores, runs and renders: the report has a row for each method
     with finite numbers, the picture grid has every row; a second run trains nothing."""
-    from ray.cluster_utils import Cluster
-
     work, doc = tmp_path / "work", tmp_path / "doc" / "quality.md"
-    head = {"num_cpus": 2, "node_ip_address": "127.0.0.1"}
-    cluster = Cluster(initialize_head=True, head_node_args=head)
+    cluster = local_cluster(2)
     try:
         env = {**os.environ, "RAY_ADDRESS": cluster.address, "RAY_AUTH_MODE": "disabled"}
         cmd = [sys.executable, "-m", "benchmarks.quality", "--scale", "tiny", "--work", str(work),
