@@ -14,6 +14,7 @@ import socket
 import time
 from dataclasses import asdict, dataclass, field
 
+from farm.cancel import cancel_requested
 from farm.lease import holder_alive, read_lease
 from storage.backend import Backend
 
@@ -135,7 +136,8 @@ LOST_AFTER_S = 60.0
 
 
 def load_state(url: str, storage_options: dict | None = None) -> dict | None:
-    """The job state as saved, plus ``effective_status`` (:func:`effective_status`)."""
+    """The job state as saved, plus ``effective_status`` (:func:`effective_status`) and, for
+    a running job, ``cancel_requested``: the standing request (:mod:`farm.cancel`) or ``None``."""
     backend = Backend(url, storage_options)
     raw = backend.get(STATE_KEY)
     if raw is None:
@@ -145,6 +147,8 @@ def load_state(url: str, storage_options: dict | None = None) -> dict | None:
     # ending between the two reads has let its lease go: no lease, a fresh state, "running"
     lease = read_lease(backend) if st["status"] == "running" else None
     st["effective_status"] = effective_status(st, lease, now())
+    if st["effective_status"] == "running":
+        st["cancel_requested"] = cancel_requested(backend)
     return st
 
 

@@ -14,6 +14,8 @@ WORKER_ROWS = 20
 
 
 def _ago(t: float) -> str:
+    if not t:  # never (a state that did not record it)
+        return "-"
     s = max(0, time.time() - t)
     return f"{s:.0f} s ago" if s < 120 else f"{s / 60:.0f} min ago"
 
@@ -41,6 +43,10 @@ def format_status(st: dict, worker_rows: int | None = WORKER_ROWS) -> str:
         f"shards    {st['shards_committed']}/{st['shards_total']} committed"
         + (f", failed: {st['shards_failed']}" if st["shards_failed"] else ""),
     ]
+    if status == "running" and st.get("cancel_requested"):
+        req = st["cancel_requested"]
+        lines.append(f"cancel    requested by {req['by']} {_ago(req['at'])}: the driver stops "
+                     "within a few seconds")  # fmt: skip
     if st.get("stop_error"):
         lines.append(f"stopped   {st['stop_error']}")
     if st.get("screen_uv_error"):

@@ -502,6 +502,9 @@ def test_farm_cancel_asks_a_running_job_and_refuses_others(tmp_path):
     fragment = pages.render("job_live", **dash.job_context("0/run.zarr"))
     assert re.search(f'<span id="cancel-msg">cancel requested by\\s+{re.escape(by)} at ', fragment)
     assert "cancelJob(" not in fragment
+    status = farm("status", tmp_path / "run.zarr").stdout  # and so does `farm status`
+    said = r"^cancel    requested by farm cancel \d+ s ago: the driver stops within"
+    assert re.search(said, status, re.M), status
     r = farm("cancel", tmp_path / "done.zarr")
     assert r.returncode == 1 and r.stderr.strip() == (
         f"Error: {tmp_path / 'done.zarr'}: the job is done, not running"

@@ -20,7 +20,7 @@ from pathlib import Path
 from aiohttp import web
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 
-from farm.cancel import cancel_requested, request_cancel
+from farm.cancel import request_cancel
 from farm.dashboard import jobs, pages, runs
 from farm.dashboard.metrics import Collector
 from farm.web import Refused, application, confine
@@ -114,7 +114,6 @@ class Dashboard:
         settings.append(("sources", ", ".join(store.settings.get("sources", []))))
         hists = jobs.histograms(self.samples.get(store, set(times)))
         ctx.update(
-            cancel=cancel_requested(store.backend) if row["status"] == "running" else None,
             committed=len(times),
             chart=pages.line_chart(jobs.rates(state.get("history", [])) if state else []),
             shard_map=pages.shard_map(

@@ -80,9 +80,10 @@ JOB = """{% extends "base" %}{% block main %}{% include "job_live" %}{% endblock
 
 JOB_LIVE = """<div id="live" data-live="{{ 1 if row.status == 'running' else 0 }}">
 <h2 style="margin-top:0">{{ row.label }} <span class="s-{{ row.status }}">{{ row.status }}</span>
+{% set cancel = state.cancel_requested if state and row.status == 'running' %}
 {% if row.status == 'running' and not cancel %}
 <button onclick="cancelJob('/cancel/{{ row.name }}')">cancel</button>{% endif %}
-<span id="cancel-msg">{% if row.status == 'running' and cancel %}cancel requested by
+<span id="cancel-msg">{% if cancel %}cancel requested by
 {{ cancel.by }} at {{ cancel.at|when }}: the driver stops within a few seconds{% endif %}
 </span></h2>
 {% if row.error %}<p class="err">{{ row.error }}</p>{% else %}
