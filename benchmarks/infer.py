@@ -122,7 +122,7 @@ def rounds_table(one: dict[str, list[float]], many: dict[str, list[float]], batc
     return "\n".join(lines)
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--store", default=DEFAULT)
     ap.add_argument("--batch", type=int, default=8)
@@ -209,82 +209,149 @@ def main() -> None:
         metavar="TEXT",
         help="run only the rows whose name contains TEXT (eager fp32 stays the reference)",
     )
-    args = ap.parse_args()
-    if args.rounds < 1:
-        ap.error(f"--rounds must be at least 1, not {args.rounds}")
-    if args.resolution < 16 or args.resolution % 16:
-        ap.error(f"--resolution {args.resolution} is not a positive multiple of 16")
-    device = pick_device(args.device)
-    cuda = device.type == "cuda"
-    split = Catalog.snapshot([ensure_store(args.store)], 0, 0.0, None).split("train")
-    data = SampleReader(split).batch(list(range(min(args.batch, len(split)))))
-    reps = -(-args.batch // len(data["id"]))
-    x_all = model_inputs(data["maps"]).repeat(reps, 1, 1, 1)[: args.batch]
-    x_all = F.interpolate(x_all, size=args.resolution, mode="nearest").to(device)
-    l_all = data["light"].repeat(reps, 1)[: args.batch].to(device)
-    model = NeuralRenderer(ModelConfig(resolution=args.resolution)).to(device).eval()
+    return ap
 
-    r = args.resolution
-    print(f"device: {device_name(args.device)}; {r}², batch {args.batch} for frames/s")
-    head = f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'in place':>10}"
-    print(head + f"{'max |diff|':>12}{'build s':>9}", flush=True)
 
-    def report(name, one, many, err, build=None, replay=None):
+def graph_rows(args: argparse.Namespace) -> list[tuple[str, dict]]:
+    """The CUDA-graph rows that ``args`` ask for, in order: ``(name, keyword arguments of
+    trainer.infer.GraphedRenderer)``. The rewrite's rows take ``--align``'s channels (named
+    when not the default 8) and are compiled unless told."""
+    x1 = f", channels x{args.align}" if args.align != 8 else ""
+
+    def rewrite(name: str, **fast) -> tuple[str, dict]:
+        return name + x1, {"compile": True, "subpixel": True, "align": args.align, **fast}
+
+    rows = [
+        ("  + bf16 weights, CUDA graph", {}),
+        rewrite("subpixel bf16, CUDA graph", compile=False),
+    ]
+    if args.compile:
+        rows += [
+            ("torch.compile + CUDA graph", {"compile": True}),
+            rewrite("subpixel compiled + graph"),
+        ]
+    if args.ring_gemm or args.wide_ring:
+        kinds = ", ring GEMMs" * args.ring_gemm + ", wide ring" * args.wide_ring
+        rows.append(
+            rewrite(f"subpixel compiled{kinds}", ring_gemm=args.ring_gemm, wide_ring=args.wide_ring)
+        )
+    if args.edge_ring:
+        rows.append(rewrite("subpixel compiled, edge ring", edge_ring=True))
+    if args.zero_edge_ring:
+        rows.append(
+            rewrite("subpixel compiled, zero-padded edge ring", edge_ring=True, wide_ring=True)
+        )
+    if args.conv_relu:
+        zero = args.zero_edge_ring
+        name = f"subpixel compiled{', zero-padded edge ring' * zero}, conv+ReLU"
+        rows.append(rewrite(name, edge_ring=zero, wide_ring=zero, conv_relu=True))
+    if args.streams:
+        fast = {"compile": True, "streams": True, "align": args.align}
+        rows.append((f"two streams, compiled + graph{x1}", fast))
+    if args.gemm_at:  # with --subpixel-from, of that mixed form
+        start = f", from {args.subpixel_from}²" if args.subpixel_from else ""
+        name = f"  + GEMMs at <= {args.gemm_at}²{start}"
+        rows.append(rewrite(name, gemm_at=args.gemm_at, subpixel_from=args.subpixel_from))
+    if args.subpixel_from:
+        name = f"subpixel from {args.subpixel_from}², compiled"
+        rows.append(rewrite(name, subpixel_from=args.subpixel_from))
+    return rows
+
+
+class Bench:
+    """The inputs, the model, the eager fp32 reference image and the rows timed so far."""
+
+    def __init__(self, args: argparse.Namespace):
+        self.args = args
+        self.device = pick_device(args.device)
+        self.cuda = self.device.type == "cuda"
+        split = Catalog.snapshot([ensure_store(args.store)], 0, 0.0, None).split("train")
+        data = SampleReader(split).batch(list(range(min(args.batch, len(split)))))
+        reps = -(-args.batch // len(data["id"]))
+        x_all = model_inputs(data["maps"]).repeat(reps, 1, 1, 1)[: args.batch]
+        x_all = F.interpolate(x_all, size=args.resolution, mode="nearest")
+        self.x_all = x_all.to(self.device)
+        self.l_all = data["light"].repeat(reps, 1)[: args.batch].to(self.device)
+        self.model = NeuralRenderer(ModelConfig(resolution=args.resolution)).to(self.device)
+        self.model.eval()
+        with torch.inference_mode():
+            self.reference = self.model(self.x_all[:1], self.l_all[:1]).float()
+        self.measured = []  # (name, batch-1 call, batched call) of each row, for --rounds
+
+    def header(self) -> None:
+        r, batch = self.args.resolution, self.args.batch
+        print(f"device: {device_name(self.args.device)}; {r}², batch {batch} for frames/s")
+        head = f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'in place':>10}"
+        print(head + f"{'max |diff|':>12}{'build s':>9}", flush=True)
+
+    def report(self, name, one, many, err, build=None, replay=None) -> None:
         """One row, printed as soon as it is measured (compiled rows take minutes each);
         ``build``: the seconds a graph row took to compile, tune and capture; ``replay``: a
         graph row's batched seconds with its input already in the graph's buffer."""
-        built = "-" if build is None else f"{build:.0f}"
-        alone = "-" if replay is None else f"{args.batch / replay:.1f}"
-        row = f"{name:<32}{one * 1e3:>16.3f}{args.batch / many:>12.1f}{alone:>10}"
-        print(row + f"{err:>12.4f}{built:>9}", flush=True)
+        batch = self.args.batch
+        built_s = "-" if build is None else f"{build:.0f}"
+        alone = "-" if replay is None else f"{batch / replay:.1f}"
+        row = f"{name:<32}{one * 1e3:>16.3f}{batch / many:>12.1f}{alone:>10}"
+        print(row + f"{err:>12.4f}{built_s:>9}", flush=True)
 
-    with torch.inference_mode():
-        reference = model(x_all[:1], l_all[:1]).float()
-    measured = []  # (name, batch-1 call, batched call) of each row, kept for --rounds
-
-    def measure(name, one, many) -> tuple[float, float]:
+    def measure(self, name, one, many) -> tuple[float, float]:
         """Seconds of ``one()`` and ``many()``; with ``--rounds``, the row is kept (and with it
         its network and CUDA graphs) to be timed again at the end."""
-        if args.rounds > 1:
-            measured.append((name, one, many))
-        return timed(one, args.iters, cuda), timed(many, args.iters, cuda)
+        if self.args.rounds > 1:
+            self.measured.append((name, one, many))
+        return self.timed(one), self.timed(many)
 
-    def error(out: torch.Tensor) -> float:
+    def timed(self, fn) -> float:
+        return timed(fn, self.args.iters, self.cuda)
+
+    def error(self, out: torch.Tensor) -> float:
         """Largest difference from the eager fp32 image, in [0, 1] display units."""
-        return (out.float() - reference).abs().max().item()
+        return (out.float() - self.reference).abs().max().item()
 
-    def eager_row(name, net, bf16, fmt):
-        if args.only not in name:
+    def wanted(self, name: str) -> bool:
+        return self.args.only in name
+
+    def eager_row(self, name, net, bf16, fmt) -> None:
+        if not self.wanted(name):
             return
         net.to(memory_format=fmt)
-        x1, xb = x_all[:1].contiguous(memory_format=fmt), x_all.contiguous(memory_format=fmt)
+        x1, xb = (
+            self.x_all[:1].contiguous(memory_format=fmt),
+            self.x_all.contiguous(memory_format=fmt),
+        )
+        l1, lb = self.l_all[:1], self.l_all
 
         def run(x, light):
-            with torch.inference_mode(), torch.autocast(device.type, torch.bfloat16, enabled=bf16):
+            with (
+                torch.inference_mode(),
+                torch.autocast(self.device.type, torch.bfloat16, enabled=bf16),
+            ):
                 return net(x, light)
 
-        one, many = measure(name, lambda: run(x1, l_all[:1]), lambda: run(xb, l_all))
-        report(name, one, many, error(run(x1, l_all[:1])))
+        one, many = self.measure(name, lambda: run(x1, l1), lambda: run(xb, lb))
+        self.report(name, one, many, self.error(run(x1, l1)))
 
-    def graph_row(name, **fast):
-        if args.only not in name:
+    def graph_row(self, name, **fast) -> None:
+        if not self.wanted(name):
             return
         start = time.perf_counter()
-        if (g1 := built(name, lambda: GraphedRenderer(model, 1, **fast))) is None:
+        if (g1 := built(name, lambda: GraphedRenderer(self.model, 1, **fast))) is None:
             return
         # on stderr, so that a run stopped while building says how far it got
         print(f"{name}: batch 1 built in {time.perf_counter() - start:.0f} s", file=sys.stderr)
-        if (gb := built(name, lambda: GraphedRenderer(model, args.batch, **fast))) is None:
+        batch = self.args.batch
+        if (gb := built(name, lambda: GraphedRenderer(self.model, batch, **fast))) is None:
             return
         build = time.perf_counter() - start
-        one, many = measure(name, lambda: g1(x_all[:1], l_all[:1]), lambda: gb(x_all, l_all))
-        replay = timed(gb.replay, args.iters, cuda)  # the input copied in by the line above
-        report(name, one, many, error(g1(x_all[:1], l_all[:1])), build, replay)
+        x1, l1, xb, lb = self.x_all[:1], self.l_all[:1], self.x_all, self.l_all
+        one, many = self.measure(name, lambda: g1(x1, l1), lambda: gb(xb, lb))
+        replay = self.timed(gb.replay)  # the input copied in by the line above
+        self.report(name, one, many, self.error(g1(x1, l1)), build, replay)
 
-    def onnx_row(name, net):
+    def onnx_row(self, name, net) -> None:
         """The folded network exported (``trainer.export.save_onnx``) and run by ONNX
         Runtime's CPU provider, on numpy copies of the same inputs."""
-        if args.only not in name or cuda or importlib.util.find_spec("onnxruntime") is None:
+        if not self.wanted(name) or self.cuda or importlib.util.find_spec("onnxruntime") is None:
             return
         import onnxruntime as ort
 
@@ -292,76 +359,53 @@ def main() -> None:
 
         with tempfile.TemporaryDirectory() as tmp:
             path = f"{tmp}/net.onnx"
-            save_onnx(net, {"x": x_all[:1], "light": l_all[:1]}, "image", path)
+            save_onnx(net, {"x": self.x_all[:1], "light": self.l_all[:1]}, "image", path)
             session = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
 
         def run(x, light):
             return session.run(["image"], {"x": x, "light": light})[0]
 
-        x1, l1, xb, lb = (t.numpy() for t in (x_all[:1], l_all[:1], x_all, l_all))
-        one, many = measure(name, lambda: run(x1, l1), lambda: run(xb, lb))
-        report(name, one, many, error(torch.from_numpy(run(x1, l1))))
+        x1, l1, xb, lb = (
+            t.numpy() for t in (self.x_all[:1], self.l_all[:1], self.x_all, self.l_all)
+        )
+        one, many = self.measure(name, lambda: run(x1, l1), lambda: run(xb, lb))
+        self.report(name, one, many, self.error(torch.from_numpy(run(x1, l1))))
 
+    def rounds(self) -> None:
+        """``--rounds``: every kept row timed again, round after round, and the medians."""
+        if not self.measured:
+            return
+        rounds = self.args.rounds
+        one = interleaved([(n, f) for n, f, _ in self.measured], rounds, self.timed)
+        many = interleaved([(n, f) for n, _, f in self.measured], rounds, self.timed)
+        print(f"\nthe rows again, {rounds} rounds in turn (medians):")
+        print(rounds_table(one, many, self.args.batch), flush=True)
+
+
+def main() -> None:
+    ap = parser()
+    args = ap.parse_args()
+    if args.rounds < 1:
+        ap.error(f"--rounds must be at least 1, not {args.rounds}")
+    if args.resolution < 16 or args.resolution % 16:
+        ap.error(f"--resolution {args.resolution} is not a positive multiple of 16")
+    bench = Bench(args)
+    bench.header()
+    model = bench.model
     folded = fold_batchnorm(model)  # its own weights: the rewrite below copies them
-    eager_row("eager fp32", model, False, torch.contiguous_format)
-    eager_row("folded fp32 channels_last", folded, False, torch.channels_last)
+    bench.eager_row("eager fp32", model, False, torch.contiguous_format)
+    bench.eager_row("folded fp32 channels_last", folded, False, torch.channels_last)
     subpixel = SubpixelRenderer(folded)
-    eager_row("subpixel fp32 channels_last", subpixel, False, torch.channels_last)
-    onnx_row("ONNX Runtime fp32 (CPU)", folded.to(memory_format=torch.contiguous_format))
-    if cuda:
+    bench.eager_row("subpixel fp32 channels_last", subpixel, False, torch.channels_last)
+    bench.onnx_row("ONNX Runtime fp32 (CPU)", folded.to(memory_format=torch.contiguous_format))
+    if bench.cuda:
         torch.backends.cudnn.benchmark = True
         # a copy: each row keeps its own network, in its own format, for --rounds
-        eager_row("eager bf16 channels_last", copy.deepcopy(model), True, torch.channels_last)
-        eager_row("  + BatchNorm folded", folded, True, torch.channels_last)
-        graph_row("  + bf16 weights, CUDA graph")
-        x1 = f", channels x{args.align}" if args.align != 8 else ""  # rows not at the default
-
-        def rewrite_row(name, **fast):
-            """A row of the rewrite with ``--align``'s channels, compiled unless told."""
-            graph_row(name + x1, **{"compile": True, "subpixel": True, "align": args.align, **fast})
-
-        rewrite_row("subpixel bf16, CUDA graph", compile=False)
-        if args.compile:
-            graph_row("torch.compile + CUDA graph", compile=True)
-            rewrite_row("subpixel compiled + graph")
-        if args.ring_gemm or args.wide_ring:
-            kinds = ", ring GEMMs" * args.ring_gemm + ", wide ring" * args.wide_ring
-            rewrite_row(
-                f"subpixel compiled{kinds}", ring_gemm=args.ring_gemm, wide_ring=args.wide_ring
-            )
-        if args.edge_ring:
-            rewrite_row("subpixel compiled, edge ring", edge_ring=True)
-        if args.zero_edge_ring:
-            rewrite_row("subpixel compiled, zero-padded edge ring", edge_ring=True, wide_ring=True)
-        if args.conv_relu:
-            zero = args.zero_edge_ring
-            rewrite_row(
-                f"subpixel compiled{', zero-padded edge ring' * zero}, conv+ReLU",
-                edge_ring=zero,
-                wide_ring=zero,
-                conv_relu=True,
-            )
-        if args.streams:
-            graph_row(
-                f"two streams, compiled + graph{x1}", compile=True, streams=True, align=args.align
-            )
-        if args.gemm_at:  # with --subpixel-from, of that mixed form
-            start = f", from {args.subpixel_from}²" if args.subpixel_from else ""
-            rewrite_row(
-                f"  + GEMMs at <= {args.gemm_at}²{start}",
-                gemm_at=args.gemm_at,
-                subpixel_from=args.subpixel_from,
-            )
-        if args.subpixel_from:
-            rewrite_row(
-                f"subpixel from {args.subpixel_from}², compiled", subpixel_from=args.subpixel_from
-            )
-    if measured:
-        clock = lambda fn: timed(fn, args.iters, cuda)  # noqa: E731
-        one = interleaved([(n, f) for n, f, _ in measured], args.rounds, clock)
-        many = interleaved([(n, f) for n, _, f in measured], args.rounds, clock)
-        print(f"\nthe rows again, {args.rounds} rounds in turn (medians):")
-        print(rounds_table(one, many, args.batch), flush=True)
+        bench.eager_row("eager bf16 channels_last", copy.deepcopy(model), True, torch.channels_last)
+        bench.eager_row("  + BatchNorm folded", folded, True, torch.channels_last)
+        for name, fast in graph_rows(args):
+            bench.graph_row(name, **fast)
+    bench.rounds()
 
 
 if __name__ == "__main__":

@@ -42,6 +42,42 @@ def test_a_row_that_cannot_be_built_says_why_in_one_line_and_the_run_goes_on(cap
     assert err == ["conv+ReLU: not built: RuntimeError: cuDNN: no valid execution plan"]
 
 
+def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes():
+    """``benchmarks.infer.graph_rows``: the CUDA rows each flag adds, in order, and keyword
+    arguments that ``trainer.infer.fast_network`` binds (a mistake here would cost a device
+    call: the rows only run on CUDA)."""
+    import inspect
+
+    from benchmarks.infer import graph_rows, parser
+    from trainer.infer import fast_network
+
+    plain = [name for name, _ in graph_rows(parser().parse_args([]))]
+    assert plain == ["  + bf16 weights, CUDA graph", "subpixel bf16, CUDA graph"]
+    every = ["--compile", "--ring-gemm", "--wide-ring", "--edge-ring", "--zero-edge-ring",
+             "--conv-relu", "--streams", "--gemm-at", "50", "--subpixel-from", "100"]  # fmt: skip
+    rows = graph_rows(parser().parse_args(every))
+    assert [name for name, _ in rows][2:] == [
+        "torch.compile + CUDA graph",
+        "subpixel compiled + graph",
+        "subpixel compiled, ring GEMMs, wide ring",
+        "subpixel compiled, edge ring",
+        "subpixel compiled, zero-padded edge ring",
+        "subpixel compiled, zero-padded edge ring, conv+ReLU",
+        "two streams, compiled + graph",
+        "  + GEMMs at <= 50², from 100²",
+        "subpixel from 100², compiled",
+    ]
+    signature = inspect.signature(fast_network)
+    for _, fast in rows:
+        signature.bind(None, **fast)  # raises TypeError on a keyword it lacks
+    zero_relu = dict(rows)["subpixel compiled, zero-padded edge ring, conv+ReLU"]
+    assert zero_relu == {"compile": True, "subpixel": True, "align": 8, "edge_ring": True,
+                         "wide_ring": True, "conv_relu": True}  # fmt: skip
+    named = dict(graph_rows(parser().parse_args(["--align", "1", "--conv-relu"])))
+    assert named["subpixel compiled, conv+ReLU, channels x1"]["align"] == 1
+    assert not named["subpixel compiled, conv+ReLU, channels x1"]["edge_ring"]
+
+
 def test_rounds_below_one_are_refused_before_any_work():
     cmd = [sys.executable, "-m", "benchmarks.infer", "--rounds", "0", "--store", "/no/store.zarr"]
     r = subprocess.run(cmd, capture_output=True, text=True)
