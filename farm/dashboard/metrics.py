@@ -56,6 +56,11 @@ class Collector:
         self.jobs, self.runs, self.frame_seconds = jobs, runs, frame_seconds
 
     def collect(self):
+        yield from self._farm_families()
+        yield from self._train_families()
+
+    def _farm_families(self):
+        """The farm's families, a sample for each readable store."""
         f = "shaderball_farm_"
         committed = CounterMetricFamily(f + "frames_committed", "Frames in committed shards",
                                         labels=["store"])  # fmt: skip
@@ -97,6 +102,9 @@ class Collector:
                 hist.add_metric([name], buckets, total)
         yield from (committed, rendered, planned, failures, final, workers, shards, eta, running)
         yield hist
+
+    def _train_families(self):
+        """The trainer's families, a sample for each run with a logged step or score."""
         t = "shaderball_train_"
         step = GaugeMetricFamily(t + "step", "Last logged step", labels=["run"])
         loss = GaugeMetricFamily(t + "loss", "Loss at the last logged step", labels=["run"])
