@@ -206,41 +206,10 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         rank=rk.rank, epochs=cfg.epochs,
     )  # fmt: skip
     reader = loader(stream, cfg.workers, pin_memory=rk.cuda)
-    log = RunLog(cfg, rk, out)
-    if rk.master and cfg.val_samples:
-        log.validator = Validator(catalog.split("test"), cfg.val_samples)
-    log.start(log.validation_plan())
-    for note in _start_notes(cfg, t, catalog, init, found, was):
-        log.start(note)
-    log.start(
-        f"training on {len(split)} samples (held-out materials: "
-        f"{sum(map(len, catalog.heldout))}), {rk.world} rank(s) x batch {cfg.batch_size} "
-        f"on {rk.device.type}, {t.model_cfg.resolution}², loss {cfg.loss}; from step {t.step}"
-    )
+    notes = _start_notes(cfg, t, catalog, init, found, was)
+    log = _start_log(cfg, rk, out, t, catalog, notes)
     started = time.perf_counter()
-    images = 0
-    batches = None  # one iteration for the whole run: the workers read across epoch ends
-    with contextlib.ExitStack() as workers:
-        while t.epoch < cfg.epochs and not _at_max_steps(cfg, t):
-            if batches is None:
-                stream.set_position(t.epoch, t.position)
-                batches = iter(reader)
-                workers.callback(_join_workers, batches)
-            # this rank's batches: one fewer on some ranks
-            mine = len(stream.batches(t.epoch, t.position))
-            total = steps_left(len(split), rk.world, cfg.batch_size, t.position)
-            desc = f"epoch {t.epoch + 1}/{cfg.epochs}"
-            bar = tqdm(total=total, desc=desc, disable=not rk.master)
-            log.new_window()
-            with contextlib.closing(bar):  # the bar ends its line even on errors
-                start = t.step
-                epoch_batches = itertools.islice(batches, mine)
-                images += _epoch(cfg, rk, t, epoch_batches, len(split), log, bar)
-            _check_epoch_whole(cfg, t, t.step - start, mine)
-            log.validate(t, bar)  # the epoch's weights, unless the last step just scored them
-            if not _at_max_steps(cfg, t):
-                t.epoch, t.position = t.epoch + 1, 0
-            save(cfg, rk, t, out, log)
+    images = _epochs(cfg, rk, t, stream, reader, log, out)
     log.close(t.model)
     seconds = time.perf_counter() - started
     return {
@@ -253,6 +222,54 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         "val": log.last_val,
         "best": t.best,
     }
+
+
+def _start_log(
+    cfg: TrainConfig, rk: Rank, out: Path, t: Trainee, catalog: Catalog, notes
+) -> RunLog:
+    """The run's log, its validator on the master, and the lines that open the run."""
+    log = RunLog(cfg, rk, out)
+    if rk.master and cfg.val_samples:
+        log.validator = Validator(catalog.split("test"), cfg.val_samples)
+    log.start(log.validation_plan())
+    for note in notes:
+        log.start(note)
+    split = catalog.split("train")
+    log.start(
+        f"training on {len(split)} samples (held-out materials: "
+        f"{sum(map(len, catalog.heldout))}), {rk.world} rank(s) x batch {cfg.batch_size} "
+        f"on {rk.device.type}, {t.model_cfg.resolution}², loss {cfg.loss}; from step {t.step}"
+    )
+    return log
+
+
+def _epochs(
+    cfg: TrainConfig, rk: Rank, t: Trainee, stream: ShardStream, reader, log: RunLog, out: Path
+) -> int:
+    """Train epoch by epoch to the end of the run, saving after each; the images this rank saw."""
+    samples = len(stream.reader.split)
+    images = 0
+    batches = None  # one iteration for the whole run: the workers read across epoch ends
+    with contextlib.ExitStack() as workers:
+        while t.epoch < cfg.epochs and not _at_max_steps(cfg, t):
+            if batches is None:
+                stream.set_position(t.epoch, t.position)
+                batches = iter(reader)
+                workers.callback(_join_workers, batches)
+            # this rank's batches: one fewer on some ranks
+            mine = len(stream.batches(t.epoch, t.position))
+            total = steps_left(samples, rk.world, cfg.batch_size, t.position)
+            bar = tqdm(total=total, desc=f"epoch {t.epoch + 1}/{cfg.epochs}", disable=not rk.master)
+            log.new_window()
+            with contextlib.closing(bar):  # the bar ends its line even on errors
+                start = t.step
+                images += _epoch(cfg, rk, t, itertools.islice(batches, mine), samples, log, bar)
+            _check_epoch_whole(cfg, t, t.step - start, mine)
+            log.validate(t, bar)  # the epoch's weights, unless the last step just scored them
+            if not _at_max_steps(cfg, t):
+                t.epoch, t.position = t.epoch + 1, 0
+            save(cfg, rk, t, out, log)
+    return images
 
 
 def _join_workers(batches) -> None:
