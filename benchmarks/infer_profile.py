@@ -35,7 +35,19 @@ def conv_flops(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> di
     }
 
 
-def main() -> None:
+#: the ``--subpixel`` flags, each a keyword of :func:`trainer.infer.fast_network`
+FAST_FLAGS = (
+    "gemm_at",
+    "subpixel_from",
+    "align",
+    "ring_gemm",
+    "wide_ring",
+    "edge_ring",
+    "conv_relu",
+)
+
+
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--batch", type=int, default=128)
     ap.add_argument("--compile", action="store_true", help="profile torch.compile instead")
@@ -59,64 +71,80 @@ def main() -> None:
     ap.add_argument(
         "--conv-relu", action="store_true", help="with --subpixel: conv + ReLU in one cuDNN call"
     )
-    args = ap.parse_args()
-    if args.conv_relu and not args.subpixel:
-        ap.error("--conv-relu is a form of the --subpixel rewrite")
-    torch.backends.cudnn.benchmark = True
-    cfg = ModelConfig(resolution=400)
-    fmt = torch.channels_last
-    model = NeuralRenderer(cfg).cuda()
-    fast = {
-        "subpixel": args.subpixel,
-        "gemm_at": args.gemm_at,
-        "subpixel_from": args.subpixel_from,
-        "align": args.align,
-        "ring_gemm": args.ring_gemm,
-        "wide_ring": args.wide_ring,
-        "edge_ring": args.edge_ring,
-        "conv_relu": args.conv_relu,
-    }
-    net = fast_network(model, compile=args.compile, **fast)
-    # the same convolutions, each through aten::conv2d, whose FLOPs the profiler counts
-    plain = fast_network(model, **(fast | {"conv_relu": False}))
-    width = getattr(plain, "in_channels", cfg.in_channels)  # aligned: fed padded, as graphed
-    x = torch.rand(args.batch, width, 400, 400, device="cuda", dtype=torch.bfloat16)
-    x = x.contiguous(memory_format=fmt)
-    light = torch.rand(args.batch, 4, device="cuda", dtype=torch.bfloat16)
+    return ap
+
+
+def fast_kwargs(args: argparse.Namespace) -> dict:
+    """The keywords of :func:`trainer.infer.fast_network` that ``args`` ask for."""
+    return {"subpixel": args.subpixel} | {k: getattr(args, k) for k in FAST_FLAGS}
+
+
+def profiled(net, x: torch.Tensor, light: torch.Tensor, forwards: int = 3):
+    """The profiler's record of ``forwards`` forwards of ``net``, after five to warm it."""
     with torch.inference_mode():
-        flops = conv_flops(plain, x, light)
         for _ in range(5):
             net(x, light)
         torch.cuda.synchronize()
-        with profile(
-            activities=[ProfilerActivity.CPU, ProfilerActivity.CUDA], record_shapes=True
-        ) as prof:
-            for _ in range(3):
+        activities = [ProfilerActivity.CPU, ProfilerActivity.CUDA]
+        with profile(activities=activities, record_shapes=True) as prof:
+            for _ in range(forwards):
                 net(x, light)
             torch.cuda.synchronize()
+    return prof
+
+
+def print_kernels(prof, batch: int, rows: int, forwards: int = 3) -> None:
+    """The CUDA kernels by their time a forward, with their share and calls a forward."""
     kernels = [  # kernels only: not the span of a compiled graph's call ("## Call ... ##")
         r
         for r in prof.key_averages()
         if r.device_type == DeviceType.CUDA and not r.key.startswith("##")
     ]
     kernels.sort(key=lambda r: r.self_device_time_total, reverse=True)
-    total = sum(r.self_device_time_total for r in kernels) / 3 / 1e3
-    print(f"\nbatch {args.batch}: {total:.3f} ms of kernels a forward")
+    total = sum(r.self_device_time_total for r in kernels) / forwards / 1e3
+    print(f"\nbatch {batch}: {total:.3f} ms of kernels a forward")
     print(f"{'kernel':<80}{'ms':>8}{'share':>7}{'calls':>6}")
-    for r in kernels[: args.rows]:
-        ms = r.self_device_time_total / 3 / 1e3
+    for r in kernels[:rows]:
+        ms = r.self_device_time_total / forwards / 1e3
         if ms > 0:
-            print(f"{r.key[:79]:<80}{ms:>8.3f}{ms / total:>7.1%}{r.count // 3:>6}")
+            print(f"{r.key[:79]:<80}{ms:>8.3f}{ms / total:>7.1%}{r.count // forwards:>6}")
+
+
+def print_convolutions(prof, flops: dict, forwards: int = 3) -> None:
+    """Every convolution layer's time a forward and achieved TFLOP/s."""
     print(f"\n{'convolution (input, weight)':<60}{'ms':>8}{'TFLOP/s':>9}")
     shown = 0
     for r in prof.key_averages(group_by_input_shape=True):
         key = str((r.input_shapes[0], r.input_shapes[1])) if len(r.input_shapes) > 1 else ""
         if r.key in CONVOLUTIONS and key in flops:
-            ms = r.device_time_total / 3 / 1e3
+            ms = r.device_time_total / forwards / 1e3
             print(f"{key:<60}{ms:>8.3f}{flops[key] / ms / 1e9:>9.0f}")
             shown += 1
     if not shown:
         print("(none through aten::convolution: compiled into Triton templates, see above)")
+
+
+def main() -> None:
+    ap = parser()
+    args = ap.parse_args()
+    if args.conv_relu and not args.subpixel:
+        ap.error("--conv-relu is a form of the --subpixel rewrite")
+    torch.backends.cudnn.benchmark = True
+    cfg = ModelConfig(resolution=400)
+    model = NeuralRenderer(cfg).cuda()
+    fast = fast_kwargs(args)
+    net = fast_network(model, compile=args.compile, **fast)
+    # the same convolutions, each through aten::conv2d, whose FLOPs the profiler counts
+    plain = fast_network(model, **(fast | {"conv_relu": False}))
+    width = getattr(plain, "in_channels", cfg.in_channels)  # aligned: fed padded, as graphed
+    x = torch.rand(args.batch, width, 400, 400, device="cuda", dtype=torch.bfloat16)
+    x = x.contiguous(memory_format=torch.channels_last)
+    light = torch.rand(args.batch, 4, device="cuda", dtype=torch.bfloat16)
+    with torch.inference_mode():
+        flops = conv_flops(plain, x, light)
+    prof = profiled(net, x, light)
+    print_kernels(prof, args.batch, args.rows)
+    print_convolutions(prof, flops)
 
 
 if __name__ == "__main__":

@@ -42,6 +42,23 @@ def test_a_row_that_cannot_be_built_says_why_in_one_line_and_the_run_goes_on(cap
     assert err == ["conv+ReLU: not built: RuntimeError: cuDNN: no valid execution plan"]
 
 
+def test_the_profiles_flags_are_keywords_that_fast_network_takes():
+    """``benchmarks.infer_profile.fast_kwargs``: every flag reaches ``fast_network`` under its
+    own keyword (the profile only runs on CUDA, so a mistake here would cost a device call)."""
+    import inspect
+
+    from benchmarks.infer_profile import fast_kwargs, parser
+    from trainer.infer import fast_network
+
+    args = parser().parse_args(["--subpixel", "--edge-ring", "--wide-ring", "--conv-relu",
+                                "--gemm-at", "50", "--align", "16"])  # fmt: skip
+    fast = fast_kwargs(args)
+    inspect.signature(fast_network).bind(None, compile=True, **fast)
+    assert fast == {"subpixel": True, "gemm_at": 50, "subpixel_from": 0, "align": 16,
+                    "ring_gemm": False, "wide_ring": True, "edge_ring": True,
+                    "conv_relu": True}  # fmt: skip
+
+
 def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes():
     """``benchmarks.infer.graph_rows``: the CUDA rows each flag adds, in order, and keyword
     arguments that ``trainer.infer.fast_network`` binds (a mistake here would cost a device
