@@ -150,86 +150,118 @@ def _blocking(fn, *args):
     return asyncio.get_running_loop().run_in_executor(None, functools.partial(fn, *args))
 
 
-def make_app(dash: Dashboard, token: str | None) -> web.Application:
-    app, secret = application(token)
-    html = functools.partial(web.Response, content_type="text/html")
+class Handlers:
+    """The dashboard's request handlers, a method each; ``secret`` goes into every page for
+    its POSTs (:func:`farm.web.application`)."""
 
-    async def index(request):
-        rows = await _blocking(dash.job_rows)
+    def __init__(self, dash: Dashboard, secret: str):
+        self.dash, self.secret = dash, secret
+
+    def _html(self, page: str, **ctx) -> web.Response:
+        text = pages.render(page, secret=self.secret, **ctx)
+        return web.Response(text=text, content_type="text/html")
+
+    async def index(self, request):
+        rows = await _blocking(self.dash.job_rows)
         want = request.query.get("status")
         if want:
             rows = [r for r in rows if r.get("status") == want]
-        roots = [root.url for root in dash.roots]
-        return html(text=pages.render("jobs", rows=rows, statuses=jobs.STATUSES, secret=secret,
-                                      title="jobs", want=want, roots=roots))  # fmt: skip
+        roots = [root.url for root in self.dash.roots]
+        return self._html("jobs", rows=rows, statuses=jobs.STATUSES, title="jobs", want=want,
+                          roots=roots)  # fmt: skip
 
-    async def job(request):
-        ctx = await _blocking(dash.job_context, request.match_info["name"])
-        name = "job_live" if request.query.get("fragment") else "job"
-        return html(text=pages.render(name, secret=secret, **ctx))
+    async def job(self, request):
+        ctx = await _blocking(self.dash.job_context, request.match_info["name"])
+        return self._html("job_live" if request.query.get("fragment") else "job", **ctx)
 
-    async def api_job(request):
-        row = await _blocking(dash.job_row, request.match_info["name"])
+    async def api_job(self, request):
+        row = await _blocking(self.dash.job_row, request.match_info["name"])
         return web.json_response(row, dumps=lambda o: json.dumps(o, default=str))
 
-    async def picture(request, sheet: bool):
-        url = dash.store_url(request.match_info["name"])
+    async def picture(self, request, sheet: bool):
+        url = self.dash.store_url(request.match_info["name"])
         try:
             sample = int(request.query.get("sample", ""))
-            body = await _blocking(dash.picture, url, sample, sheet)
+            body = await _blocking(self.dash.picture, url, sample, sheet)
         except (ValueError, IndexError, KeyError) as exc:
             return web.Response(status=404, text=f"404: {exc}\n")
         return web.Response(body=body, content_type="image/png")
 
-    async def cancel(request):
+    async def thumb(self, request):
+        return await self.picture(request, sheet=False)
+
+    async def sheet(self, request):
+        return await self.picture(request, sheet=True)
+
+    async def cancel(self, request):
         from storage.backend import Backend
 
-        url = dash.store_url(request.match_info["name"])
-        st = (await _blocking(dash.job_row, request.match_info["name"])).get("status")
+        name = request.match_info["name"]
+        url = self.dash.store_url(name)
+        st = (await _blocking(self.dash.job_row, name)).get("status")
         if st != "running":
             return web.Response(status=409, text=f"the job is {st}, not running")
         await _blocking(request_cancel, Backend(url), "dashboard")
         return web.Response(text="cancel requested: the driver stops within a few seconds")
 
-    async def runs_page(request):
-        rows = await _blocking(dash.run_rows)
-        for r in rows:
-            r["curves"] = _run_curves(r)
-        scored = [(r["label"], [(x["step"], x["psnr"]) for x in r["val"] if "psnr" in x])
-                  for r in rows]  # fmt: skip
-        compare = pages.lines_chart(scored) if sum(len(p) > 1 for _, p in scored) > 1 else None
-        differ = runs.differing([r for r in rows if r["settings"]])
-        sets = {r["settings"].get(runs.HELDOUT) for r in rows if r["val"]}
-        page = dict(compare=compare, differ=differ, mixed=compare is not None and len(sets) > 1,
-                    commands=runs.compare_commands(rows),
-                    tuned=runs.finetune_commands(rows))  # fmt: skip
-        return html(text=pages.render("runs", runs=rows, secret=secret, title="runs", **page))
+    async def runs_page(self, request):
+        rows = await _blocking(self.dash.run_rows)
+        return self._html("runs", runs=rows, title="runs", **_runs_page(rows))
 
-    async def run_file(request):
+    async def run_file(self, request):
         name = request.query.get("file")
         if name not in ("eval.png", "val.png"):
             return web.Response(status=404, text="404\n")
-        path = dash.run_path(request.match_info["name"]) / name
+        path = self.dash.run_path(request.match_info["name"]) / name
         if not path.is_file():
             return web.Response(status=404, text="404\n")
         return web.FileResponse(path)
 
-    async def metrics(request):
+    async def metrics(self, request):
         registry = CollectorRegistry()
-        registry.register(Collector(dash.job_rows, dash.run_rows, dash.frame_seconds))
+        registry.register(
+            Collector(self.dash.job_rows, self.dash.run_rows, self.dash.frame_seconds)
+        )
         body = await _blocking(generate_latest, registry)
         return web.Response(body=body, headers={"Content-Type": CONTENT_TYPE_LATEST})
 
-    app.router.add_get("/", index)
-    app.router.add_get("/job/{name:.+}", job)
-    app.router.add_get("/api/job/{name:.+}", api_job)
-    app.router.add_get("/thumb/{name:.+}", functools.partial(picture, sheet=False))
-    app.router.add_get("/sheet/{name:.+}", functools.partial(picture, sheet=True))
-    app.router.add_post("/cancel/{name:.+}", cancel)
-    app.router.add_get("/runs", runs_page)
-    app.router.add_get("/runfile/{name:.+}", run_file)
-    app.router.add_get("/metrics", metrics)
+
+def make_app(dash: Dashboard, token: str | None) -> web.Application:
+    app, secret = application(token)
+    h = Handlers(dash, secret)
+    routes = (
+        ("GET", "/", h.index),
+        ("GET", "/job/{name:.+}", h.job),
+        ("GET", "/api/job/{name:.+}", h.api_job),
+        ("GET", "/thumb/{name:.+}", h.thumb),
+        ("GET", "/sheet/{name:.+}", h.sheet),
+        ("POST", "/cancel/{name:.+}", h.cancel),
+        ("GET", "/runs", h.runs_page),
+        ("GET", "/runfile/{name:.+}", h.run_file),
+        ("GET", "/metrics", h.metrics),
+    )
+    for method, path, handler in routes:
+        app.router.add_route(method, path, handler)
     return app
+
+
+def _runs_page(rows: list[dict]) -> dict:
+    """The runs page's parts beyond the rows: each run's curves (into its row), the chart
+    that compares their held-out scores, the settings that differ, the commands to compare
+    and fine-tune them."""
+    for r in rows:
+        r["curves"] = _run_curves(r)
+    scored = [(r["label"], [(x["step"], x["psnr"]) for x in r["val"] if "psnr" in x])
+              for r in rows]  # fmt: skip
+    compare = pages.lines_chart(scored) if sum(len(p) > 1 for _, p in scored) > 1 else None
+    sets = {r["settings"].get(runs.HELDOUT) for r in rows if r["val"]}
+    return {
+        "compare": compare,
+        "differ": runs.differing([r for r in rows if r["settings"]]),
+        "mixed": compare is not None and len(sets) > 1,
+        "commands": runs.compare_commands(rows),
+        "tuned": runs.finetune_commands(rows),
+    }
 
 
 #: the runs page's curves: (the run's rows, the value, its title, whether y starts at 0)

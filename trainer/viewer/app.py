@@ -111,56 +111,59 @@ def _error(status: int, message: str) -> web.Response:
                              status=status)  # fmt: skip
 
 
-def make_app(viewer: Viewer, token: str | None) -> web.Application:
-    app, secret = application(token)
-    engine = viewer.engine
+class Handlers:
+    """The viewer's request handlers, a method each; ``secret`` goes into the page for its
+    uploads (:func:`farm.web.application`)."""
 
-    async def index(request):
-        return web.Response(
-            text=page.render(secret=secret, info=viewer.info, materials=engine.library.listing()),
-            content_type="text/html",
-        )
+    def __init__(self, viewer: Viewer, secret: str):
+        self.viewer, self.secret, self.engine = viewer, secret, viewer.engine
 
-    async def materials(request):
-        return web.json_response(engine.library.listing())
+    async def index(self, request):
+        materials = self.engine.library.listing()
+        text = page.render(secret=self.secret, info=self.viewer.info, materials=materials)
+        return web.Response(text=text, content_type="text/html")
 
-    async def thumb(request):
+    async def materials(self, request):
+        return web.json_response(self.engine.library.listing())
+
+    async def thumb(self, request):
         try:
             m = request.query.get("m", "")
-            body = await viewer.run(viewer.thumb, m, pool=viewer.thumb_pool)
+            body = await self.viewer.run(self.viewer.thumb, m, pool=self.viewer.thumb_pool)
         except MaterialError as exc:
             return _error(404, str(exc))
         return web.Response(body=body, content_type="image/png")
 
-    async def frame(request):
+    async def frame(self, request):
         q = request.query
         try:
             edits, light = Edits.from_query(q), Light.from_query(q)
-            f = await viewer.run(engine.frame, q.get("m", ""), edits, light, q.get("fmt", "jpeg"))
+            m, fmt = q.get("m", ""), q.get("fmt", "jpeg")
+            f = await self.viewer.run(self.engine.frame, m, edits, light, fmt)
         except (MaterialError, ValueError) as exc:
             return _error(400, str(exc))
         headers = {"Server-Timing": f.server_timing(), "Cache-Control": "no-store"}
         if q.get("download"):
-            label = re.sub(r"[^A-Za-z0-9._-]+", "_", engine.library.entry(q["m"]).label)[:60]
-            name = f"shaderball-{label}-az{light.azimuth:.0f}-el{light.elevation:.0f}.png"
+            name = _download_name(self.engine.library.entry(q["m"]).label, light)
             headers["Content-Disposition"] = f'attachment; filename="{name}"'
         return web.Response(body=f.body, content_type=f.content_type, headers=headers)
 
-    async def truth(request):
+    async def truth(self, request):
         try:
             k = int(request.query.get("k", ""))
-            out = await viewer.run(engine.truth, request.query.get("m", ""), k)
+            out = await self.viewer.run(self.engine.truth, request.query.get("m", ""), k)
         except (MaterialError, ValueError) as exc:
             return _error(400, str(exc))
         for key in ("truth", "network", "error"):
             out[key] = "data:image/png;base64," + base64.b64encode(out[key]).decode()
         return web.json_response(out)
 
-    async def upload(request):
-        incoming = Path(tempfile.mkdtemp(prefix="incoming-", dir=viewer.upload_dir))
+    async def upload(self, request):
+        lib = self.engine.library
+        incoming = Path(tempfile.mkdtemp(prefix="incoming-", dir=self.viewer.upload_dir))
         try:
-            files = await _receive_files(request, engine.library.max_upload_bytes, incoming)
-            entry = await viewer.run(engine.library.add_upload, files)
+            files = await _receive_files(request, lib.max_upload_bytes, incoming)
+            entry = await self.viewer.run(lib.add_upload, files)
         except _TooLarge as exc:
             return _error(413, str(exc))
         except (MaterialError, ValueError) as exc:
@@ -169,21 +172,36 @@ def make_app(viewer: Viewer, token: str | None) -> web.Application:
             shutil.rmtree(incoming, ignore_errors=True)
         return web.json_response(entry.to_dict())
 
+    async def favicon(self, request):
+        return web.Response(status=204)
+
+
+def make_app(viewer: Viewer, token: str | None) -> web.Application:
+    app, secret = application(token)
+    h = Handlers(viewer, secret)
+    routes = (
+        ("GET", "/", h.index),
+        ("GET", "/favicon.ico", h.favicon),
+        ("GET", "/api/materials", h.materials),
+        ("GET", "/api/thumb", h.thumb),
+        ("GET", "/api/frame", h.frame),
+        ("GET", "/api/truth", h.truth),
+        ("POST", "/api/upload", h.upload),
+    )
+    for method, path, handler in routes:
+        app.router.add_route(method, path, handler)
+
     async def cleanup(app):
         viewer.close()
 
-    async def favicon(request):
-        return web.Response(status=204)
-
-    app.router.add_get("/", index)
-    app.router.add_get("/favicon.ico", favicon)
-    app.router.add_get("/api/materials", materials)
-    app.router.add_get("/api/thumb", thumb)
-    app.router.add_get("/api/frame", frame)
-    app.router.add_get("/api/truth", truth)
-    app.router.add_post("/api/upload", upload)
     app.on_cleanup.append(cleanup)
     return app
+
+
+def _download_name(label: str, light: Light) -> str:
+    """A frame's file name: the material's label, safe in a path, and its sun."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", label)[:60]
+    return f"shaderball-{safe}-az{light.azimuth:.0f}-el{light.elevation:.0f}.png"
 
 
 class _TooLarge(ValueError):
