@@ -23,6 +23,11 @@ def _ago(t: float) -> str:
 def format_status(st: dict, worker_rows: int | None = WORKER_ROWS) -> str:
     """The job, its failures, a count of its workers by status and a table of the first
     ``worker_rows`` of them (``None``: all)."""
+    return "\n".join([*_job_lines(st), *_failure_lines(st), *_worker_lines(st, worker_rows)])
+
+
+def _job_lines(st: dict) -> list[str]:
+    """The job's status, store, progress and shards, then whatever stands in its way."""
     done = st["frames_done"] + st["frames_skipped"]
     total = st["frames_total"]
     eta = f"{st['eta_s']:.0f} s" if st.get("eta_s") else "-"
@@ -55,18 +60,28 @@ def format_status(st: dict, worker_rows: int | None = WORKER_ROWS) -> str:
         )
     if status == "running" and st.get("dashboard"):
         lines.append(f"ray       {st['dashboard']} (the Ray dashboard, while the job runs)")
-    if st["failures"] or st.get("commit_failures"):
-        lines.append("failures")
-        for m, f in sorted(st["failures"].items(), key=lambda kv: int(kv[0])):
-            last = f["errors"][-1] if f["errors"] else {"worker": "-", "error": "-"}
-            tag = "FAILED" if f["final"] else "recovered" if f.get("recovered") else "retrying"
-            lines.append(
-                f"  material {m:>6}  {tag:<8} attempts {f['attempts']}  "
-                f"last on {last['worker']}: {last['error']}"
-            )
+    return lines
+
+
+def _failure_lines(st: dict) -> list[str]:
+    """Each material that failed (final, recovered or retrying) and each shard's failed commit."""
+    if not (st["failures"] or st.get("commit_failures")):
+        return []
+    lines = ["failures"]
+    for m, f in sorted(st["failures"].items(), key=lambda kv: int(kv[0])):
+        last = f["errors"][-1] if f["errors"] else {"worker": "-", "error": "-"}
+        tag = "FAILED" if f["final"] else "recovered" if f.get("recovered") else "retrying"
+        lines.append(
+            f"  material {m:>6}  {tag:<8} attempts {f['attempts']}  "
+            f"last on {last['worker']}: {last['error']}"
+        )
     for shard, error in sorted(st.get("commit_failures", {}).items(), key=lambda kv: int(kv[0])):
         lines.append(f"  shard {shard:>9}  FAILED   commit: {error}")
-    lines.append(_worker_counts(st["workers"].values()))
+    return lines
+
+
+def _worker_lines(st: dict, worker_rows: int | None) -> list[str]:
+    """The workers counted by status, then a table of the first ``worker_rows``."""
     workers = [
         (w["worker"], w["status"], w["frames"], w["mean_frame_s"], w["failures"], w["recycled"])
         + (w.get("recalled", 0), _ago(w["last_seen"]))  # recalled: absent from older states
@@ -74,10 +89,11 @@ def format_status(st: dict, worker_rows: int | None = WORKER_ROWS) -> str:
     ]
     header = ["worker", "status", "frames", "s/frame", "fails", "recycled", "recalled",
               "last seen"]  # fmt: skip
-    lines.append(tabulate(workers[:worker_rows], header, floatfmt=".2f"))
+    table = tabulate(workers[:worker_rows], header, floatfmt=".2f")
+    lines = [_worker_counts(st["workers"].values()), table]
     if worker_rows is not None and len(workers) > worker_rows:
         lines.append(f"... {len(workers) - worker_rows} more (farm status --all-workers)")
-    return "\n".join(lines)
+    return lines
 
 
 def _worker_counts(workers) -> str:

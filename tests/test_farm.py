@@ -218,6 +218,34 @@ def test_status_names_the_ray_dashboard_only_while_the_job_runs():
     assert format_status({**st, "workers": {"w0": old}}).splitlines()[-1].split()[6] == "0"
 
 
+def test_status_lists_each_failed_material_and_commit_between_the_job_and_its_workers():
+    from farm.status import format_status
+
+    st = {"status": "running", "driver": "vm:1", "updated": time.time(), "store": "s.zarr",
+          "frames_done": 4, "frames_skipped": 0, "frames_total": 8, "frames_per_s": 1.0,
+          "eta_s": 4.0, "shards_committed": 1, "shards_total": 2, "shards_failed": [1],
+          "failures": {}, "workers": {}}  # fmt: skip
+    assert "failures" not in format_status(st).splitlines()
+    err = lambda e: {"worker": "w1", "error": e}  # noqa: E731
+    st["failures"] = {
+        "10": {"attempts": 3, "final": True, "errors": [err("a"), err("Blender crashed")]},
+        "2": {"attempts": 2, "final": False, "recovered": True, "errors": [err("timeout")]},
+        "7": {"attempts": 1, "final": False, "errors": []},
+    }
+    st["commit_failures"] = {"1": "store unreachable"}
+    lines = format_status(st).splitlines()
+    at = lines.index("failures")
+    assert lines[at - 1] == "shards    1/2 committed, failed: [1]"
+    assert [ln.split()[:4] for ln in lines[at + 1 : at + 5]] == [
+        ["material", "2", "recovered", "attempts"],
+        ["material", "7", "retrying", "attempts"],
+        ["material", "10", "FAILED", "attempts"],
+        ["shard", "1", "FAILED", "commit:"],
+    ]
+    assert lines[at + 3].endswith("attempts 3  last on w1: Blender crashed")
+    assert lines[at + 2].endswith("last on -: -") and lines[at + 5].startswith("workers   0")
+
+
 def test_status_counts_a_cluster_jobs_workers_and_lists_the_first_twenty():
     from farm.status import format_status
 
