@@ -229,19 +229,19 @@ class Handlers:
 def make_app(dash: Dashboard, token: str | None) -> web.Application:
     app, secret = application(token)
     h = Handlers(dash, secret)
-    routes = (
-        ("GET", "/", h.index),
-        ("GET", "/job/{name:.+}", h.job),
-        ("GET", "/api/job/{name:.+}", h.api_job),
-        ("GET", "/thumb/{name:.+}", h.thumb),
-        ("GET", "/sheet/{name:.+}", h.sheet),
-        ("POST", "/cancel/{name:.+}", h.cancel),
-        ("GET", "/runs", h.runs_page),
-        ("GET", "/runfile/{name:.+}", h.run_file),
-        ("GET", "/metrics", h.metrics),
+    app.add_routes(
+        [
+            web.get("/", h.index),
+            web.get("/job/{name:.+}", h.job),
+            web.get("/api/job/{name:.+}", h.api_job),
+            web.get("/thumb/{name:.+}", h.thumb),
+            web.get("/sheet/{name:.+}", h.sheet),
+            web.post("/cancel/{name:.+}", h.cancel),
+            web.get("/runs", h.runs_page),
+            web.get("/runfile/{name:.+}", h.run_file),
+            web.get("/metrics", h.metrics),
+        ]
     )
-    for method, path, handler in routes:
-        app.router.add_route(method, path, handler)
     return app
 
 

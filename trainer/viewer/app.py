@@ -179,17 +179,17 @@ class Handlers:
 def make_app(viewer: Viewer, token: str | None) -> web.Application:
     app, secret = application(token)
     h = Handlers(viewer, secret)
-    routes = (
-        ("GET", "/", h.index),
-        ("GET", "/favicon.ico", h.favicon),
-        ("GET", "/api/materials", h.materials),
-        ("GET", "/api/thumb", h.thumb),
-        ("GET", "/api/frame", h.frame),
-        ("GET", "/api/truth", h.truth),
-        ("POST", "/api/upload", h.upload),
+    app.add_routes(
+        [
+            web.get("/", h.index),
+            web.get("/favicon.ico", h.favicon),
+            web.get("/api/materials", h.materials),
+            web.get("/api/thumb", h.thumb),
+            web.get("/api/frame", h.frame),
+            web.get("/api/truth", h.truth),
+            web.post("/api/upload", h.upload),
+        ]
     )
-    for method, path, handler in routes:
-        app.router.add_route(method, path, handler)
 
     async def cleanup(app):
         viewer.close()
