@@ -84,7 +84,7 @@ def device_name(device: str) -> str:
     return f"CPU ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--store", default=DEFAULT)
     ap.add_argument("--batch", type=int, default=4)
@@ -103,6 +103,47 @@ def main() -> None:
     ap.add_argument(
         "--sim-epochs", type=int, default=6, help="epochs of the epoch-end rows (0: no such rows)"
     )
+    return ap
+
+
+def trainer_log(args: argparse.Namespace, store: str, tmp: str) -> list[dict]:
+    """The log of ``args.steps`` steps of the real trainer on ``store`` (a run in ``tmp``;
+    the VGG16 of ``--loss l1+vgg`` with random weights: speed does not depend on them)."""
+    vgg = None
+    if args.loss == "l1+vgg":
+        vgg = f"{tmp}/vgg16-random.pth"
+        torch.save({f"features.{k}": v for k, v in vgg16_relu3_3().state_dict().items()}, vgg)
+    run = f"{tmp}/run"
+    cfg = TrainConfig(
+        store=(store,), out=run, loss=args.loss, vgg_weights=vgg, batch_size=args.batch,
+        workers=args.workers, max_steps=args.steps, log_every=args.log_every,
+        holdout_fraction=0.0, device=args.device, checkpoint_every=10**9,
+    )  # fmt: skip
+    train(cfg)
+    return [json.loads(x) for x in (Path(run) / "log.jsonl").read_text().splitlines()]
+
+
+def print_table(args, load: float, step_ms: float, ends: dict, log: list[dict]) -> None:
+    """The loader's rate, the epoch-end rows and the trainer's rate and data wait after
+    ``--warmup`` steps."""
+    timed = [r for r in log if r["step"] - r["steps"] >= args.warmup]
+    seconds = sum(r["images"] / r["images_per_second"] for r in timed)
+    wait = sum(r["data_wait"] * r["images"] / r["images_per_second"] for r in timed) / seconds
+    print(f"{'row':<50}{'images/s':>10}{'data wait':>11}{'longest wait':>14}")
+    print(f"{'loader only':<50}{load:>10.1f}{'-':>11}{'-':>14}")
+    for across, label in ((False, "an iteration an epoch"), (True, "one iteration (trainer)")):
+        if across not in ends:
+            continue
+        row = f"loader + {step_ms:.0f} ms steps, {label}"
+        rate, share, longest = ends[across]
+        print(f"{row:<50}{rate:>10.1f}{share:>11.1%}{longest * 1000:>11.0f} ms")
+    row = f"train (steps {args.warmup + 1}-{args.steps})"
+    rate = sum(r["images"] for r in timed) / seconds
+    print(f"{row:<50}{rate:>10.2f}{wait:>11.1%}{'-':>14}")
+
+
+def main() -> None:
+    ap = parser()
     args = ap.parse_args()
     if args.steps <= args.warmup:
         ap.error(f"--steps {args.steps} leaves no step after the --warmup {args.warmup} to time")
@@ -120,38 +161,12 @@ def main() -> None:
             )
             for across in ((False, True) if args.sim_epochs > 0 else ())
         }
-        vgg = None
-        if args.loss == "l1+vgg":
-            vgg = f"{tmp}/vgg16-random.pth"
-            state = {f"features.{k}": v for k, v in vgg16_relu3_3().state_dict().items()}
-            torch.save(state, vgg)
-        run = f"{tmp}/run"
-        cfg = TrainConfig(
-            store=(store,), out=run, loss=args.loss, vgg_weights=vgg, batch_size=args.batch,
-            workers=args.workers, max_steps=args.steps, log_every=args.log_every,
-            holdout_fraction=0.0, device=args.device, checkpoint_every=10**9,
-        )  # fmt: skip
-        train(cfg)
-        log = [json.loads(x) for x in (Path(run) / "log.jsonl").read_text().splitlines()]
-    timed = [r for r in log if r["step"] - r["steps"] >= args.warmup]
-    seconds = sum(r["images"] / r["images_per_second"] for r in timed)
-    wait = sum(r["data_wait"] * r["images"] / r["images_per_second"] for r in timed) / seconds
+        log = trainer_log(args, store, tmp)
     print(
         f"\ndevice: {device_name(args.device)}; {catalog.resolution}², batch {args.batch}, "
-        f"{args.workers} "
-        f"workers, loss {args.loss}, {len(split)} samples an epoch"
+        f"{args.workers} workers, loss {args.loss}, {len(split)} samples an epoch"
     )
-    print(f"{'row':<50}{'images/s':>10}{'data wait':>11}{'longest wait':>14}")
-    print(f"{'loader only':<50}{load:>10.1f}{'-':>11}{'-':>14}")
-    for across, label in ((False, "an iteration an epoch"), (True, "one iteration (trainer)")):
-        if across not in ends:
-            continue
-        row = f"loader + {step_ms:.0f} ms steps, {label}"
-        rate, share, longest = ends[across]
-        print(f"{row:<50}{rate:>10.1f}{share:>11.1%}{longest * 1000:>11.0f} ms")
-    row = f"train (steps {args.warmup + 1}-{args.steps})"
-    rate = sum(r["images"] for r in timed) / seconds
-    print(f"{row:<50}{rate:>10.2f}{wait:>11.1%}{'-':>14}")
+    print_table(args, load, step_ms, ends, log)
 
 
 if __name__ == "__main__":

@@ -167,3 +167,24 @@ def test_input_copy_times_copy_and_the_compiled_copy_after_checking_their_values
     assert all(float(row[1]) > 0 and row[2] == "ms" and float(row[3]) > 0 for row in rows)
     bad = subprocess.run([*cmd, "--iters", "0"], capture_output=True, text=True)
     assert bad.returncode == 2 and "must be positive" in bad.stderr
+
+
+def test_the_training_rows_time_only_the_steps_after_the_warmup(capsys):
+    """``benchmarks.train.print_table``: the trainer's images/s and data wait come from the
+    log's windows after ``--warmup`` steps, each weighted by its seconds."""
+    from benchmarks.train import parser, print_table
+
+    args = parser().parse_args(["--steps", "6", "--warmup", "2"])
+    log = [  # windows of 2 steps: the first is warm-up; then 8 images in 1 s, 8 in 3 s
+        {"step": 2, "steps": 2, "images": 8, "images_per_second": 0.5, "data_wait": 0.9},
+        {"step": 4, "steps": 2, "images": 8, "images_per_second": 8.0, "data_wait": 0.10},
+        {"step": 6, "steps": 2, "images": 8, "images_per_second": 8 / 3, "data_wait": 0.02},
+    ]
+    ends = {True: (50.0, 0.25, 0.004)}
+    print_table(args, 400.0, 9.0, ends, log)
+    rows = capsys.readouterr().out.splitlines()
+    assert rows[1].split() == ["loader", "only", "400.0", "-", "-"]
+    assert rows[2].split()[-5:] == ["(trainer)", "50.0", "25.0%", "4", "ms"]
+    assert "an iteration an epoch" not in "\n".join(rows)  # not measured: no row
+    # 16 images in 4 s; wait (0.1 x 1 s + 0.02 x 3 s) / 4 s = 4 %
+    assert rows[3].split() == ["train", "(steps", "3-6)", "4.00", "4.0%", "-"]
