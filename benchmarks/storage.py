@@ -248,44 +248,43 @@ def wds_bench(root: Path, n, maps_pool, renders_pool):
     return stored / n, write, res
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--samples", type=int, default=200, help="samples (5 suns a material)")
-    ap.add_argument("--render-spp", type=int, default=32, help="spp of the cached real renders")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
-    n = args.samples - args.samples % SUNS
-    maps_pool, renders_pool = render_pool(args.render_spp)
-    layout = Layout(num_materials=n // SUNS, suns_per_material=SUNS, resolution=RES, shard_size=25)
-    root = Path(tempfile.mkdtemp(prefix="bench-storage-"))
+def zarr_rows(url: str, layout: Layout, pools, seed: int) -> list[tuple]:
+    """The shard store's row (written here from ``pools``, then read), the raw decode bound's
+    and zarr-python's reads: ``(format, bytes a sample, write MB/s, {read: samples/s})``."""
+    maps_pool, renders_pool = pools
+    n = layout.num_samples
+    store = create_store(url, layout, {})
+    raw = 0
+    t0 = time.perf_counter()
+    for shard in range(layout.num_shards):
+        p = payload(layout, shard, maps_pool, renders_pool)
+        write_shard(store, shard, p)
+        raw += p.renders.nbytes + p.maps.nbytes
+    write = raw / (time.perf_counter() - t0) / 2**20
+    stored = sum(store.shard_bytes(s) for s in range(layout.num_shards)) / n
+    return [
+        ("zarr shard store", stored, write, zarr_reads(url, n, seed)),
+        ("raw decode bound", stored, None, {"seq1": raw_bound(Path(url), layout)}),
+        ("zarr-python reads", stored, None, {"seq1": zarr_python_read(url, layout)}),
+    ]
+
+
+def other_rows(root: Path, n: int, pools, seed: int) -> list[tuple]:
+    """MDS's and WebDataset's rows, or a row that says which is not installed."""
     rows = []
-    try:
-        url = str(root / "set.zarr")
-        store = create_store(url, layout, {})
-        raw = 0
-        t0 = time.perf_counter()
-        for shard in range(layout.num_shards):
-            p = payload(layout, shard, maps_pool, renders_pool)
-            write_shard(store, shard, p)
-            raw += p.renders.nbytes + p.maps.nbytes
-        write = raw / (time.perf_counter() - t0) / 2**20
-        stored = sum(store.shard_bytes(s) for s in range(layout.num_shards)) / n
-        reads = zarr_reads(url, n, args.seed)
-        bound = raw_bound(Path(url), layout)
-        rows.append(("zarr shard store", stored, write, reads))
-        rows.append(("raw decode bound", stored, None, {"seq1": bound}))
-        rows.append(("zarr-python reads", stored, None, {"seq1": zarr_python_read(url, layout)}))
-        for name, bench in (
-            ("MDS (streaming)", lambda: mds_bench(root, n, maps_pool, renders_pool, args.seed)),
-            ("WebDataset tar", lambda: wds_bench(root, n, maps_pool, renders_pool)),
-        ):
-            try:
-                per, w, res = bench()
-                rows.append((name, per, w, res))
-            except ImportError as exc:
-                rows.append((f"{name}: not installed ({exc.name})", None, None, {}))
-    finally:
-        shutil.rmtree(root, ignore_errors=True)
+    for name, bench in (
+        ("MDS (streaming)", lambda: mds_bench(root, n, *pools, seed)),
+        ("WebDataset tar", lambda: wds_bench(root, n, *pools)),
+    ):
+        try:
+            rows.append((name, *bench()))
+        except ImportError as exc:
+            rows.append((f"{name}: not installed ({exc.name})", None, None, {}))
+    return rows
+
+
+def print_report(n: int, rows: list[tuple]) -> None:
+    """The table of ``rows``, then each target's ratio."""
 
     def f(x, fmt):
         return format(x, fmt) if x is not None else "-"
@@ -316,6 +315,24 @@ def main() -> None:
                 f"shuffled 1p = {z['shuf1'] / r['shuf1']:.2f}x (target >= 1 vs MDS)"
             )
     print("WebDataset 'shuffled' is a 64-sample buffer shuffle over sequential tar reads.")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--samples", type=int, default=200, help="samples (5 suns a material)")
+    ap.add_argument("--render-spp", type=int, default=32, help="spp of the cached real renders")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    n = args.samples - args.samples % SUNS
+    pools = render_pool(args.render_spp)
+    layout = Layout(num_materials=n // SUNS, suns_per_material=SUNS, resolution=RES, shard_size=25)
+    root = Path(tempfile.mkdtemp(prefix="bench-storage-"))
+    try:
+        rows = zarr_rows(str(root / "set.zarr"), layout, pools, args.seed)
+        rows += other_rows(root, n, pools, args.seed)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    print_report(n, rows)
 
 
 if __name__ == "__main__":
