@@ -147,7 +147,7 @@ def measure(path: Path, reader: str, repeat: int, render: bool) -> dict:
     return min(runs, key=lambda r: r["seconds"])
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--texture", type=int, default=4096, help="maps' size in texels (4096)")
     ap.add_argument("--repeat", type=int, default=2, help="reads of each layout (2)")
@@ -169,6 +169,43 @@ def main() -> None:
         help="what --write makes: 5-panel PNGs, metal-rough folders, or those with three "
         "maps at half size (panel)",
     )
+    return ap
+
+
+#: each layout's name in the tables
+LAYOUT_NAMES = {"panel": "5-panel PNG", "metal-rough": "metal-rough folder (4 PNGs)",
+                "mixed": "the folder, all but the normal at half size"}  # fmt: skip
+
+
+def print_tables(rows: dict, texture: int, repeat: int, render: bool) -> None:
+    """The reads' table of ``rows`` (a layout's name: its two readers' measures), and with
+    ``render`` the render worker's."""
+    print(
+        f"{texture}² maps, best of {repeat} reads, each in a fresh process; "
+        "floats: read_svbrdf, bytes: read_svbrdf_bytes (farm workers, the viewer)"
+    )
+    print(
+        "| layout | read s, floats / bytes | resident MB before | peak MB, floats / bytes "
+        "| maps MB, floats / bytes |"
+    )
+    print("|---|---|---|---|---|")
+    for name, r in rows.items():
+        f, b = r["floats"], r["bytes"]
+        print(f"| {name} | {f['seconds']:.2f} / {b['seconds']:.2f} | {b['before_mb']:,.0f} | "
+              f"{f['peak_mb']:,.0f} / {b['peak_mb']:,.0f} | "
+              f"{f['maps_mb']:,.0f} / {b['maps_mb']:,.0f} |")  # fmt: skip
+    if render:
+        print("\nthe bytes read into a fresh render worker, rendered once at 32², 1 sample")
+        print("| layout | texture swap s | worker peak MB | Blender process peak MB |")
+        print("|---|---|---|---|")
+        for name, r in rows.items():
+            b = r["bytes"]
+            print(f"| {name} | {b['swap_s']:.2f} | {b['worker_peak_mb']:,.0f} | "
+                  f"{b['blender_peak_mb']:,.0f} |")  # fmt: skip
+
+
+def main() -> None:
+    ap = parser()
     args = ap.parse_args()
     if args.read is not None:
         print(json.dumps(read_once(args.read, args.reader, args.render)))
@@ -182,39 +219,16 @@ def main() -> None:
         for seed in range(args.count):
             write_one(args.layout, args.write, args.texture, seed)
         return
-    names = {"panel": "5-panel PNG", "metal-rough": "metal-rough folder (4 PNGs)",
-             "mixed": "the folder, all but the normal at half size"}  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         rows = {}
         for layout in LAYOUTS:
             (Path(tmp) / layout).mkdir()
             path = write_apart(Path(tmp) / layout, args.texture, 1, layout)[0]
-            rows[names[layout]] = {
+            rows[LAYOUT_NAMES[layout]] = {
                 "floats": measure(path, "floats", args.repeat, False),
                 "bytes": measure(path, "bytes", args.repeat, args.render),
             }
-    print(
-        f"{args.texture}² maps, best of {args.repeat} reads, each in a fresh process; "
-        "floats: read_svbrdf, bytes: read_svbrdf_bytes (farm workers, the viewer)"
-    )
-    print(
-        "| layout | read s, floats / bytes | resident MB before | peak MB, floats / bytes "
-        "| maps MB, floats / bytes |"
-    )
-    print("|---|---|---|---|---|")
-    for name, r in rows.items():
-        f, b = r["floats"], r["bytes"]
-        print(f"| {name} | {f['seconds']:.2f} / {b['seconds']:.2f} | {b['before_mb']:,.0f} | "
-              f"{f['peak_mb']:,.0f} / {b['peak_mb']:,.0f} | "
-              f"{f['maps_mb']:,.0f} / {b['maps_mb']:,.0f} |")  # fmt: skip
-    if args.render:
-        print("\nthe bytes read into a fresh render worker, rendered once at 32², 1 sample")
-        print("| layout | texture swap s | worker peak MB | Blender process peak MB |")
-        print("|---|---|---|---|")
-        for name, r in rows.items():
-            b = r["bytes"]
-            print(f"| {name} | {b['swap_s']:.2f} | {b['worker_peak_mb']:,.0f} | "
-                  f"{b['blender_peak_mb']:,.0f} |")  # fmt: skip
+    print_tables(rows, args.texture, args.repeat, args.render)
 
 
 if __name__ == "__main__":

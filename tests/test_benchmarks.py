@@ -1,8 +1,10 @@
-"""Benchmark helpers that decide what a table says (on fake clocks), and the kernel plan."""
+"""Benchmark helpers that decide what a table says (on fake clocks), the kernel plan, and the
+CPU benchmarks that no other test runs."""
 
 from __future__ import annotations
 
 import itertools
+import re
 import subprocess
 import sys
 
@@ -188,3 +190,20 @@ def test_the_training_rows_time_only_the_steps_after_the_warmup(capsys):
     assert "an iteration an epoch" not in "\n".join(rows)  # not measured: no row
     # 16 images in 4 s; wait (0.1 x 1 s + 0.02 x 3 s) / 4 s = 4 %
     assert rows[3].split() == ["train", "(steps", "3-6)", "4.00", "4.0%", "-"]
+
+
+def test_the_materials_benchmark_reads_each_layout_and_refuses_a_tiny_texture():
+    """``benchmarks.materials`` without Blender (``--no-render``) at 64²: a row for each
+    layout with both readers' times and memory, read in fresh processes."""
+    cmd = [sys.executable, "-m", "benchmarks.materials", "--texture", "64", "--repeat", "1",
+           "--no-render"]  # fmt: skip
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-3000:]
+    rows = re.findall(r"^\| ([^|]+) \| (\d+\.\d\d) / (\d+\.\d\d) \| (\d+) \| (\d+) / (\d+) \|",
+                      r.stdout, re.M)  # fmt: skip
+    assert [row[0] for row in rows] == ["5-panel PNG", "metal-rough folder (4 PNGs)",
+                                        "the folder, all but the normal at half size"]  # fmt: skip
+    assert all(int(row[4]) >= int(row[3]) > 0 for row in rows)  # peak at least the resident
+    assert "texture swap" not in r.stdout  # no render worker asked for
+    bad = subprocess.run([*cmd[:3], "--texture", "4"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--texture must be at least 8" in bad.stderr
