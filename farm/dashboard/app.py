@@ -178,7 +178,7 @@ class Handlers:
         row = await _blocking(self.dash.job_row, request.match_info["name"])
         return web.json_response(row, dumps=lambda o: json.dumps(o, default=str))
 
-    async def picture(self, request, sheet: bool):
+    async def _picture(self, request, sheet: bool):
         url = self.dash.store_url(request.match_info["name"])
         try:
             sample = int(request.query.get("sample", ""))
@@ -188,10 +188,10 @@ class Handlers:
         return web.Response(body=body, content_type="image/png")
 
     async def thumb(self, request):
-        return await self.picture(request, sheet=False)
+        return await self._picture(request, sheet=False)
 
     async def sheet(self, request):
-        return await self.picture(request, sheet=True)
+        return await self._picture(request, sheet=True)
 
     async def cancel(self, request):
         from storage.backend import Backend
