@@ -46,7 +46,7 @@ def _job_lines(st: dict) -> list[str]:
         f"store     {st['store']}",
         f"frames    {done}/{total} ({100 * done / total:.1f}%), {rate}, ETA {eta}",
         f"shards    {st['shards_committed']}/{st['shards_total']} committed"
-        + (f", failed: {st['shards_failed']}" if st["shards_failed"] else ""),
+        + _failed_shards(st["shards_failed"]),
     ]
     if status == "running" and st.get("cancel_requested"):
         req = st["cancel_requested"]
@@ -61,6 +61,15 @@ def _job_lines(st: dict) -> list[str]:
     if status == "running" and st.get("dashboard"):
         lines.append(f"ray       {st['dashboard']} (the Ray dashboard, while the job runs)")
     return lines
+
+
+def _failed_shards(shards: list[int], shown: int = 8) -> str:
+    """The count of failed shards and the first ``shown`` of them, after the committed count."""
+    if not shards:
+        return ""
+    word = "shard" if len(shards) == 1 else "shards"
+    more = ", ..." if len(shards) > shown else ""
+    return f", failed: {len(shards)} ({word} {', '.join(map(str, shards[:shown]))}{more})"
 
 
 def _failure_lines(st: dict) -> list[str]:

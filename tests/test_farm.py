@@ -235,7 +235,9 @@ def test_status_lists_each_failed_material_and_commit_between_the_job_and_its_wo
     st["commit_failures"] = {"1": "store unreachable"}
     lines = format_status(st).splitlines()
     at = lines.index("failures")
-    assert lines[at - 1] == "shards    1/2 committed, failed: [1]"
+    assert lines[at - 1] == "shards    1/2 committed, failed: 1 (shard 1)"
+    many = format_status({**st, "shards_failed": list(range(3, 23))}).splitlines()[3]
+    assert many.endswith("failed: 20 (shards 3, 4, 5, 6, 7, 8, 9, 10, ...)")
     assert [ln.split()[:4] for ln in lines[at + 1 : at + 5]] == [
         ["material", "2", "recovered", "attempts"],
         ["material", "7", "retrying", "attempts"],
