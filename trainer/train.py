@@ -207,7 +207,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     )  # fmt: skip
     reader = loader(stream, cfg.workers, pin_memory=rk.cuda)
     notes = _start_notes(cfg, t, catalog, init, found, was)
-    log = _start_log(cfg, rk, out, t, catalog, notes)
+    log = _start_log(cfg, rk, out, t, catalog, len(split), notes)
     started = time.perf_counter()
     images = _epochs(cfg, rk, t, stream, reader, log, out)
     log.close(t.model)
@@ -225,18 +225,18 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
 
 
 def _start_log(
-    cfg: TrainConfig, rk: Rank, out: Path, t: Trainee, catalog: Catalog, notes
+    cfg: TrainConfig, rk: Rank, out: Path, t: Trainee, catalog: Catalog, samples: int, notes
 ) -> RunLog:
-    """The run's log, its validator on the master, and the lines that open the run."""
+    """The run's log, its validator on the master, and the lines that open the run (on
+    ``samples`` training samples)."""
     log = RunLog(cfg, rk, out)
     if rk.master and cfg.val_samples:
         log.validator = Validator(catalog.split("test"), cfg.val_samples)
     log.start(log.validation_plan())
     for note in notes:
         log.start(note)
-    split = catalog.split("train")
     log.start(
-        f"training on {len(split)} samples (held-out materials: "
+        f"training on {samples} samples (held-out materials: "
         f"{sum(map(len, catalog.heldout))}), {rk.world} rank(s) x batch {cfg.batch_size} "
         f"on {rk.device.type}, {t.model_cfg.resolution}², loss {cfg.loss}; from step {t.step}"
     )
