@@ -54,6 +54,7 @@ class Scale:
     batch: int
     timing_count: int  # renders timed per Cycles setting
     workers: int = 0  # Blender workers a render job (0: the farm's default, one a CPU)
+    width: int = 64  # the U-Nets' first level (the paper's 64; the tiny scale tests the steps)
 
 
 SCALES = {
@@ -87,6 +88,7 @@ SCALES = {
         batch=2,
         timing_count=1,
         workers=1,  # a few frames a job: one Blender load, not one a CPU
+        width=16,  # a sixteenth of the paper's cost: the tiny scale checks every step, not scores
     ),
 }
 
@@ -136,10 +138,11 @@ class Plan:
         """``(run name, training store, extra trainer arguments)``."""
         s = self.scale
         ep, fep = ["--epochs", str(s.epochs)], ["--epochs", str(s.fixed_epochs)]
+        width = ["--width", str(s.width)]
         return [
-            ("unet", "train", ep),
-            ("unet-noskips", "train", [*ep, "--no-skips"]),
-            ("unet-fixed", "train-fixed", fep),
+            ("unet", "train", [*ep, *width]),
+            ("unet-noskips", "train", [*ep, *width, "--no-skips"]),
+            ("unet-fixed", "train-fixed", [*fep, *width]),
             ("zf-fixed", "train-fixed", [*fep, "--model", "zf"]),
         ]
 

@@ -377,8 +377,9 @@ def _data_section(plan, rows: dict, cpu: str) -> list[str]:
         f"- fixed-sun sets (Zsolnai-Fehér has no light input): {s.fixed[0]} / {s.fixed[1]} "
         "uniform materials under one sun (direction (-0.4, -0.6, 0.7), turbidity 3);",
         f"- training: L1 loss, Adam lr 1e-3, batch {s.batch}, one CPU process "
-        f"({cpu}); U-Net runs {s.epochs} epochs, fixed-sun runs {s.fixed_epochs}. Steps and "
-        "wall time: "
+        f"({cpu}); U-Nets {s.width} channels wide at their first level"
+        f"{'' if s.width == 64 else ' (the paper: 64)'}, U-Net runs {s.epochs} epochs, "
+        f"fixed-sun runs {s.fixed_epochs}. Steps and wall time: "
         + ", ".join(
             f"{n} {steps.get(n, '?')} steps / {seconds.get(n, 0) / 60:.0f} min"
             for n in ("unet", "unet-noskips", "unet-fixed", "zf-fixed")

@@ -3,6 +3,7 @@ truth sample by sample, and (slow) the whole command end to end at the tiny scal
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -177,6 +178,9 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
         numbers = [float(v) for v in re.findall(r"\| (-?\d+\.\d+)", row)]
         assert numbers and all(np.isfinite(numbers)), row
     assert "VGG16" in text and "held-out materials only" in text
+    assert "U-Nets 16 channels wide at their first level (the paper: 64)" in text
+    for run in ("unet", "unet-noskips", "unet-fixed"):  # the tiny scale's width, as it says
+        assert json.loads((work / "runs" / run / "config.json").read_text())["width"] == 16
     # 5 test materials: each mean PSNR of the main table has an interval around it, and each
     # comparison with ours its paired difference with an interval; 2 fixed-sun test
     # materials: differences without intervals
