@@ -7,14 +7,19 @@ BIN := $(VENV)/bin
 
 # torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
 # torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
-# nvidia-* downloads that a CPU machine never uses and a flaky network can fail. The retries:
-# bpy and Ray still come from PyPI, and pip's default of 5 resumes once ran out mid-wheel.
+# nvidia-* downloads that a CPU machine never uses and a flaky network can fail.
 TORCH ?= $(if $(wildcard /opt/wheels/torch-2.13.0+cpu-*.whl),torch==2.13.0+cpu,torch==2.13.0)
+FIND_LINKS := $(if $(wildcard /opt/wheels),--find-links /opt/wheels)
 
+# uv installs: downloads in parallel, unpacks and compiles the bytecode on every core (65 s for
+# a fresh environment here against pip's 207 s: docs/development.md). uv reads no pip
+# configuration, hence the find-links folder named here. The retries: bpy and Ray come from
+# PyPI, and a download has been seen to fail mid-wheel on these machines.
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --retries 10 --upgrade pip
-	$(BIN)/pip install --quiet --retries 10 --resume-retries 20 -e '.[all,dev]' '$(TORCH)'
+	$(BIN)/pip install --quiet --retries 10 'uv==0.13.*'
+	UV_HTTP_RETRIES=10 UV_HTTP_TIMEOUT=180 $(BIN)/uv pip install --quiet \
+		--python $(BIN)/python --compile-bytecode $(FIND_LINKS) -e '.[all,dev]' '$(TORCH)'
 	touch $@
 
 # The main job on the embedded default (local Ray, local store): a small real farm job,
@@ -31,7 +36,7 @@ demo-train: $(BIN)/.installed
 	$(BIN)/trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out out/runs/demo
 	$(BIN)/trainer eval --checkpoint out/runs/demo
 
-# Two pytest workers: the suite mostly waits on Ray, Blender and servers starting
+# Two pytest workers: the suite is CPU-bound on 2 cores, and a third worker made it slower
 # (docs/development.md). A test kills only processes it started, so any two run side by side.
 # The 25 slowest tests are listed at the end: where the suite's time goes.
 test: $(BIN)/.installed lint chromium

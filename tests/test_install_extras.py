@@ -1,9 +1,13 @@
 """Install extras per role: ``shaderball[train]`` alone, in a fresh virtual environment
 (no Blender, no Ray), trains on a store written by the storage API; the parts it lacks say in
-one line which extra to install."""
+one line which extra to install.
+
+The environment is filled by uv, the Makefile's installer (its cache is warm after ``make``):
+what is tested is the extra's set of requirements, which pip and uv resolve alike."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -31,13 +35,15 @@ def test_the_train_extra_alone_trains_and_names_the_missing_extras(tmp_path):
     for shard in range(layout.num_shards):
         write_shard(store, shard, synthetic_payload(layout, shard))
     venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
-    pip = subprocess.run(
-        [str(venv / "bin" / "pip"), "install", "--quiet", "--retries", "10", "--no-compile",
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    uv = str(Path(sys.executable).parent / "uv")
+    links = ["--find-links", "/opt/wheels"] if Path("/opt/wheels").is_dir() else []
+    install = subprocess.run(
+        [uv, "pip", "install", "--quiet", "--python", str(venv / "bin" / "python"), *links,
          f"{ROOT}[train]", torch_requirement()],
-        capture_output=True, text=True, timeout=900,
+        capture_output=True, text=True, timeout=900, env={**os.environ, "UV_HTTP_RETRIES": "10"},
     )  # fmt: skip
-    assert pip.returncode == 0, pip.stderr[-3000:]
+    assert install.returncode == 0, install.stderr[-3000:]
     py = str(venv / "bin" / "python")
     for module in ("bpy", "ray"):  # (aiohttp comes with s3fs, jinja2 with torch)
         r = subprocess.run([py, "-c", f"import {module}"], capture_output=True)
