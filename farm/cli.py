@@ -84,7 +84,13 @@ def render_options(command):
 
 @click.group(cls=Commands, context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
-    """shaderball render farm: ground-truth shaderball renders with Blender Cycles."""
+    """shaderball render farm: ground-truth shaderball renders with Blender Cycles.
+
+    \b
+      farm submit -m uniform:4 -m procedural:4 --resolution 128 -o out/demo.zarr
+      farm status out/demo.zarr --watch
+      farm dashboard out
+    """
 
 
 @main.command()

@@ -39,7 +39,13 @@ def _sample(store, index: int):
 
 @click.group(cls=Commands, context_settings={"help_option_names": ["-h", "--help"]})
 def main() -> None:
-    """Inspect shaderball shard stores (local folders or s3:// URLs)."""
+    """Inspect shaderball shard stores (local folders or s3:// URLs).
+
+    \b
+      shards info out/demo.zarr
+      shards verify out/demo.zarr
+      shards show out/demo.zarr --sample 0 -o sample.png
+    """
 
 
 @main.command("ls")
