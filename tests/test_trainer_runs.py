@@ -1078,9 +1078,9 @@ def test_launch_checks_inputs_before_torchrun_and_a_failed_rank_is_one_line(tiny
     out = tmp_path / "run"
     missing = SimpleNamespace(url=str(tmp_path / "none.zarr"))
     r = run_group([*launch, *argv(missing, out)])
-    assert r.returncode == 1 and r.stderr.splitlines()[-1].startswith("Error: "), r.stderr
-    assert "none.zarr: not a shard store" in r.stderr and "Traceback" not in r.stderr
-    assert "ChildFailedError" not in r.stderr and not out.exists()
+    assert r.returncode == 1 and r.stderr.startswith("Error: "), r.stderr  # nor torchrun's line
+    assert len(r.stderr.strip().splitlines()) == 1 and "none.zarr: not a shard store" in r.stderr
+    assert not out.exists()
     env, tmp = private_tmp(tmp_path, {**os.environ, "SHADERBALL_TRAIN_CRASH_AT": "1"})
     r = run_group([*launch, *argv(tiny_store, out, epochs=1)], env=env)
     last = r.stderr.strip().splitlines()[-1]

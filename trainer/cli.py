@@ -197,14 +197,14 @@ def launch(
         )  # fmt: skip
     except ValueError as exc:
         _fail(exc)
+    if not dry_run:  # bad input ends here, in one line, before any rank starts
+        _train_errors(lambda c: preflight(c, ranks=lc.procs()), cfg)
     argv = torchrun_argv(lc, cfg)
     click.echo("torchrun: " + shlex.join(argv), err=True)
     for line in other_node_commands(lc, cfg) if nodes > 1 else []:
         click.echo(f"on another node: {line}", err=True)
     if dry_run:
         return
-    # bad input ends here, in one line, before any rank starts
-    _train_errors(lambda c: preflight(c, ranks=lc.procs()), cfg)
     try:
         run_torchrun(argv)
     except RankFailed as exc:
