@@ -165,7 +165,8 @@ def _score_line(rec: dict, trained: str) -> str:
     ci = bracket(rec["psnr_low"], rec["psnr_high"])
     line = (
         f"step {rec['step']}: held-out PSNR {rec['psnr']:.2f} dB {ci} over "
-        f"{rec['materials']} materials, SSIM {rec['ssim']:.4f}{trained} "
+        f"{rec['materials']} material{'s' if rec['materials'] != 1 else ''}, "
+        f"SSIM {rec['ssim']:.4f}{trained} "
         f"({rec['samples']} samples, {rec['seconds']:.1f} s)"
     )
     if d := rec.get("vs_best"):
