@@ -13,13 +13,17 @@ FIND_LINKS := $(if $(wildcard /opt/wheels),--find-links /opt/wheels)
 
 # uv installs: downloads in parallel, unpacks and compiles the bytecode on every core (65 s for
 # a fresh environment here against pip's 207 s: docs/development.md). uv reads no pip
-# configuration, hence the find-links folder named here. The retries: bpy and Ray come from
-# PyPI, and a download has been seen to fail mid-wheel on these machines.
+# configuration, hence the find-links folder named here; where it fails (an index only pip's
+# configuration names, say), pip installs the same. The retries: bpy and Ray come from PyPI,
+# and a download has been seen to fail mid-wheel on these machines.
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --retries 10 'uv==0.13.*'
 	UV_HTTP_RETRIES=10 UV_HTTP_TIMEOUT=180 $(BIN)/uv pip install --quiet \
-		--python $(BIN)/python --compile-bytecode $(FIND_LINKS) -e '.[all,dev]' '$(TORCH)'
+		--python $(BIN)/python --compile-bytecode $(FIND_LINKS) -e '.[all,dev]' '$(TORCH)' || \
+		{ echo "uv could not install the environment: pip installs it"; \
+		$(BIN)/pip install --quiet --retries 10 --upgrade pip && \
+		$(BIN)/pip install --quiet --retries 10 --resume-retries 20 -e '.[all,dev]' '$(TORCH)'; }
 	touch $@
 
 # The main job on the embedded default (local Ray, local store): a small real farm job,
