@@ -15,6 +15,8 @@ Rules every server built on it follows:
   ``X-Shaderball-Secret`` header; the pages embed it. Another site's form cannot send it.
 * **Files.** A path from a request names something under a root with :func:`confine`:
   absolute paths, ``..`` (after URL decoding) and symlinks that lead outside are refused.
+* **Icon.** Every application answers ``/favicon.svg`` and ``/favicon.ico`` with the same
+  small SVG shaderball (:data:`ICON_SVG`); pages link it with :data:`ICON_LINK`.
 """
 
 from __future__ import annotations
@@ -32,6 +34,15 @@ import click
 # :func:`server_options` in every install, the server needs the [dashboard] extra
 
 TOKEN_COOKIE = "shaderball_token"
+ICON_LINK = '<link rel="icon" href="/favicon.svg" type="image/svg+xml">'
+# a ball lit from the upper left on its stand: the tab icon of every page
+ICON_SVG = (
+    '<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 32 32"><defs><radialGradient id="b" '
+    'cx=".35" cy=".3" r=".8"><stop offset="0" stop-color="#fff6e0"/><stop offset=".3" '
+    'stop-color="#e8a33c"/><stop offset="1" stop-color="#5a2e0c"/></radialGradient></defs>'
+    '<rect x="10" y="25" width="12" height="6" rx="1.5" fill="#5c6370"/>'
+    '<circle cx="16" cy="14" r="12" fill="url(#b)"/></svg>'
+)
 SECRET_HEADER = "X-Shaderball-Secret"
 
 
@@ -135,12 +146,18 @@ def guard(token: str | None, secret: str):
 
 
 def application(token: str | None, **options):
-    """A guarded ``aiohttp.web.Application`` and its POST secret (``options`` go to the
-    application)."""
+    """A guarded ``aiohttp.web.Application`` answering the icon, and its POST secret
+    (``options`` go to the application)."""
     from aiohttp import web
+
+    async def icon(request):
+        return web.Response(
+            text=ICON_SVG, content_type="image/svg+xml", headers={"Cache-Control": "max-age=86400"}
+        )
 
     secret = secrets.token_urlsafe(16)
     app = web.Application(middlewares=[guard(token, secret)], **options)
+    app.add_routes([web.get("/favicon.svg", icon), web.get("/favicon.ico", icon)])
     return app, secret
 
 

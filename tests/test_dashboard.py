@@ -19,6 +19,7 @@ from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 
 from farm.state import JobState, WorkerStats, add_point
+from farm.web import ICON_LINK, ICON_SVG
 from storage.backend import Backend
 from storage.schema import Layout, commit_key
 from storage.writer import create_store, write_shard
@@ -121,6 +122,9 @@ def test_pages_errors_and_paths_that_leave_the_roots(sets, tmp_path):
         assert re.search(r'<td class="num">[0-9.]+\s*<small title="[^"]*">\s*\([0-9.]+ now\)', page)
         code, body = s.get("/job/0/a.zarr")
         assert f"<title>{sets}/a.zarr - shaderball</title>".encode() in body
+        assert ICON_LINK.encode() in body
+        for icon in ("/favicon.svg", "/favicon.ico"):  # the link's, and browsers' own guess
+            assert s.get(icon) == (200, ICON_SVG.encode())
         assert re.search(rb'<small id="fps-now"> [0-9.]+ in the last\s+30 s</small>', body)
         assert code == 200 and b"shardmap" in body and b"boom" in body and b"(stale)" not in body
         assert b"uniform:seed=77" in body  # the failed material's source
@@ -336,6 +340,8 @@ def test_the_job_page_in_chromium_follows_a_running_job_and_cancels_it(tmp_path)
         with Server("out", cwd=tmp_path) as s, sync_playwright() as p:  # as the README runs it
             browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
             page = browser.new_page(viewport={"width": 1200, "height": 900})
+            failed = []
+            page.on("console", lambda m: m.type == "error" and failed.append(m.text))
             page.goto(s.base + "/")
             row = page.locator("#jobs tr", has_text="live.zarr")
             assert "running" in row.inner_text()
@@ -356,6 +362,7 @@ def test_the_job_page_in_chromium_follows_a_running_job_and_cancels_it(tmp_path)
             assert int(done) <= status["frames_done"] + status["frames_skipped"]
             ARTIFACTS.mkdir(exist_ok=True)
             page.screenshot(path=str(ARTIFACTS / "dashboard-job.png"), full_page=True)
+            assert not failed, failed  # every request answered, the tab's icon included
             page.on("dialog", lambda d: d.accept())
             page.click("button:has-text('cancel')")
             page.wait_for_function(  # a refresh shows the request, the button gone

@@ -601,8 +601,9 @@ def test_the_page_in_chromium_drags_the_sun_edits_uploads_and_compares(run, tiny
             sync_playwright() as p:  # fmt: skip
         browser = p.chromium.launch(executable_path=chromium(), args=["--no-sandbox"])
         page = browser.new_page(viewport={"width": 1400, "height": 1000})
-        errors = []
+        errors, failed = [], []
         page.on("pageerror", lambda e: errors.append(str(e)))
+        page.on("console", lambda m: m.type == "error" and failed.append(m.text))
         page.goto(v.base + "/")
         wait_new_frame(page, 0)
         first = page.evaluate(DIGEST)
@@ -653,6 +654,7 @@ def test_the_page_in_chromium_drags_the_sun_edits_uploads_and_compares(run, tiny
         page.wait_for_timeout(1000)
         ARTIFACTS.mkdir(exist_ok=True)
         page.screenshot(path=str(ARTIFACTS / "viewer.png"), full_page=True)
+        assert not failed, failed  # every request so far answered, the tab's icon included
 
         # a broken upload: the loader's one line in the page; a good one: a new material
         tiles = page.locator(".tile").count()

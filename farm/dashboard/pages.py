@@ -11,6 +11,7 @@ from jinja2 import DictLoader, Environment, select_autoescape
 from markupsafe import Markup
 
 from farm.state import RATE_WINDOW_S
+from farm.web import ICON_LINK
 
 CSS = """
 body{font:14px/1.4 system-ui,sans-serif;margin:0;background:#f6f7f9;color:#1d2330}
@@ -51,7 +52,7 @@ async function cancelJob(url) {
 """
 
 BASE = """<!doctype html><html><head><meta charset="utf-8"><title>{{ title }} - shaderball</title>
-<meta name="secret" content="{{ secret }}"><style>{{ css }}</style></head><body>
+{{ icon }}<meta name="secret" content="{{ secret }}"><style>{{ css }}</style></head><body>
 <header><h1>shaderball farm</h1><a href="/">jobs</a><a href="/runs">runs</a>
 <a href="/metrics">metrics</a></header><main>{% block main %}{% endblock %}</main>
 <script>{{ js }}</script></body></html>"""
@@ -231,7 +232,9 @@ ENV.globals["rate_window"] = f"{RATE_WINDOW_S:.0f}"  # seconds behind each rende
 
 
 def render(name: str, **ctx) -> str:
-    return ENV.get_template(name).render(css=Markup(CSS), js=Markup(JS), **ctx)
+    return ENV.get_template(name).render(
+        css=Markup(CSS), js=Markup(JS), icon=Markup(ICON_LINK), **ctx
+    )
 
 
 def line_chart(

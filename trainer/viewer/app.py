@@ -172,9 +172,6 @@ class Handlers:
             shutil.rmtree(incoming, ignore_errors=True)
         return web.json_response(entry.to_dict())
 
-    async def favicon(self, request):
-        return web.Response(status=204)
-
 
 def make_app(viewer: Viewer, token: str | None) -> web.Application:
     app, secret = application(token)
@@ -182,7 +179,6 @@ def make_app(viewer: Viewer, token: str | None) -> web.Application:
     app.add_routes(
         [
             web.get("/", h.index),
-            web.get("/favicon.ico", h.favicon),
             web.get("/api/materials", h.materials),
             web.get("/api/thumb", h.thumb),
             web.get("/api/frame", h.frame),

@@ -14,6 +14,8 @@ from __future__ import annotations
 
 from jinja2 import Environment, select_autoescape
 
+from farm.web import ICON_LINK
+
 CSS = """
 *{box-sizing:border-box} body{font:14px/1.4 system-ui,sans-serif;margin:0;background:#16181d;
 color:#e4e6eb} header{background:#0d0e11;padding:8px 18px;display:flex;gap:18px;
@@ -277,7 +279,7 @@ else pick({id: uniformId(), label: 'uniform', kind: 'uniform', suns: []});
 """
 
 PAGE = """<!doctype html><html><head><meta charset="utf-8"><title>shaderball viewer</title>
-<meta name="secret" content="{{ secret }}"><style>{{ css }}</style></head><body>
+{{ icon }}<meta name="secret" content="{{ secret }}"><style>{{ css }}</style></head><body>
 <header><h1>shaderball viewer</h1><span>{{ info.checkpoint }} ·{% if info.step is not none %}
 step {{ info.step }} ·{% endif %}{% if info.weights == "average" %} averaged weights ·{% endif %}
 {{ info.model }} {{ info.resolution }}² · {{ info.device }}{% if not info.mapping %} · stored
@@ -362,4 +364,5 @@ def render(secret: str, info: dict, materials: list[dict]) -> str:
         state={"materials": materials, "info": info},
         css=Markup(CSS),
         script=Markup(SCRIPT),
+        icon=Markup(ICON_LINK),
     )
