@@ -160,7 +160,7 @@ class SimWorker(Revocable):
 
 def simulated(store: str, workers: int, materials: int) -> dict:
     """The real driver over a local Ray cluster of ``workers`` :class:`SimWorker` actors."""
-    from farm.pool import ray_environment
+    from farm.cluster import ray_environment
 
     ray_environment("127.0.0.1")  # before Ray is imported
     from ray.cluster_utils import Cluster

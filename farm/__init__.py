@@ -6,7 +6,8 @@
   blocklist, timeouts), no Ray;
 - ``farm.assembly``: result refs kept until their shard is whole, no Ray;
 - ``farm.commit``: a whole shard written as a Ray task next to its data;
-- ``farm.pool``: joining or starting Ray, the pool of actors, the commit tasks;
+- ``farm.cluster``: joining or starting Ray, and the checks of a cluster before a job;
+- ``farm.pool``: the pool of actors, the commit tasks;
 - ``farm.lease``: one live driver per store;
 - ``farm.cancel``: the cancel request a running driver polls;
 - ``farm.faults``: fault injection for the tests (off unless its variable is set);

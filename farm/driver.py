@@ -39,9 +39,10 @@ from farm import sizing
 from farm.actor import RenderWorker
 from farm.assembly import ShardAssembly
 from farm.cancel import cancel_requested, clear_cancel
+from farm.cluster import check_cluster, connect, ray_environment
 from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
-from farm.pool import WorkerPool, check_reachable, connect, ray_environment
+from farm.pool import WorkerPool
 from farm.scheduler import Scheduler
 from farm.state import JobState, now
 from farm.validate import pending, read_all
@@ -205,7 +206,7 @@ def submit(
     ray_environment(cfg.address)
     try:
         specs = validate(cfg, progress)  # nothing is written on bad input
-        check_reachable(cfg.address)  # nor for a Ray cluster out of reach
+        node = check_cluster(cfg.address)  # nor for a Ray cluster out of reach or refusing
         lease = acquire(cfg.out, Backend(cfg.out))  # before the store is opened for writing
     except (MaterialError, LeaseHeld, ConnectionError) as exc:
         raise FarmError(str(exc)) from None
@@ -219,17 +220,20 @@ def submit(
                 echo(f"the store has no screen UV layout: farm screen-uv {cfg.out} adds it")
             n = job.layout.num_samples
             return Summary(cfg.out, n, 0, job.state.frames_skipped, {}, [], 0.0, None, 0.0, 0.0)
-        return _run(job, lease, progress, echo, t_start, actor_cls)
+        return _run(job, lease, node, progress, echo, t_start, actor_cls)
     finally:
         lease.release()
 
 
-def _run(job: Job, lease: Lease, progress: bool, echo, t_start: float, actor_cls) -> Summary:
-    """The job on Ray, holding the store's lease, to the end."""
+def _run(
+    job: Job, lease: Lease, node: str | None, progress: bool, echo, t_start: float, actor_cls
+) -> Summary:
+    """The job on Ray, joined as ``node`` (``farm.cluster.check_cluster``), holding the
+    store's lease, to the end."""
     import ray
 
     cfg = job.cfg
-    job.state.dashboard = connect(cfg.address, cfg.ray_dashboard)
+    job.state.dashboard = connect(cfg.address, cfg.ray_dashboard, node)
     stop_on_sigterm()
     echo(f"ray dashboard: {job.state.dashboard or 'off'}")
     room = sizing.room(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)

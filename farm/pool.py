@@ -1,5 +1,5 @@
-"""The Ray side of the farm: joining or starting Ray, the pool of render actors, and the
-shard commit tasks.
+"""The Ray side of the farm: the pool of render actors and the shard commit tasks (joining
+Ray is :mod:`farm.cluster`).
 
 Nothing here decides what runs where (that is :mod:`farm.scheduler`); this module creates,
 answers for and kills :class:`farm.actor.RenderWorker` actors, submits tasks to them, and
@@ -9,112 +9,15 @@ starts :func:`farm.commit.commit_shard` tasks where :func:`farm.commit.placement
 from __future__ import annotations
 
 import contextlib
-import os
-import socket
-import sys
-import time
 
 from farm.actor import CONCURRENCY_GROUPS, RenderWorker
 from farm.commit import commit_shard, placement
 from farm.plan import JobConfig
 from farm.state import JobState, WorkerStats, now
-from farm.web import is_loopback
 from render_jobs.specs import RenderSettings
 
 #: worker statuses that may be given tasks
 USABLE = ("idle", "busy")
-#: how long a job waits for its Ray address to accept a connection
-REACH_TIMEOUT_S = 10.0
-
-
-def address_is_loopback(address: str | None) -> bool:
-    """Whether a Ray address is on this machine's loopback interface (``None``: the embedded
-    Ray); the host is read as :func:`endpoint` reads it, ``[::1]:6379`` included."""
-    if not address:
-        return True
-    target = endpoint(address)
-    return is_loopback(target[0] if target else address.split("://")[-1])
-
-
-def ray_environment(address: str | None) -> None:
-    """What Ray reads from the environment once, when ``ray`` is imported, for a job at
-    ``address`` (``None``: the embedded Ray). For the embedded Ray and clusters on 127.0.0.1,
-    ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``: Ray on Linux rewrites a loopback address to the
-    machine's outward IP otherwise. For the embedded Ray, ``RAY_AUTH_MODE=token``: Ray's own
-    default for a new local cluster, said explicitly so that Ray does not warn that it chose
-    it (``RAY_AUTH_MODE=disabled`` in the environment still opts out)."""
-    if "ray" in sys.modules:
-        return
-    address = address or os.environ.get("RAY_ADDRESS")
-    if address_is_loopback(address):
-        os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
-    if not address:
-        os.environ.setdefault("RAY_AUTH_MODE", "token")
-
-
-def endpoint(address: str) -> tuple[str, int] | None:
-    """The ``(host, port)`` that must answer at a Ray address: ``host:port`` (the GCS) or
-    ``ray://host[:port]`` (the client server, port 10001 unless given); ``None`` for a form
-    Ray resolves itself (``auto``, ``local``)."""
-    scheme, _, rest = address.rpartition("://")
-    if scheme not in ("", "ray"):
-        return None
-    host, sep, port = rest.rpartition(":")
-    if not sep:
-        host, port = rest, "10001" if scheme == "ray" else ""
-    if not host or not port.isdigit():
-        return None
-    return host.strip("[]"), int(port)
-
-
-def check_reachable(address: str | None, timeout_s: float = REACH_TIMEOUT_S) -> None:
-    """Raise ``ConnectionError`` naming the address when nothing there accepts a connection
-    within ``timeout_s``. Ray itself retries an unreachable cluster without end, printing
-    only warnings. ``None``: ``RAY_ADDRESS``, or the embedded Ray (nothing to check)."""
-    named = address or os.environ.get("RAY_ADDRESS") or None
-    target = endpoint(named) if named else None
-    if target is None:
-        return
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            with socket.create_connection(target, timeout=min(5.0, timeout_s)):
-                return
-        except OSError as exc:
-            if time.monotonic() >= deadline:
-                why = exc.strerror or type(exc).__name__
-                source = "--address" if address else "RAY_ADDRESS"
-                raise ConnectionError(
-                    f"{source} {named}: nothing answers there ({why}, for {timeout_s:.0f} s); "
-                    "is the Ray cluster up, and is that its address?"
-                ) from None
-            time.sleep(0.5)
-
-
-def connect(address: str | None, dashboard: bool = True) -> str | None:
-    """Join the Ray cluster at ``address`` (or ``RAY_ADDRESS``), else start an embedded one
-    (with its dashboard unless ``dashboard`` is false). Returns the dashboard URL."""
-    import ray
-
-    address = address or os.environ.get("RAY_ADDRESS") or None
-    if address:
-        extra = {"_node_ip_address": "127.0.0.1"} if address_is_loopback(address) else {}
-        ctx = ray.init(address=address, log_to_driver=False, **extra)
-    else:
-        ctx = ray.init(  # embedded: everything on the loopback interface
-            # a new local Ray, even when a cluster started with `ray start` runs here (with
-            # no address Ray would join that one)
-            address="local",
-            num_cpus=os.cpu_count(),
-            include_dashboard=dashboard,
-            log_to_driver=False,
-            _node_ip_address="127.0.0.1",
-            dashboard_host="127.0.0.1",
-            # Ray runs its workers at nice 15 by default; here the renders are the work
-            _system_config={"worker_niceness": 0},
-        )
-    url = getattr(ctx, "dashboard_url", None)
-    return f"http://{url}" if url and not url.startswith("http") else url
 
 
 class WorkerPool:

@@ -8,6 +8,19 @@ beside the work (the farm's own default, an embedded Ray with its dashboard, is 
 
 from __future__ import annotations
 
+import contextlib
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from tests.conftest import free_port, wait_for_port
+
+BIN = Path(sys.executable).parent
 LOOPBACK = {"node_ip_address": "127.0.0.1"}
 
 
@@ -26,3 +39,30 @@ def add_local_node(cluster, cpus: int, env_vars: dict[str, str] | None = None):
     return cluster.add_node(
         num_cpus=cpus, **({"env_vars": env_vars} if env_vars else {}), **LOOPBACK
     )
+
+
+@contextlib.contextmanager
+def ray_start_head(cpus: int) -> Iterator[str]:
+    """A head started as people start one, ``ray start --head``, with Ray's defaults: the
+    machine's outward address (127.0.0.1 on a machine with none), token authentication with
+    the token in ``~/.ray/auth_token``; without the dashboard. Yields ``127.0.0.1:PORT``."""
+    port = free_port()
+    temp = Path(tempfile.mkdtemp(prefix="ray-h-", dir="/tmp"))  # Unix socket paths: short
+    drop = ("RAY_AUTH_MODE", "RAY_ADDRESS", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER")
+    env = {k: v for k, v in os.environ.items() if k not in drop}
+    head = subprocess.Popen(
+        [BIN / "ray", "start", "--head", "--block", "--port", str(port), "--num-cpus", str(cpus),
+         "--include-dashboard", "false", "--temp-dir", temp, "--disable-usage-stats",
+         "--ray-client-server-port", str(free_port()),
+         "--dashboard-agent-listen-port", str(free_port())],
+        env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        if not wait_for_port(port, head, 60):
+            raise RuntimeError(f"ray start --head on port {port} did not start")
+        yield f"127.0.0.1:{port}"
+    finally:  # killed, not stopped: `ray stop` stops every Ray on the machine
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(head.pid, signal.SIGKILL)
+        head.wait(10)
+        shutil.rmtree(temp, ignore_errors=True)

@@ -19,17 +19,23 @@ import numpy as np
 import psutil
 import pytest
 
+from farm.cluster import (
+    address_is_loopback,
+    check_reachable,
+    driver_node,
+    endpoint,
+    token_at_hand,
+)
 from farm.faults import FAULTS_ENV
 from farm.lease import LEASE_S, LeaseHeld, acquire, holder_alive
 from farm.plan import JobConfig, layout_for, material_specs, task_for
-from farm.pool import address_is_loopback, check_reachable, endpoint
 from farm.state import LOST_AFTER_S, effective_status
 from render_jobs.specs import derive_seed
 from storage.reader import Store
 from storage.verify import verify
 from tests.conftest import s3_env
 from tests.flaky_proxy import FlakyProxy
-from tests.ray_local import add_local_node, local_cluster
+from tests.ray_local import add_local_node, local_cluster, ray_start_head
 
 pytestmark = pytest.mark.slow
 BIN = Path(sys.executable).parent
@@ -364,6 +370,58 @@ def test_ray_addresses_name_what_must_answer():
     )
 
 
+def test_a_driver_joins_a_loopback_cluster_through_a_node_of_its_own_machine():
+    here = {"127.0.0.1", "::1", "192.0.2.2"}
+    assert driver_node("x", ["127.0.0.1"], here) == "127.0.0.1"  # --node-ip-address 127.0.0.1
+    assert driver_node("x", ["192.0.2.2"], here) == "192.0.2.2"  # ray start --head's default
+    assert driver_node("x", ["10.0.0.9", "192.0.2.2", "127.0.0.1"], here) == "127.0.0.1"
+    with pytest.raises(
+        ValueError,
+        match=r"^--address 127.0.0.1:6379: no node of that Ray "
+        r"cluster runs on this machine \(its nodes: 10.0.0.8, 10.0.0.9\); ",
+    ):
+        driver_node("--address 127.0.0.1:6379", ["10.0.0.9", "10.0.0.8"], here)
+    with pytest.raises(ValueError, match=r"\(its nodes: none alive\)"):
+        driver_node("x", [], here)
+
+
+def test_a_token_is_at_hand_where_ray_would_find_one(tmp_path):
+    assert not token_at_hand({}, home=tmp_path)
+    (tmp_path / ".ray").mkdir()
+    (tmp_path / ".ray" / "auth_token").write_text("\n")
+    assert not token_at_hand({}, home=tmp_path)  # empty
+    (tmp_path / ".ray" / "auth_token").write_text("t0k\n")
+    assert token_at_hand({}, home=tmp_path)
+    assert token_at_hand({"RAY_AUTH_TOKEN": "t"}, home=tmp_path / "none")
+    assert not token_at_hand({"RAY_AUTH_TOKEN_PATH": str(tmp_path / "gone")}, home=tmp_path)
+    assert token_at_hand({"RAY_AUTH_TOKEN_PATH": str(tmp_path / ".ray" / "auth_token")})
+
+
+def test_a_cluster_started_by_ray_start_is_joined_at_127_0_0_1_with_its_token(tmp_path):
+    """``ray start --head`` as docs/farm.md says (Ray's defaults: the machine's outward
+    address, token authentication), joined as ``--address 127.0.0.1:PORT`` with nothing
+    set: the driver sends the token at hand and joins the cluster's node. A wrong token, or
+    none, is one line before anything is written."""
+    as_people = {"RAY_AUTH_MODE": None, "RAY_ADDRESS": None}
+    with ray_start_head(2) as address:
+        out = tmp_path / "joined.zarr"
+        r = farm("submit", "-m", "uniform:1", *TINY, "--workers", "1", "--address", address,
+                 "-o", out, env=as_people)  # fmt: skip
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert_exactly_once(out, 1)
+        for env, said in [
+            ({"RAY_AUTH_TOKEN": "wrong"}, "token; give it the cluster's token"),
+            ({"RAY_AUTH_MODE": "disabled"}, "request without a token; give it"),
+        ]:
+            bad = tmp_path / "refused.zarr"
+            r = farm("submit", "-m", "uniform:1", *TINY, "--address", address, "-o", bad,
+                     env={**as_people, **env})  # fmt: skip
+            assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+            assert f"Error: --address {address}: the Ray cluster refused this driver's " in r.stderr
+            assert said in r.stderr and "~/.ray/auth_token" in r.stderr, r.stderr
+            assert not bad.exists()
+
+
 def closed_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -606,7 +664,7 @@ def test_node_removed_mid_job(tmp_path, monkeypatch):
 
 HOLD_ONE_CPU = """
 import sys
-from farm.pool import ray_environment
+from farm.cluster import ray_environment
 ray_environment(sys.argv[1])
 import ray
 ray.init(address=sys.argv[1], _node_ip_address="127.0.0.1", log_to_driver=False)
