@@ -721,13 +721,13 @@ def test_an_eval_summary_gives_each_psnr_its_interval_over_materials():
     assert u["psnr_low"] is None and u["psnr_high"] is None  # 3 materials: under 5
 
 
-def test_a_held_out_score_line_counts_its_materials_in_words():
+def test_a_held_out_score_line_counts_its_materials_in_words_and_gives_an_interval_if_any():
     from trainer.runlog import _score_line
 
     rec = {"step": 6, "psnr": 19.56, "psnr_low": None, "psnr_high": None, "ssim": 0.6554,
            "samples": 5, "seconds": 0.3, "materials": 1}  # fmt: skip
     assert _score_line(rec, "") == (
-        "step 6: held-out PSNR 19.56 dB — over 1 material, SSIM 0.6554 (5 samples, 0.3 s)"
+        "step 6: held-out PSNR 19.56 dB over 1 material, SSIM 0.6554 (5 samples, 0.3 s)"
     )
     rec.update(materials=5, psnr_low=19.0, psnr_high=20.25)
     assert "dB [19.00, 20.25] over 5 materials, SSIM" in _score_line(rec, "")

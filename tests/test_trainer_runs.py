@@ -988,14 +988,17 @@ def test_launch_commands():
     r = CliRunner().invoke(trainer_main, ["launch", "--dry-run", "--store", "s.zarr"])
     assert r.exit_code == 0 and "--standalone --nnodes 1 --nproc-per-node 1" in r.output
     args = ["launch", "--dry-run", "--nodes", "2", "--nproc-per-node", "8"]
-    args += ["--rdzv-endpoint", "head:29400", "--node-rank", "0", "--store", "s3://b/d.zarr"]
+    args += ["--rdzv-endpoint", "head:29400", "--store", "s3://b/d.zarr"]
     r = CliRunner().invoke(trainer_main, args)
     assert r.exit_code == 0, r.output
-    assert "--rdzv-backend c10d --rdzv-endpoint head:29400" in r.output
-    assert (
-        "on another node: trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint " in r.output
-    )
-    assert "--node-rank 1" in r.output
+    assert "--rdzv-backend c10d --rdzv-endpoint head:29400 --rdzv-id shaderball " in r.output
+    # c10d ranks the nodes itself (torchrun warns of a node rank there): one command for all
+    others = [line for line in r.output.splitlines() if line.startswith("on each other node: ")]
+    assert others == [
+        "on each other node: trainer launch --nodes 2 --nproc-per-node 8 "
+        "--rdzv-endpoint head:29400 --max-restarts 0 --store s3://b/d.zarr"
+    ]
+    assert "--node-rank" not in r.output
     assert "nodes need --rdzv-endpoint" in one_line_error(
         ["launch", "--nodes", "2", "--store", "s"]
     )

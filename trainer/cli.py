@@ -147,7 +147,8 @@ def _procs(ctx, param, value):
               envvar="PET_MASTER_PORT",
               help="port of the static rendezvous on --master-addr")  # fmt: skip
 @click.option("--node-rank", type=int, default=None, envvar="PET_NODE_RANK",
-              help="this node's rank (0 hosts rendezvous)")  # fmt: skip
+              help="this node's rank in the static rendezvous (0 hosts it); c10d ranks "
+              "the nodes itself")  # fmt: skip
 @click.option("--max-restarts", default=0, type=click.IntRange(min=0),
               help="torchrun restarts of failed ranks")  # fmt: skip
 @click.option("--dry-run", is_flag=True, help="print the torchrun command, do not run it")
@@ -164,11 +165,11 @@ def launch(
     \b
       trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
 
-    Two nodes with 8 GPUs each (run the printed command on the other node):
+    Two nodes with 8 GPUs each (the same command on both; it prints it):
 
     \b
       trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint node0:29400 \\
-          --node-rank 0 --store s3://bucket/ds.zarr --out /shared/runs/r1
+          --store s3://bucket/ds.zarr --out /shared/runs/r1
 
     Fine-tune a trained network on a new material library (the materials the first run
     held out stay held out):
@@ -201,8 +202,10 @@ def launch(
         _train_errors(lambda c: preflight(c, ranks=lc.procs()), cfg)
     argv = torchrun_argv(lc, cfg)
     click.echo("torchrun: " + shlex.join(argv), err=True)
-    for line in other_node_commands(lc, cfg) if nodes > 1 else []:
-        click.echo(f"on another node: {line}", err=True)
+    others = other_node_commands(lc, cfg) if nodes > 1 else []
+    where = "on another node" if master_addr else "on each other node"
+    for line in others:
+        click.echo(f"{where}: {line}", err=True)
     if dry_run:
         return
     try:

@@ -1,12 +1,13 @@
 """``trainer launch``: torchrun around ``trainer train``, on one node or many.
 
 One node (the default) uses torchrun's ``--standalone`` rendezvous; several nodes use c10d
-rendezvous at ``--rdzv-endpoint HOST:PORT`` (every node runs the same command with its own
-``--node-rank``; the launcher prints the command for the others), or torchrun's static
-rendezvous at ``--master-addr``/``--master-port`` (node rank 0 hosts it). The static form is
-what Kubeflow Trainer's ``torch-distributed`` runtime gives each pod, as ``PET_NNODES``,
-``PET_NODE_RANK``, ``PET_MASTER_ADDR``, ``PET_MASTER_PORT`` and ``PET_NPROC_PER_NODE``, which
-the CLI reads when its flags are not given. torchrun restarts all
+rendezvous at ``--rdzv-endpoint HOST:PORT`` (every node runs the same command, and the
+rendezvous ranks the nodes: torchrun ignores a node rank there, with a warning, so none is
+passed; the launcher prints the command for the others), or torchrun's static rendezvous at
+``--master-addr``/``--master-port`` (each node with its ``--node-rank``; rank 0 hosts it).
+The static form is what Kubeflow Trainer's ``torch-distributed`` runtime gives each pod, as
+``PET_NNODES``, ``PET_NODE_RANK``, ``PET_MASTER_ADDR``, ``PET_MASTER_PORT`` and
+``PET_NPROC_PER_NODE``, which the CLI reads when its flags are not given. torchrun restarts all
 ranks when one fails (``--max-restarts``); a restarted rank resumes from the run folder's
 latest checkpoint (``TORCHELASTIC_RESTART_COUNT`` > 0 implies ``--resume``).
 """
@@ -67,20 +68,17 @@ def torchrun_argv(launch: LaunchConfig, cfg: TrainConfig, node_rank: int | None 
     else:
         argv += ["--nnodes", str(launch.nodes), "--rdzv-backend", "c10d"]
         argv += ["--rdzv-endpoint", launch.rdzv_endpoint, "--rdzv-id", launch.rdzv_id]
-        rank = launch.node_rank if node_rank is None else node_rank
-        if rank is not None:
-            argv += ["--node-rank", str(rank)]
     argv += ["--nproc-per-node", str(launch.procs()), "--max-restarts", str(launch.max_restarts)]
     return [*argv, "-m", "trainer.cli", "train", *to_argv(cfg)]
 
 
 def other_node_commands(launch: LaunchConfig, cfg: TrainConfig) -> list[str]:
-    """``trainer launch`` lines to run on the other nodes of a multi-node job."""
+    """``trainer launch`` lines to run on the other nodes of a multi-node job: one a node for
+    the static rendezvous (each its rank), one for them all for c10d."""
     here = launch.node_rank or 0
+    ranks = [r for r in range(launch.nodes) if r != here] if launch.master_addr else [None]
     out = []
-    for r in range(launch.nodes):
-        if r == here:
-            continue
+    for r in ranks:
         args = ["trainer", "launch", "--nodes", str(launch.nodes)]
         if launch.nproc_per_node is not None:
             args += ["--nproc-per-node", str(launch.nproc_per_node)]
@@ -88,7 +86,7 @@ def other_node_commands(launch: LaunchConfig, cfg: TrainConfig) -> list[str]:
             args += ["--master-addr", launch.master_addr, "--master-port"]
             args += [str(launch.master_port), "--node-rank", str(r)]
         else:
-            args += ["--rdzv-endpoint", launch.rdzv_endpoint, "--node-rank", str(r)]
+            args += ["--rdzv-endpoint", launch.rdzv_endpoint]
         args += ["--max-restarts", str(launch.max_restarts), *to_argv(cfg)]
         out.append(shlex.join(args))
     return out

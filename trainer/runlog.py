@@ -162,9 +162,9 @@ class RunLog:
 
 def _score_line(rec: dict, trained: str) -> str:
     """A held-out score as the run prints it, with its intervals where it has them."""
-    ci = bracket(rec["psnr_low"], rec["psnr_high"])
+    ci = f" {bracket(rec['psnr_low'], rec['psnr_high'])}" if rec["psnr_low"] is not None else ""
     line = (
-        f"step {rec['step']}: held-out PSNR {rec['psnr']:.2f} dB {ci} over "
+        f"step {rec['step']}: held-out PSNR {rec['psnr']:.2f} dB{ci} over "
         f"{rec['materials']} material{'s' if rec['materials'] != 1 else ''}, "
         f"SSIM {rec['ssim']:.4f}{trained} "
         f"({rec['samples']} samples, {rec['seconds']:.1f} s)"
