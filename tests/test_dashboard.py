@@ -494,6 +494,16 @@ def test_store_settings_show_as_people_read_them():
     assert numbers.render(a=0.0123, b=None) == "1.2 % -"
 
 
+def test_a_chart_of_one_point_shows_the_value_and_where_it_was_taken():
+    from farm.dashboard import pages
+
+    assert pages.line_chart([]) == "<p>no progress points yet</p>"
+    one = pages.line_chart([(6, 0.143717)], steps=True)  # a run of one log line
+    assert one == '<p class="one-point">one point so far: <b>0.1437</b> at step 6</p>'
+    assert "at 12 s" in pages.line_chart([(12.2, 0.7)])
+    assert pages.line_chart([(0, 1.0), (5, 2.0)]).startswith("<svg")
+
+
 def test_farm_cancel_asks_a_running_job_and_refuses_others(tmp_path):
     from farm.dashboard import pages
     from farm.dashboard.app import Dashboard

@@ -249,8 +249,12 @@ def line_chart(
     or with ``steps`` in training steps; y from 0, or without ``from_zero`` over the range
     of the points (a score in dB, whose changes a line from 0 would flatten). ``band``:
     ``(x, low, high)`` of an interval around the line, shaded (two of them at least)."""
-    if len(points) < 2:
-        return Markup("<p>not enough progress points yet</p>")
+    if not points:
+        return Markup("<p>no progress points yet</p>")
+    if len(points) == 1:  # a line needs two: the one value, and where it was taken
+        ((x, y),) = points
+        at = f"step {x:.0f}" if steps else f"{x:.0f} s"
+        return Markup(f'<p class="one-point">one point so far: <b>{y:.4g}</b> at {at}</p>')
     return _chart([(None, points)], w, h, steps, from_zero, band if band and len(band) > 1 else [])
 
 
