@@ -5,11 +5,13 @@ A job with an address (``--address`` or ``RAY_ADDRESS``) checks, in order, that:
 
 1. something accepts a connection there within :data:`REACH_TIMEOUT_S` (Ray itself would
    retry without end, printing only warnings);
-2. the cluster's GCS accepts this driver's credentials. Ray's token authentication is on by
-   default for clusters started with ``ray start``, while a driver joining one sends no token
-   unless ``RAY_AUTH_MODE=token``; so where a token is at hand (``RAY_AUTH_TOKEN``,
-   ``RAY_AUTH_TOKEN_PATH`` or ``~/.ray/auth_token``) and ``RAY_AUTH_MODE`` is not set, the
-   driver sends it (a cluster without authentication ignores it);
+2. the cluster's GCS accepts this driver's credentials. ``ray start`` (Ray 2.60) turns
+   token authentication on when ``RAY_AUTH_MODE`` is not set and a token is at hand
+   (``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH`` or ``~/.ray/auth_token``, which any local
+   Ray writes, the embedded one included), while a driver joining a cluster sends no token
+   unless ``RAY_AUTH_MODE=token``. So the driver follows ``ray start``'s rule: with a token
+   at hand and ``RAY_AUTH_MODE`` not set, it sends it (a cluster without authentication
+   ignores it);
 3. for an address on the loopback interface, a live node of the cluster runs on this machine,
    and which address it has: the driver joins that node (``_node_ip_address``). A cluster
    started by ``ray start --head`` has the machine's outward address, one started with

@@ -45,7 +45,8 @@ def add_local_node(cluster, cpus: int, env_vars: dict[str, str] | None = None):
 def ray_start_head(cpus: int) -> Iterator[str]:
     """A head started as people start one, ``ray start --head``, with Ray's defaults: the
     machine's outward address (127.0.0.1 on a machine with none), token authentication with
-    the token in ``~/.ray/auth_token``; without the dashboard. Yields ``127.0.0.1:PORT``."""
+    the token in ``~/.ray/auth_token`` (which ``pytest_configure`` makes sure of); without
+    the dashboard. Yields ``127.0.0.1:PORT``."""
     port = free_port()
     temp = Path(tempfile.mkdtemp(prefix="ray-h-", dir="/tmp"))  # Unix socket paths: short
     drop = ("RAY_AUTH_MODE", "RAY_ADDRESS", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER")
