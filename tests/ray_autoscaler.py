@@ -19,17 +19,13 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import shutil
-import signal
-import subprocess
-import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from tests.conftest import free_port, wait_for_port
+from tests.conftest import free_port
+from tests.ray_local import ray_head
 
-BIN = Path(sys.executable).parent
 NO_SETUP = (  # the autoscaler's cluster-launcher keys, which a KubeRay cluster leaves empty
     "initialization_commands", "setup_commands", "head_setup_commands",
     "worker_setup_commands", "head_start_ray_commands", "worker_start_ray_commands",
@@ -88,20 +84,7 @@ def autoscaling_cluster(
     env = {**os.environ, "RAY_FAKE_CLUSTER": "1", "AUTOSCALER_UPDATE_INTERVAL_S": "1",
            "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_AUTH_MODE": "disabled",
            "RAY_worker_niceness": "0"}  # as k8s/base/raycluster.yaml sets it  # fmt: skip
-    head = subprocess.Popen(
-        [BIN / "ray", "start", "--head", "--block", "--port", str(port), "--num-cpus", "0",
-         "--autoscaling-config", temp / "autoscaler.json", "--node-ip-address", "127.0.0.1",
-         "--include-dashboard", "false", "--temp-dir", temp,
-         "--ray-client-server-port", str(free_port()),
-         "--dashboard-agent-listen-port", str(free_port())],
-        env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
-    try:
-        if not wait_for_port(port, head, 60):
-            raise RuntimeError(f"the autoscaling Ray head at {address} did not start")
+    args = ["--num-cpus", "0", "--autoscaling-config", temp / "autoscaler.json",
+            "--node-ip-address", "127.0.0.1"]  # fmt: skip
+    with ray_head(args, env, temp, port):
         yield address, temp / "session_latest" / "logs" / "monitor.log"
-    finally:  # killed, not stopped: Ray's graceful stop of this cluster takes about 30 s
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(head.pid, signal.SIGKILL)
-        head.wait(10)
-        shutil.rmtree(temp, ignore_errors=True)

@@ -42,28 +42,38 @@ def add_local_node(cluster, cpus: int, env_vars: dict[str, str] | None = None):
 
 
 @contextlib.contextmanager
-def ray_start_head(cpus: int) -> Iterator[str]:
-    """A head started as people start one, ``ray start --head``, with Ray's defaults: the
-    machine's outward address (127.0.0.1 on a machine with none), token authentication with
-    the token in ``~/.ray/auth_token`` (which ``pytest_configure`` makes sure of); without
-    the dashboard. Yields ``127.0.0.1:PORT``."""
-    port = free_port()
-    temp = Path(tempfile.mkdtemp(prefix="ray-h-", dir="/tmp"))  # Unix socket paths: short
-    drop = ("RAY_AUTH_MODE", "RAY_ADDRESS", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER")
-    env = {k: v for k, v in os.environ.items() if k not in drop}
+def ray_head(args: list, env: dict, temp: Path, port: int | None = None) -> Iterator[str]:
+    """``ray start --head --block`` with ``args`` (more options), in a session of its own,
+    on ``port`` (a free one if none), with ``temp`` as its temporary folder (removed after);
+    yields ``127.0.0.1:PORT`` once the head answers. Killed at the end, not stopped: ``ray
+    stop`` stops every Ray on the machine, and Ray's graceful stop takes about 30 s."""
+    port = port or free_port()
     head = subprocess.Popen(
-        [BIN / "ray", "start", "--head", "--block", "--port", str(port), "--num-cpus", str(cpus),
-         "--include-dashboard", "false", "--temp-dir", temp, "--disable-usage-stats",
+        [BIN / "ray", "start", "--head", "--block", "--port", str(port), *args,
+         "--include-dashboard", "false", "--temp-dir", temp,
          "--ray-client-server-port", str(free_port()),
          "--dashboard-agent-listen-port", str(free_port())],
         env=env, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     try:
         if not wait_for_port(port, head, 60):
-            raise RuntimeError(f"ray start --head on port {port} did not start")
+            raise RuntimeError(f"the Ray head on port {port} did not start")
         yield f"127.0.0.1:{port}"
-    finally:  # killed, not stopped: `ray stop` stops every Ray on the machine
+    finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(head.pid, signal.SIGKILL)
         head.wait(10)
         shutil.rmtree(temp, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def ray_start_head(cpus: int) -> Iterator[str]:
+    """A head started as people start one, ``ray start --head``, with Ray's defaults: the
+    machine's outward address (127.0.0.1 on a machine with none), token authentication with
+    the token in ``~/.ray/auth_token`` (which ``pytest_configure`` makes sure of); without
+    the dashboard. Yields ``127.0.0.1:PORT``."""
+    temp = Path(tempfile.mkdtemp(prefix="ray-h-", dir="/tmp"))  # Unix socket paths: short
+    drop = ("RAY_AUTH_MODE", "RAY_ADDRESS", "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER")
+    env = {k: v for k, v in os.environ.items() if k not in drop}
+    with ray_head(["--num-cpus", str(cpus), "--disable-usage-stats"], env, temp) as address:
+        yield address
