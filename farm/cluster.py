@@ -168,20 +168,21 @@ def check_cluster(address: str | None) -> str | None:
     target = endpoint(named) if named else None
     if named is None or target is None or "://" in named:  # embedded, auto, ray:// client
         return "127.0.0.1" if address_is_loopback(named) else None
+    nodes = _nodes(named, source)
+    if not address_is_loopback(named):
+        return None
     import psutil
 
     local = {a.address for addrs in psutil.net_if_addrs().values() for a in addrs}
     deadline = time.monotonic() + REACH_TIMEOUT_S
     while True:  # a head's GCS answers a moment before its node has joined
-        nodes = _nodes(named, source)
-        if not address_is_loopback(named):
-            return None
         try:
             return driver_node(f"{source} {named}", nodes, local)
         except ValueError as exc:
             if time.monotonic() >= deadline:
                 raise ConnectionError(str(exc)) from None
         time.sleep(0.5)
+        nodes = _nodes(named, source)
 
 
 def _nodes(gcs: str, source: str) -> list[str]:
