@@ -12,8 +12,9 @@ A job with an address (``--address`` or ``RAY_ADDRESS``) checks, in order, that:
    unless ``RAY_AUTH_MODE=token``. So the driver follows ``ray start``'s rule: with a token
    at hand and ``RAY_AUTH_MODE`` not set, it sends it (a cluster without authentication
    ignores it);
-3. for an address on the loopback interface, a live node of the cluster runs on this machine,
-   and which address it has: the driver joins that node (``_node_ip_address``). A cluster
+3. for an address on the loopback interface, a live node of the cluster runs on this machine
+   (within :data:`NODE_WAIT_S`), and which address it has: the driver joins that node
+   (``_node_ip_address``). A cluster
    started by ``ray start --head`` has the machine's outward address, one started with
    ``--node-ip-address 127.0.0.1`` the loopback one; either is reached as 127.0.0.1.
 
@@ -35,6 +36,10 @@ from farm.web import is_loopback
 REACH_TIMEOUT_S = 10.0
 #: how long the GCS has to list the cluster's nodes
 GCS_TIMEOUT_S = 10.0
+#: how long a job waits for a live node of its cluster on this machine: a head's GCS answers
+#: seconds before its own node has joined (5 s here, more on a busy machine), and Ray waits
+#: as long for a local node before it gives up
+NODE_WAIT_S = 60.0
 
 
 def address_is_loopback(address: str | None) -> bool:
@@ -174,8 +179,8 @@ def check_cluster(address: str | None) -> str | None:
     import psutil
 
     local = {a.address for addrs in psutil.net_if_addrs().values() for a in addrs}
-    deadline = time.monotonic() + REACH_TIMEOUT_S
-    while True:  # a head's GCS answers a moment before its node has joined
+    deadline = time.monotonic() + NODE_WAIT_S
+    while True:
         try:
             return driver_node(f"{source} {named}", nodes, local)
         except ValueError as exc:

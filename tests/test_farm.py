@@ -805,7 +805,13 @@ def job_on_two_nodes(address: str, out: Path, materials: int, size: list[str], t
     proc = farm("submit", *args, wait=False)
     try:
         output = Output(proc)
-        two = lambda: len(traced_workers(trace)) == 2  # noqa: E731
+
+        def two() -> bool:
+            if proc.poll() is not None:  # say why, not that the worker never came
+                code, _, stderr = output.wait(10)
+                raise AssertionError(f"the job ended (exit {code}) early: {stderr[-2000:]}")
+            return len(traced_workers(trace)) == 2
+
         wait_until(two, 150, "the second worker never started a task")
         first.unlink()
         yield output
