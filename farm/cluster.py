@@ -216,7 +216,7 @@ def connect(address: str | None, dashboard: bool = True, node: str | None = None
     ``dashboard`` is false). Returns the dashboard URL."""
     import ray
 
-    address = address or os.environ.get("RAY_ADDRESS") or None
+    address, _ = _named(address)
     if address:
         extra = {"_node_ip_address": node} if node else {}
         ctx = ray.init(address=address, log_to_driver=False, **extra)

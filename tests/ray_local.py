@@ -13,14 +13,12 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from tests.conftest import free_port, wait_for_port
+from tests.conftest import BIN, free_port, wait_for_port
 
-BIN = Path(sys.executable).parent
 LOOPBACK = {"node_ip_address": "127.0.0.1"}
 
 
