@@ -23,16 +23,26 @@ from trainer.model import ModelConfig, NeuralRenderer
 CONVOLUTIONS = ("aten::convolution", "aten::cudnn_convolution_relu")
 
 
+def conv_key(event) -> str:
+    """A convolution's profiler event as ``[input shape], [weight shape], stride S``: two
+    layers of the rewrite have the same shapes and differ in stride (an encoder convolution
+    and a decoder level's sub-pixel one), so the shapes alone would mix them up."""
+    args = event.concrete_inputs or []  # every convolution op here takes its stride 4th
+    stride = args[3] if len(args) > 3 else "?"
+    stride = stride[0] if isinstance(stride, (list, tuple)) else stride
+    return f"{event.input_shapes[0]}, {event.input_shapes[1]}, stride {stride}"
+
+
 def conv_flops(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> dict:
-    """``{str((input shape, weight shape)): FLOPs}`` of the convolutions of one eager forward,
-    as the profiler counts them (every ``aten::conv2d``, the sub-pixel rewrite's too)."""
+    """``{conv_key: FLOPs}`` of the convolutions of one eager forward, as the profiler counts
+    them (every ``aten::conv2d``, the sub-pixel rewrite's too)."""
     with profile(activities=[ProfilerActivity.CPU], with_flops=True, record_shapes=True) as p:
         net(x, light)
-    return {
-        str((r.input_shapes[0], r.input_shapes[1])): float(r.flops)
-        for r in p.key_averages(group_by_input_shape=True)
-        if r.key == "aten::conv2d"
-    }
+    flops = {}
+    for e in p.events():
+        if e.name == "aten::conv2d":
+            flops[conv_key(e)] = flops.get(conv_key(e), 0.0) + float(e.flops)
+    return flops
 
 
 #: the ``--subpixel`` flags, each a keyword of :func:`trainer.infer.fast_network`
@@ -110,15 +120,22 @@ def print_kernels(prof, batch: int, rows: int, forwards: int = 3) -> None:
             print(f"{r.key[:79]:<80}{ms:>8.3f}{ms / total:>7.1%}{r.count // forwards:>6}")
 
 
+def conv_times(prof, forwards: int = 3) -> dict:
+    """``{conv_key: ms of kernels a forward}`` of the profiled convolutions."""
+    times = {}
+    for e in prof.events():
+        if e.name in CONVOLUTIONS:
+            times[conv_key(e)] = times.get(conv_key(e), 0.0) + e.device_time_total / forwards / 1e3
+    return times
+
+
 def print_convolutions(prof, flops: dict, forwards: int = 3) -> None:
     """Every convolution layer's time a forward and achieved TFLOP/s."""
-    print(f"\n{'convolution (input, weight)':<60}{'ms':>8}{'TFLOP/s':>9}")
+    print(f"\n{'convolution (input, weight, stride)':<66}{'ms':>8}{'TFLOP/s':>9}")
     shown = 0
-    for r in prof.key_averages(group_by_input_shape=True):
-        key = str((r.input_shapes[0], r.input_shapes[1])) if len(r.input_shapes) > 1 else ""
-        if r.key in CONVOLUTIONS and key in flops:
-            ms = r.device_time_total / forwards / 1e3
-            print(f"{key:<60}{ms:>8.3f}{flops[key] / ms / 1e9:>9.0f}")
+    for key, ms in conv_times(prof, forwards).items():
+        if key in flops and ms > 0:
+            print(f"{key:<66}{ms:>8.3f}{flops[key] / ms / 1e9:>9.0f}")
             shown += 1
     if not shown:
         print("(none through aten::convolution: compiled into Triton templates, see above)")

@@ -44,6 +44,31 @@ def test_a_row_that_cannot_be_built_says_why_in_one_line_and_the_run_goes_on(cap
     assert err == ["conv+ReLU: not built: RuntimeError: cuDNN: no valid execution plan"]
 
 
+def test_the_profile_tells_apart_convolutions_that_differ_in_stride_alone():
+    """``benchmarks.infer_profile``: an encoder convolution (stride 2) and a sub-pixel one
+    (stride 1) of the same input and weight shapes get a FLOP count each, and the timed
+    convolutions (``aten::convolution``) are found under the same keys."""
+    import torch
+    import torch.nn.functional as F
+    from torch.profiler import ProfilerActivity, profile
+
+    from benchmarks.infer_profile import conv_flops, conv_times
+
+    w = torch.rand(16, 8, 3, 3)
+
+    def net(x, light):
+        return F.conv2d(x, w, None, 1, 1).sum() + F.conv2d(x, w, None, 2, 1).sum() + light
+
+    x = torch.rand(2, 8, 32, 32)
+    flops = conv_flops(net, x, torch.zeros(()))
+    shapes = "[2, 8, 32, 32], [16, 8, 3, 3]"
+    one = 2 * 2 * 16 * 32 * 32 * 8 * 9  # 2 x batch x out channels x out pixels x taps
+    assert flops == {f"{shapes}, stride 1": one, f"{shapes}, stride 2": one / 4}
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        net(x, 0)
+    assert conv_times(prof, forwards=1).keys() == flops.keys()
+
+
 def test_the_profiles_flags_are_keywords_that_fast_network_takes():
     """``benchmarks.infer_profile.fast_kwargs``: every flag reaches ``fast_network`` under its
     own keyword (the profile only runs on CUDA, so a mistake here would cost a device call)."""

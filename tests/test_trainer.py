@@ -348,9 +348,10 @@ def test_two_stream_segments_each_trace_as_one_graph():
 def test_bf16_fast_networks_stay_close_to_fp32():
     """The networks the CUDA benchmark rows capture (trainer.infer.fast_network: BatchNorm
     folded, bf16 weights, channels_last; plain, sub-pixel with its channels aligned or not,
-    with GEMMs, with some or all levels plain, with the rings as GEMMs two deep), run here on
-    CPU: bf16 images stay within 0.02 of fp32, the rewrite no further off than the original."""
-    from trainer.infer import fast_network
+    with GEMMs, with some or all levels plain, with the rings as GEMMs two deep, the fastest
+    measured form among them), run here on CPU: bf16 images stay within 0.02 of fp32, the
+    rewrite no further off than the original."""
+    from trainer.infer import FASTEST, fast_network
 
     torch.manual_seed(0)
     model = NeuralRenderer(ModelConfig(resolution=64)).eval()
@@ -381,6 +382,8 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             name: (fast_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
             for name, kw in nets.items()
         }
+    # the fastest form is one of those checked here (uncompiled)
+    assert nets["zero-padded, conv+ReLU"] | {"compile": True} == FASTEST
     plain = errors.pop("plain")
     assert 0 < plain < 0.02, errors
     for name, err in errors.items():
@@ -455,8 +458,11 @@ def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align, edg
 def test_cuda_graph_path_refuses_a_cpu_model():
     from trainer.infer import GraphedRenderer
 
+    model = NeuralRenderer(ModelConfig(resolution=64))
     with pytest.raises(RuntimeError, match="CUDA graphs need the model on a CUDA device"):
-        GraphedRenderer(NeuralRenderer(ModelConfig(resolution=64)), 1)
+        GraphedRenderer(model, 1)
+    with pytest.raises(RuntimeError, match="CUDA graphs need the model on a CUDA device"):
+        GraphedRenderer.fastest(model, 1)
 
 
 @pytest.mark.parametrize("resolution", [32, 288])

@@ -273,6 +273,20 @@ def compile_options(
     return options
 
 
+#: the keywords of :func:`fast_network` for the fastest form measured, at batch 1 and
+#: batched alike: the sub-pixel rewrite compiled, its rings as edge corrections on
+#: zero-padded phases, the encoder's convolutions with their ReLU in one cuDNN call. On an
+#: H200 at 400², rows timed in turn: 0.313 ms a frame at batch 1 (0.879x the compiled
+#: original's) and 11,399 frames/s at batch 128 (2.09x); ``docs/benchmarks.md``
+FASTEST = {
+    "compile": True,
+    "subpixel": True,
+    "edge_ring": True,
+    "wide_ring": True,
+    "conv_relu": True,
+}
+
+
 class GraphedRenderer:
     """A CUDA-graph replay of the network at one batch size: the fast path for interactive use.
 
@@ -282,10 +296,13 @@ class GraphedRenderer:
     the next call); :meth:`replay` renders what the static inputs hold. CUDA only: measured
     by ``benchmarks.infer`` on an H100 and an H200, not exercised by the CPU test suite.
 
-    The fastest forms measured on the H100s (``docs/benchmarks.md``): at batch 1 every level
-    plain, ``compile=True, subpixel=True, subpixel_from=<resolution>`` (0.935x the compiled
-    original's time, rows timed in turn); batched the sub-pixel rewrite, ``compile=True,
-    subpixel=True``."""
+    ``fast`` are :func:`fast_network`'s keywords; :meth:`fastest` captures the fastest form
+    measured (:data:`FASTEST`)."""
+
+    @classmethod
+    def fastest(cls, model: NeuralRenderer, batch: int) -> GraphedRenderer:
+        """The network in its fastest measured form (:data:`FASTEST`), captured at ``batch``."""
+        return cls(model, batch, **FASTEST)
 
     def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3, **fast):
         if not torch.cuda.is_available() or next(model.parameters()).device.type != "cuda":
