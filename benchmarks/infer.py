@@ -2,7 +2,7 @@
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
         [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--edge-ring]
-        [--zero-edge-ring] [--conv-relu]
+        [--zero-edge-ring] [--conv-relu] [--light-sums]
         [--streams] [--resolution 400] [--only TEXT] [--rounds K]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
@@ -29,7 +29,9 @@ corrections from the edges of each level's input (``trainer.fastnet.edges``);
 ``--zero-edge-ring`` the same with the sub-pixel convolutions on zero-padded inputs and the
 corrections two deep (``trainer.fastnet.zero_edges``). ``--conv-relu`` adds the compiled
 rewrite (with the zero-padded edge ring when that is asked for) whose encoder convolutions
-run with their ReLU in one cuDNN call (``trainer.convrelu``). ``--streams``
+run with their ReLU in one cuDNN call (``trainer.convrelu``). ``--light-sums`` adds the
+fastest form measured (``trainer.infer.FASTEST``) with the light encoder's layers as sums
+(``trainer.fastnet.SummedMLP``). ``--streams``
 adds the network compiled segment by segment on two CUDA streams, the skip convolutions and
 the light MLP beside the critical path, every level plain (``trainer.streamnet``; for
 batch 1).
@@ -67,7 +69,7 @@ from benchmarks.train import device_name
 from benchmarks.trainstore import DEFAULT, ensure_store
 from trainer.data import Catalog, SampleReader
 from trainer.fastnet import SubpixelRenderer
-from trainer.infer import GraphedRenderer, pick_device
+from trainer.infer import FASTEST, GraphedRenderer, pick_device
 from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
 from trainer.targets import model_inputs
 
@@ -198,6 +200,12 @@ def parser() -> argparse.ArgumentParser:
         "convolutions run with their ReLU in one cuDNN call (trainer.convrelu; CUDA)",
     )
     ap.add_argument(
+        "--light-sums",
+        action="store_true",
+        help="add the fastest form (trainer.infer.FASTEST) with the light encoder's layers as "
+        "sums, one kernel each (trainer.fastnet.SummedMLP; CUDA)",
+    )
+    ap.add_argument(
         "--streams",
         action="store_true",
         help="add a compiled row on two CUDA streams: skip convolutions and the light MLP "
@@ -245,6 +253,9 @@ def graph_rows(args: argparse.Namespace) -> list[tuple[str, dict]]:
         zero = args.zero_edge_ring
         name = f"subpixel compiled{', zero-padded edge ring' * zero}, conv+ReLU"
         rows.append(rewrite(name, edge_ring=zero, wide_ring=zero, conv_relu=True))
+    if args.light_sums:  # a form of the fastest measured (trainer.infer.FASTEST)
+        name = "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums"
+        rows.append(rewrite(name, **(FASTEST | {"light_sums": True})))
     if args.streams:
         fast = {"compile": True, "streams": True, "align": args.align}
         rows.append((f"two streams, compiled + graph{x1}", fast))

@@ -54,6 +54,7 @@ FAST_FLAGS = (
     "wide_ring",
     "edge_ring",
     "conv_relu",
+    "light_sums",
 )
 
 
@@ -80,6 +81,9 @@ def parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--conv-relu", action="store_true", help="with --subpixel: conv + ReLU in one cuDNN call"
+    )
+    ap.add_argument(
+        "--light-sums", action="store_true", help="with --subpixel: the light MLP as sums"
     )
     return ap
 
@@ -144,8 +148,9 @@ def print_convolutions(prof, flops: dict, forwards: int = 3) -> None:
 def main() -> None:
     ap = parser()
     args = ap.parse_args()
-    if args.conv_relu and not args.subpixel:
-        ap.error("--conv-relu is a form of the --subpixel rewrite")
+    for flag, asked in (("--conv-relu", args.conv_relu), ("--light-sums", args.light_sums)):
+        if asked and not args.subpixel:
+            ap.error(f"{flag} is a form of the --subpixel rewrite")
     torch.backends.cudnn.benchmark = True
     cfg = ModelConfig(resolution=400)
     model = NeuralRenderer(cfg).cuda()

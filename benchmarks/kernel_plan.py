@@ -1,7 +1,8 @@
 """The kernels Inductor plans for the compiled fast network, worked out on a CPU machine.
 
     .venv/bin/python -m benchmarks.kernel_plan [--subpixel] [--edge-ring [--wide-ring]]
-        [--conv-relu] [--batch 8] [--resolution 400] [--width 64] [--subpixel-from N] [--align 8]
+        [--conv-relu] [--light-sums] [--batch 8] [--resolution 400] [--width 64]
+        [--subpixel-from N] [--align 8]
 
 Compiles ``trainer.infer.fast_network`` (bf16, channels_last) with Inductor's Triton
 backend on the CPU and prints, in launch order, what the generated program calls: each
@@ -106,6 +107,9 @@ def main() -> None:
     ap.add_argument(
         "--conv-relu", action="store_true", help="with --subpixel: conv + ReLU as one operator"
     )
+    ap.add_argument(
+        "--light-sums", action="store_true", help="with --subpixel: the light MLP as sums"
+    )
     ap.add_argument("--subpixel-from", type=int, default=0, metavar="N")
     ap.add_argument("--align", type=int, default=8, metavar="N")
     args = ap.parse_args()
@@ -113,8 +117,9 @@ def main() -> None:
         ap.error("--edge-ring is a form of the --subpixel rewrite")
     if args.wide_ring and not args.edge_ring:
         ap.error("--wide-ring here is a form of --edge-ring")
-    if args.conv_relu and not args.subpixel:
-        ap.error("--conv-relu is a form of the --subpixel rewrite")
+    for flag, asked in (("--conv-relu", args.conv_relu), ("--light-sums", args.light_sums)):
+        if asked and not args.subpixel:
+            ap.error(f"{flag} is a form of the --subpixel rewrite")
     model = NeuralRenderer(ModelConfig(resolution=args.resolution, width=args.width)).eval()
     net = fast_network(
         model,
@@ -124,6 +129,7 @@ def main() -> None:
         edge_ring=args.edge_ring,
         wide_ring=args.wide_ring,
         conv_relu=args.conv_relu,
+        light_sums=args.light_sums,
     )
     r = args.resolution
     channels = getattr(net, "in_channels", model.config.in_channels)

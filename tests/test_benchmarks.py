@@ -78,12 +78,12 @@ def test_the_profiles_flags_are_keywords_that_fast_network_takes():
     from trainer.infer import fast_network
 
     args = parser().parse_args(["--subpixel", "--edge-ring", "--wide-ring", "--conv-relu",
-                                "--gemm-at", "50", "--align", "16"])  # fmt: skip
+                                "--light-sums", "--gemm-at", "50", "--align", "16"])  # fmt: skip
     fast = fast_kwargs(args)
     inspect.signature(fast_network).bind(None, compile=True, **fast)
     assert fast == {"subpixel": True, "gemm_at": 50, "subpixel_from": 0, "align": 16,
                     "ring_gemm": False, "wide_ring": True, "edge_ring": True,
-                    "conv_relu": True}  # fmt: skip
+                    "conv_relu": True, "light_sums": True}  # fmt: skip
 
 
 def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes():
@@ -98,7 +98,8 @@ def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes(
     plain = [name for name, _ in graph_rows(parser().parse_args([]))]
     assert plain == ["  + bf16 weights, CUDA graph", "subpixel bf16, CUDA graph"]
     every = ["--compile", "--ring-gemm", "--wide-ring", "--edge-ring", "--zero-edge-ring",
-             "--conv-relu", "--streams", "--gemm-at", "50", "--subpixel-from", "100"]  # fmt: skip
+             "--conv-relu", "--light-sums", "--streams", "--gemm-at", "50",
+             "--subpixel-from", "100"]  # fmt: skip
     rows = graph_rows(parser().parse_args(every))
     assert [name for name, _ in rows][2:] == [
         "torch.compile + CUDA graph",
@@ -107,6 +108,7 @@ def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes(
         "subpixel compiled, edge ring",
         "subpixel compiled, zero-padded edge ring",
         "subpixel compiled, zero-padded edge ring, conv+ReLU",
+        "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums",
         "two streams, compiled + graph",
         "  + GEMMs at <= 50², from 100²",
         "subpixel from 100², compiled",
@@ -117,6 +119,8 @@ def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes(
     zero_relu = dict(rows)["subpixel compiled, zero-padded edge ring, conv+ReLU"]
     assert zero_relu == {"compile": True, "subpixel": True, "align": 8, "edge_ring": True,
                          "wide_ring": True, "conv_relu": True}  # fmt: skip
+    sums = dict(rows)["subpixel compiled, zero-padded edge ring, conv+ReLU, light sums"]
+    assert sums == zero_relu | {"light_sums": True}
     named = dict(graph_rows(parser().parse_args(["--align", "1", "--conv-relu"])))
     assert named["subpixel compiled, conv+ReLU, channels x1"]["align"] == 1
     assert not named["subpixel compiled, conv+ReLU, channels x1"]["edge_ring"]
@@ -177,6 +181,7 @@ def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite(
         (["--edge-ring"], "--edge-ring is a form of the --subpixel rewrite"),
         (["--subpixel", "--wide-ring"], "--wide-ring here is a form of --edge-ring"),
         (["--conv-relu"], "--conv-relu is a form of the --subpixel rewrite"),
+        (["--light-sums"], "--light-sums is a form of the --subpixel rewrite"),
     ):
         monkeypatch.setattr(sys, "argv", ["kernel_plan", *extra])
         with pytest.raises(SystemExit) as exit_:

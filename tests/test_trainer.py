@@ -375,6 +375,13 @@ def test_bf16_fast_networks_stay_close_to_fp32():
                 "wide_ring": True,
                 "conv_relu": True,
             },
+            "fastest, light sums": {
+                "subpixel": True,
+                "edge_ring": True,
+                "wide_ring": True,
+                "conv_relu": True,
+                "light_sums": True,
+            },
             "two streams": {"streams": True},
             "two streams, sub-pixel": {"streams": True, "subpixel": True},
         }
@@ -388,6 +395,35 @@ def test_bf16_fast_networks_stay_close_to_fp32():
     assert 0 < plain < 0.02, errors
     for name, err in errors.items():
         assert err < max(2 * plain, 0.01), (name, float(err), float(plain))
+
+
+def test_the_light_mlp_as_sums_gives_its_linear_layers_numbers_in_one_kernel_a_layer():
+    """trainer.fastnet.SummedMLP: the light encoder's Linear + Tanh layers as products and
+    sums, in fp32 for any input dtype; ``light_sums`` switches a rewrite's encoder both ways;
+    an MLP of another shape is refused."""
+    from trainer.fastnet import SubpixelRenderer, SummedMLP
+    from trainer.model import fold_batchnorm
+
+    torch.manual_seed(0)
+    model = NeuralRenderer(ModelConfig(resolution=64)).eval()
+    mlp, light = model.light.mlp, torch.rand(3, 4)
+    with torch.no_grad():
+        torch.testing.assert_close(SummedMLP(mlp)(light), mlp(light), atol=1e-6, rtol=0)
+        half = SummedMLP(mlp.to(torch.bfloat16))(light.bfloat16())
+        assert half.dtype == torch.bfloat16
+        assert (half.float() - mlp.float()(light)).abs().max() < 0.02
+        net = SubpixelRenderer(fold_batchnorm(model)).light_sums()
+        assert isinstance(net.light, SummedMLP)
+        assert net.light_sums(False).light is net.mlp
+    with pytest.raises(ValueError, match="not a Linear \\+ Tanh MLP"):
+        SummedMLP(torch.nn.Sequential(torch.nn.Linear(4, 4), torch.nn.ReLU()))
+    # Inductor's plan for it (Triton, planned on this CPU): one fused kernel a layer, no GEMM
+    from benchmarks.kernel_plan import launches, plan_source
+
+    summed = SummedMLP(mlp.to(torch.bfloat16))
+    plan = launches(plan_source(lambda x, lt: summed(lt), None, light.bfloat16()))
+    assert [n.split("_")[0] for n, _ in plan] == ["triton"] * len(summed.layers), plan
+    assert all("tanh" in n and "sum" in n for n, _ in plan), plan
 
 
 def test_conv_relu_is_one_operator_that_compiles_and_gives_convolution_then_relu():
@@ -408,8 +444,11 @@ def test_conv_relu_is_one_operator_that_compiles_and_gives_convolution_then_relu
         torch.library.opcheck(conv_relu, (inp, w, bias, stride))
     traced = torch.compile(lambda t: conv_relu(t, w, b, 2) * 2, backend="eager", fullgraph=True)
     torch.testing.assert_close(traced(x), 2 * F.relu(F.conv2d(x, w, b, 2, 1)))
+    tiny = NeuralRenderer(ModelConfig(resolution=16, width=8))
     with pytest.raises(ValueError, match="conv_relu is a form of the subpixel"):
-        fast_network(NeuralRenderer(ModelConfig(resolution=16, width=8)), conv_relu=True)
+        fast_network(tiny, conv_relu=True)
+    with pytest.raises(ValueError, match="light_sums is a form of the subpixel"):
+        fast_network(tiny, light_sums=True)
 
 
 def test_level_fusion_is_asked_for_edge_rings_on_the_torch_versions_checked():

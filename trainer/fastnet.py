@@ -33,8 +33,10 @@ tensors of the original (upsampled features, concatenations, a 64-channel 400² 
 3-channel output convolution). ``trainer.infer.Renderer`` runs it in fp32 on CPU from 288²
 up, where it is about 1.1x faster than the folded original at batch 1 (slower below:
 ``trainer.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 with aligned channels on an H100 it
-renders 1.8x the frames a second of the compiled original batched, but is 1.1x slower at
-batch 1 (``docs/benchmarks.md``).
+renders, with its rings as edge corrections on zero-padded phases and the encoder's
+convolutions and ReLUs fused (``trainer.infer.FASTEST``), 2.09x the frames a second of the
+compiled original batched and a frame in 0.88x its time at batch 1, on an H200
+(``docs/benchmarks.md``).
 BatchNorm must be folded first (:func:`trainer.model.fold_batchnorm`).
 """
 
@@ -372,6 +374,29 @@ class PlainLevel(nn.Module):
         return [(self.conv, 2 * size)]
 
 
+class SummedMLP(nn.Module):
+    """The light encoder's Tanh-MLP (``trainer.model.LightEncoder``) with each Linear layer as
+    a broadcast product and a sum, in fp32 whatever the input's dtype, so that Inductor
+    compiles a layer into one reduction kernel with its bias and Tanh. As matrix products
+    (``nn.Linear``) a layer is an extern cuBLAS call, a copy of the bias into its output and
+    a Tanh pass: at batch 1, 11 of the compiled network's launches for four values in
+    (``benchmarks.kernel_plan --batch 1``)."""
+
+    def __init__(self, mlp: nn.Sequential):
+        super().__init__()
+        kinds = [type(m) for m in mlp]
+        if kinds != [nn.Linear, nn.Tanh] * (len(kinds) // 2) or not kinds:
+            raise ValueError(f"not a Linear + Tanh MLP: {kinds}")
+        self.layers = nn.ModuleList(mlp[::2])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = x.float()
+        for layer in self.layers:
+            w, b = layer.weight.float(), layer.bias.float()
+            y = torch.tanh((y[:, :, None] * w.t()).sum(1) + b)
+        return y.to(x.dtype)
+
+
 def padded(t: torch.Tensor, dim: int, size: int) -> torch.Tensor:
     """``t`` with zeros appended along ``dim`` up to ``size``."""
     extra = size - t.shape[dim]
@@ -398,7 +423,7 @@ class SubpixelRenderer(nn.Module):
         if any(isinstance(block[1], nn.BatchNorm2d) for block in folded.encoder):
             raise ValueError("fold the BatchNorm first (trainer.model.fold_batchnorm)")
         self.config = cfg = folded.config
-        self.light = folded.light.mlp
+        self.light = self.mlp = folded.light.mlp  # the light encoder, as light_sums sets it
         self.b = cfg.bottleneck
         self.in_channels = round_up(cfg.in_channels, align)
         enc = [(b[0].weight, b[0].bias) for b in folded.encoder]
@@ -458,6 +483,12 @@ class SubpixelRenderer(nn.Module):
         there by Inductor already. Returns self."""
         for conv in [*self.encoder, self.dec0]:
             conv.fused_relu = fused
+        return self
+
+    def light_sums(self, summed: bool = True) -> SubpixelRenderer:
+        """Run the light encoder as :class:`SummedMLP` (``summed``) or as its Linear layers;
+        returns self."""
+        self.light = SummedMLP(self.mlp) if summed else self.mlp
         return self
 
     def rings(self, gemm: bool = False, wide: bool = False, edge: bool = False) -> SubpixelRenderer:

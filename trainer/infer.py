@@ -204,6 +204,7 @@ def fast_network(
     edge_ring: bool = False,
     streams: bool = False,
     conv_relu: bool = False,
+    light_sums: bool = False,
 ) -> torch.nn.Module:
     """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
     channels_last. ``subpixel``: the exact rewrite of ``trainer.fastnet`` (no upsampled or
@@ -219,16 +220,20 @@ def fast_network(
     ``subpixel``; compiled segment by segment. ``conv_relu`` (with ``subpixel`` or
     ``streams``): the encoder's convolutions and the bottleneck's last with their ReLU in one
     operator, on CUDA one cuDNN call (``trainer.fastnet.SubpixelRenderer.fuse_relus``).
+    ``light_sums`` (with ``subpixel`` or ``streams``): the light encoder's layers as sums
+    that Inductor compiles into one kernel each (``trainer.fastnet.SummedMLP``).
     ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
     around tuned convolutions; minutes of autotuning at first use; :func:`compile_options`).
     Feed it bf16 channels_last inputs."""
-    if conv_relu and not (subpixel or streams):
-        raise ValueError("conv_relu is a form of the subpixel (or streams) network")
+    for name, asked in (("conv_relu", conv_relu), ("light_sums", light_sums)):
+        if asked and not (subpixel or streams):
+            raise ValueError(f"{name} is a form of the subpixel (or streams) network")
     net = fold_batchnorm(model)
     if subpixel or streams:
         plain_from = subpixel_from if subpixel else model.config.resolution
         net = SubpixelRenderer(net, plain_from, align).gemm_at(gemm_at)
         net.rings(gemm=ring_gemm, wide=wide_ring, edge=edge_ring).fuse_relus(conv_relu)
+        net.light_sums(light_sums)
     if streams:
         net = StreamedRenderer(net)
     net = net.to(torch.bfloat16, memory_format=torch.channels_last)
