@@ -2,7 +2,7 @@
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
         [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--edge-ring]
-        [--zero-edge-ring] [--conv-relu] [--light-sums]
+        [--zero-edge-ring] [--conv-relu] [--light-sums] [--fold-ring]
         [--streams] [--resolution 400] [--only TEXT] [--rounds K]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
@@ -31,7 +31,9 @@ corrections two deep (``trainer.fastnet.zero_edges``). ``--conv-relu`` adds the 
 rewrite (with the zero-padded edge ring when that is asked for) whose encoder convolutions
 run with their ReLU in one cuDNN call (``trainer.convrelu``). ``--light-sums`` adds the
 fastest form measured (``trainer.infer.FASTEST``) with the light encoder's layers as sums
-(``trainer.fastnet.SummedMLP``). ``--streams``
+(``trainer.fastnet.SummedMLP``); ``--fold-ring`` the fastest form (with ``--light-sums``,
+with its sums) with each ring's correction as one product
+(``trainer.fastnet.zero_edges_folded``). ``--streams``
 adds the network compiled segment by segment on two CUDA streams, the skip convolutions and
 the light MLP beside the critical path, every level plain (``trainer.streamnet``; for
 batch 1).
@@ -206,6 +208,12 @@ def parser() -> argparse.ArgumentParser:
         "sums, one kernel each (trainer.fastnet.SummedMLP; CUDA)",
     )
     ap.add_argument(
+        "--fold-ring",
+        action="store_true",
+        help="add the fastest form (with --light-sums: with its light sums) with each ring's "
+        "correction as one batched product (trainer.fastnet.zero_edges_folded; CUDA)",
+    )
+    ap.add_argument(
         "--streams",
         action="store_true",
         help="add a compiled row on two CUDA streams: skip convolutions and the light MLP "
@@ -253,9 +261,13 @@ def graph_rows(args: argparse.Namespace) -> list[tuple[str, dict]]:
         zero = args.zero_edge_ring
         name = f"subpixel compiled{', zero-padded edge ring' * zero}, conv+ReLU"
         rows.append(rewrite(name, edge_ring=zero, wide_ring=zero, conv_relu=True))
-    if args.light_sums:  # a form of the fastest measured (trainer.infer.FASTEST)
-        name = "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums"
-        rows.append(rewrite(name, **(FASTEST | {"light_sums": True})))
+    fastest = "subpixel compiled, zero-padded edge ring, conv+ReLU"  # trainer.infer.FASTEST
+    if args.light_sums:
+        rows.append(rewrite(f"{fastest}, light sums", **(FASTEST | {"light_sums": True})))
+    if args.fold_ring:  # with --light-sums, of that form
+        sums = args.light_sums
+        name = f"{fastest}{', light sums' * sums}, ring in one product"
+        rows.append(rewrite(name, **(FASTEST | {"light_sums": sums, "fold_ring": True})))
     if args.streams:
         fast = {"compile": True, "streams": True, "align": args.align}
         rows.append((f"two streams, compiled + graph{x1}", fast))

@@ -55,6 +55,7 @@ FAST_FLAGS = (
     "edge_ring",
     "conv_relu",
     "light_sums",
+    "fold_ring",
 )
 
 
@@ -84,6 +85,11 @@ def parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--light-sums", action="store_true", help="with --subpixel: the light MLP as sums"
+    )
+    ap.add_argument(
+        "--fold-ring",
+        action="store_true",
+        help="with --edge-ring --wide-ring: each ring's correction as one product",
     )
     return ap
 

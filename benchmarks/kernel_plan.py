@@ -1,7 +1,7 @@
 """The kernels Inductor plans for the compiled fast network, worked out on a CPU machine.
 
     .venv/bin/python -m benchmarks.kernel_plan [--subpixel] [--edge-ring [--wide-ring]]
-        [--conv-relu] [--light-sums] [--batch 8] [--resolution 400] [--width 64]
+        [--conv-relu] [--light-sums] [--fold-ring] [--batch 8] [--resolution 400] [--width 64]
         [--subpixel-from N] [--align 8]
 
 Compiles ``trainer.infer.fast_network`` (bf16, channels_last) with Inductor's Triton
@@ -110,6 +110,9 @@ def main() -> None:
     ap.add_argument(
         "--light-sums", action="store_true", help="with --subpixel: the light MLP as sums"
     )
+    ap.add_argument(
+        "--fold-ring", action="store_true", help="with --wide-ring: each ring as one product"
+    )
     ap.add_argument("--subpixel-from", type=int, default=0, metavar="N")
     ap.add_argument("--align", type=int, default=8, metavar="N")
     args = ap.parse_args()
@@ -117,6 +120,8 @@ def main() -> None:
         ap.error("--edge-ring is a form of the --subpixel rewrite")
     if args.wide_ring and not args.edge_ring:
         ap.error("--wide-ring here is a form of --edge-ring")
+    if args.fold_ring and not args.wide_ring:
+        ap.error("--fold-ring is a form of --wide-ring")
     for flag, asked in (("--conv-relu", args.conv_relu), ("--light-sums", args.light_sums)):
         if asked and not args.subpixel:
             ap.error(f"{flag} is a form of the --subpixel rewrite")
@@ -130,6 +135,7 @@ def main() -> None:
         wide_ring=args.wide_ring,
         conv_relu=args.conv_relu,
         light_sums=args.light_sums,
+        fold_ring=args.fold_ring,
     )
     r = args.resolution
     channels = getattr(net, "in_channels", model.config.in_channels)

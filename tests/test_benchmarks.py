@@ -78,12 +78,13 @@ def test_the_profiles_flags_are_keywords_that_fast_network_takes():
     from trainer.infer import fast_network
 
     args = parser().parse_args(["--subpixel", "--edge-ring", "--wide-ring", "--conv-relu",
-                                "--light-sums", "--gemm-at", "50", "--align", "16"])  # fmt: skip
+                                "--light-sums", "--fold-ring", "--gemm-at", "50",
+                                "--align", "16"])  # fmt: skip
     fast = fast_kwargs(args)
     inspect.signature(fast_network).bind(None, compile=True, **fast)
     assert fast == {"subpixel": True, "gemm_at": 50, "subpixel_from": 0, "align": 16,
                     "ring_gemm": False, "wide_ring": True, "edge_ring": True,
-                    "conv_relu": True, "light_sums": True}  # fmt: skip
+                    "conv_relu": True, "light_sums": True, "fold_ring": True}  # fmt: skip
 
 
 def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes():
@@ -98,7 +99,7 @@ def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes(
     plain = [name for name, _ in graph_rows(parser().parse_args([]))]
     assert plain == ["  + bf16 weights, CUDA graph", "subpixel bf16, CUDA graph"]
     every = ["--compile", "--ring-gemm", "--wide-ring", "--edge-ring", "--zero-edge-ring",
-             "--conv-relu", "--light-sums", "--streams", "--gemm-at", "50",
+             "--conv-relu", "--light-sums", "--fold-ring", "--streams", "--gemm-at", "50",
              "--subpixel-from", "100"]  # fmt: skip
     rows = graph_rows(parser().parse_args(every))
     assert [name for name, _ in rows][2:] == [
@@ -109,6 +110,7 @@ def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes(
         "subpixel compiled, zero-padded edge ring",
         "subpixel compiled, zero-padded edge ring, conv+ReLU",
         "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums",
+        "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums, ring in one product",
         "two streams, compiled + graph",
         "  + GEMMs at <= 50², from 100²",
         "subpixel from 100², compiled",
@@ -121,6 +123,10 @@ def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes(
                          "wide_ring": True, "conv_relu": True}  # fmt: skip
     sums = dict(rows)["subpixel compiled, zero-padded edge ring, conv+ReLU, light sums"]
     assert sums == zero_relu | {"light_sums": True}
+    assert rows[9][1] == sums | {"fold_ring": True}
+    alone = dict(graph_rows(parser().parse_args(["--fold-ring"])))
+    name = "subpixel compiled, zero-padded edge ring, conv+ReLU, ring in one product"
+    assert alone[name] == zero_relu | {"light_sums": False, "fold_ring": True}
     named = dict(graph_rows(parser().parse_args(["--align", "1", "--conv-relu"])))
     assert named["subpixel compiled, conv+ReLU, channels x1"]["align"] == 1
     assert not named["subpixel compiled, conv+ReLU, channels x1"]["edge_ring"]
@@ -182,6 +188,7 @@ def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite(
         (["--subpixel", "--wide-ring"], "--wide-ring here is a form of --edge-ring"),
         (["--conv-relu"], "--conv-relu is a form of the --subpixel rewrite"),
         (["--light-sums"], "--light-sums is a form of the --subpixel rewrite"),
+        (["--subpixel", "--edge-ring", "--fold-ring"], "--fold-ring is a form of --wide-ring"),
     ):
         monkeypatch.setattr(sys, "argv", ["kernel_plan", *extra])
         with pytest.raises(SystemExit) as exit_:

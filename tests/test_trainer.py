@@ -237,6 +237,10 @@ def test_upconv_is_upsampling_then_convolution(size):
         up.set_ring(edge=True, wide=wide)  # replicate-padded phases, two on zero-padded ones
         assert hasattr(up, "zero_side") == wide  # those weights are made when asked for
         torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
+    up.set_ring(edge=True, wide=True, fold=True)  # that correction as one product
+    torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="fold is a form of the edge ring on zero-padded"):
+        up.set_ring(edge=True, fold=True)
     if size < 2:
         y = torch.zeros_like(want)
         with pytest.raises(ValueError, match="a ring 2 deep needs an input at least 2 wide"):
@@ -299,6 +303,10 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
     with torch.no_grad():  # and the ReLUs after convolutions in one operator with them
         got_fused = fast.fuse_relus()(x.contiguous(memory_format=cl), light)
     torch.testing.assert_close(got_fused, want, atol=1e-5, rtol=0)
+    with torch.no_grad():  # each ring one product, the light encoder as sums
+        fast.rings(edge=True, wide=True, fold=True).light_sums()
+        got_folded = fast(x.contiguous(memory_format=cl), light)
+    torch.testing.assert_close(got_folded, want, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="fold the BatchNorm first"):
         SubpixelRenderer(model)
 
@@ -381,6 +389,14 @@ def test_bf16_fast_networks_stay_close_to_fp32():
                 "wide_ring": True,
                 "conv_relu": True,
                 "light_sums": True,
+            },
+            "fastest, light sums, ring in one product": {
+                "subpixel": True,
+                "edge_ring": True,
+                "wide_ring": True,
+                "conv_relu": True,
+                "light_sums": True,
+                "fold_ring": True,
             },
             "two streams": {"streams": True},
             "two streams, sub-pixel": {"streams": True, "subpixel": True},

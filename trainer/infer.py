@@ -205,6 +205,7 @@ def fast_network(
     streams: bool = False,
     conv_relu: bool = False,
     light_sums: bool = False,
+    fold_ring: bool = False,
 ) -> torch.nn.Module:
     """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
     channels_last. ``subpixel``: the exact rewrite of ``trainer.fastnet`` (no upsampled or
@@ -222,6 +223,8 @@ def fast_network(
     operator, on CUDA one cuDNN call (``trainer.fastnet.SubpixelRenderer.fuse_relus``).
     ``light_sums`` (with ``subpixel`` or ``streams``): the light encoder's layers as sums
     that Inductor compiles into one kernel each (``trainer.fastnet.SummedMLP``).
+    ``fold_ring`` (with ``edge_ring`` and ``wide_ring``): each ring's correction as one
+    batched product (``trainer.fastnet.zero_edges_folded``).
     ``compile``: compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused
     around tuned convolutions; minutes of autotuning at first use; :func:`compile_options`).
     Feed it bf16 channels_last inputs."""
@@ -232,7 +235,8 @@ def fast_network(
     if subpixel or streams:
         plain_from = subpixel_from if subpixel else model.config.resolution
         net = SubpixelRenderer(net, plain_from, align).gemm_at(gemm_at)
-        net.rings(gemm=ring_gemm, wide=wide_ring, edge=edge_ring).fuse_relus(conv_relu)
+        net.rings(gemm=ring_gemm, wide=wide_ring, edge=edge_ring, fold=fold_ring)
+        net.fuse_relus(conv_relu)
         net.light_sums(light_sums)
     if streams:
         net = StreamedRenderer(net)
