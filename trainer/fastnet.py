@@ -274,24 +274,28 @@ def zero_edges_folded(z: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     folded_zero_edge_weights(...)``): each side's 3 taps along its edge line and, on one
     pixel of it, a corner's value as more input columns: the top-left on the top line's
     first pixel, the bottom-right on the bottom's last, the bottom-left on the left's last,
-    the top-right on the right's first.
-    One gather and one product a ring, where :func:`zero_edges` adds the corners' product,
-    its padding into the addend, and cuBLAS's copy of that addend: 3 launches fewer a ring,
-    for a K of 4·I instead of 3·I."""
+    the top-right on the right's first. A ring is one gather and one product, where
+    :func:`zero_edges` adds the corners' product, a kernel padding it into the product's
+    addend and cuBLAS's copy of that addend, for a K of 4·I instead of 3·I."""
     n, c, h = z.shape[:3]
     if z.shape[3] != h:
         raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
-    o4, last, m = weights.shape[2], h - 1, h + 2
-    i = torch.arange(4 * m, device=z.device)
-    side_of, t = i // m, (i % m - 1).clamp(0, last)
-    row = torch.where(side_of == 0, 0, torch.where(side_of == 1, last, t))
-    col = torch.where(side_of < 2, t, torch.where(side_of == 2, 0, last))
-    at = (row * h + col).view(4, m).unfold(1, 3, 1)  # (4, h, 3): the taps along each line
-    taps = z.permute(0, 2, 3, 1).reshape(n, h * h, c)[:, at].transpose(0, 1)  # (4, N, h, 3, C)
-    sides, along = torch.arange(4, device=z.device)[:, None], torch.arange(h, device=z.device)
-    here = torch.where((sides == 0) | (sides == 3), along == 0, along == last)  # (4, h)
-    corner = torch.where(here[:, None, :, None], taps[:, :, :, 1], 0)  # the middle tap
-    cols = torch.cat([taps.reshape(4, n, h, 3 * c), corner], 3).reshape(4, n * h, 4 * c)
+    o4, last = weights.shape[2], h - 1
+    # (side, pixel along its line, tap): taps 0-2 along the line (ends repeated), tap 3 the
+    # pixel itself where it is its side's corner, else zero; indices from aranges alone, so
+    # that the gather is one kernel that computes them
+    dev = z.device
+    side = torch.arange(4, device=dev)[:, None, None]
+    along = torch.arange(h, device=dev)[None, :, None]
+    tap = torch.arange(4, device=dev)[None, None, :]
+    pos = (along + torch.where(tap == 3, 0, tap - 1)).clamp(0, last)
+    row = torch.where(side == 0, 0, torch.where(side == 1, last, pos))
+    col = torch.where(side < 2, pos, torch.where(side == 2, 0, last))
+    corner = torch.where((side == 0) | (side == 3), along == 0, along == last)
+    keep = (tap < 3) | corner  # (4, h, 4)
+    taps = z.permute(0, 2, 3, 1).reshape(n, h * h, c)[:, row * h + col]  # (N, 4, h, 4, C)
+    taps = torch.where(keep[None, :, :, :, None], taps, 0)
+    cols = taps.transpose(0, 1).reshape(4, n * h, 4 * c)
     d = torch.bmm(cols, weights).view(4, n, 2 * h, 2, o4 // 4)
     rows, columns = d[:2].permute(0, 1, 4, 3, 2), d[2:].permute(0, 1, 4, 2, 3)
     far = 2 * h - 2
