@@ -30,9 +30,9 @@ corrections from the edges of each level's input (``trainer.fastnet.edges``);
 corrections two deep (``trainer.fastnet.zero_edges``). ``--conv-relu`` adds the compiled
 rewrite (with the zero-padded edge ring when that is asked for) whose encoder convolutions
 run with their ReLU in one cuDNN call (``trainer.convrelu``). ``--light-sums`` adds the
-fastest form measured (``trainer.infer.FASTEST``) with the light encoder's layers as sums
-(``trainer.fastnet.SummedMLP``); ``--fold-ring`` the fastest form (with ``--light-sums``,
-with its sums) with each ring's correction as one product
+zero-padded edge ring with conv + ReLU (``trainer.infer.EDGE_RELU``) with the light
+encoder's layers as sums (``trainer.fastnet.SummedMLP``); ``--fold-ring`` that form (with
+``--light-sums``, with its sums) with each ring's correction as one product
 (``trainer.fastnet.zero_edges_folded``). ``--streams``
 adds the network compiled segment by segment on two CUDA streams, the skip convolutions and
 the light MLP beside the critical path, every level plain (``trainer.streamnet``; for
@@ -71,7 +71,7 @@ from benchmarks.train import device_name
 from benchmarks.trainstore import DEFAULT, ensure_store
 from trainer.data import Catalog, SampleReader
 from trainer.fastnet import SubpixelRenderer
-from trainer.infer import FASTEST, GraphedRenderer, pick_device
+from trainer.infer import EDGE_RELU, GraphedRenderer, pick_device
 from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
 from trainer.targets import model_inputs
 
@@ -204,14 +204,15 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--light-sums",
         action="store_true",
-        help="add the fastest form (trainer.infer.FASTEST) with the light encoder's layers as "
-        "sums, one kernel each (trainer.fastnet.SummedMLP; CUDA)",
+        help="add the zero-padded edge ring with conv + ReLU (trainer.infer.EDGE_RELU) with "
+        "the light encoder's layers as sums, one kernel each (trainer.fastnet.SummedMLP; CUDA)",
     )
     ap.add_argument(
         "--fold-ring",
         action="store_true",
-        help="add the fastest form (with --light-sums: with its light sums) with each ring's "
-        "correction as one batched product (trainer.fastnet.zero_edges_folded; CUDA)",
+        help="add the zero-padded edge ring with conv + ReLU (with --light-sums: with its "
+        "light sums) with each ring's correction as one batched product "
+        "(trainer.fastnet.zero_edges_folded; CUDA)",
     )
     ap.add_argument(
         "--streams",
@@ -261,13 +262,13 @@ def graph_rows(args: argparse.Namespace) -> list[tuple[str, dict]]:
         zero = args.zero_edge_ring
         name = f"subpixel compiled{', zero-padded edge ring' * zero}, conv+ReLU"
         rows.append(rewrite(name, edge_ring=zero, wide_ring=zero, conv_relu=True))
-    fastest = "subpixel compiled, zero-padded edge ring, conv+ReLU"  # trainer.infer.FASTEST
+    edge_relu = "subpixel compiled, zero-padded edge ring, conv+ReLU"  # trainer.infer.EDGE_RELU
     if args.light_sums:
-        rows.append(rewrite(f"{fastest}, light sums", **(FASTEST | {"light_sums": True})))
+        rows.append(rewrite(f"{edge_relu}, light sums", **(EDGE_RELU | {"light_sums": True})))
     if args.fold_ring:  # with --light-sums, of that form
         sums = args.light_sums
-        name = f"{fastest}{', light sums' * sums}, ring in one product"
-        rows.append(rewrite(name, **(FASTEST | {"light_sums": sums, "fold_ring": True})))
+        name = f"{edge_relu}{', light sums' * sums}, ring in one product"
+        rows.append(rewrite(name, **(EDGE_RELU | {"light_sums": sums, "fold_ring": True})))
     if args.streams:
         fast = {"compile": True, "streams": True, "align": args.align}
         rows.append((f"two streams, compiled + graph{x1}", fast))

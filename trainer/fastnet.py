@@ -34,9 +34,10 @@ tensors of the original (upsampled features, concatenations, a 64-channel 400² 
 up, where it is about 1.1x faster than the folded original at batch 1 (slower below:
 ``trainer.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 with aligned channels on an H100 it
 renders, with its rings as edge corrections on zero-padded phases and the encoder's
-convolutions and ReLUs fused (``trainer.infer.FASTEST``), 2.09x the frames a second of the
-compiled original batched and a frame in 0.88x its time at batch 1, on an H200
-(``docs/benchmarks.md``).
+convolutions and ReLUs fused (``trainer.infer.EDGE_RELU``), 2.09x the frames a second of the
+compiled original batched and a frame in 0.88x its time at batch 1, on an H200; with the
+light encoder as sums and each ring one product, 0.285 ms a frame at batch 1
+(``trainer.infer.fastest_form``, ``docs/benchmarks.md``).
 BatchNorm must be folded first (:func:`trainer.model.fold_batchnorm`).
 """
 

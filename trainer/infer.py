@@ -282,18 +282,30 @@ def compile_options(
     return options
 
 
-#: the keywords of :func:`fast_network` for the fastest form measured, at batch 1 and
-#: batched alike: the sub-pixel rewrite compiled, its rings as edge corrections on
-#: zero-padded phases, the encoder's convolutions with their ReLU in one cuDNN call. On an
-#: H200 at 400², rows timed in turn: 0.313 ms a frame at batch 1 (0.879x the compiled
-#: original's) and 11,399 frames/s at batch 128 (2.09x); ``docs/benchmarks.md``
-FASTEST = {
+#: the keywords of :func:`fast_network` for the sub-pixel rewrite compiled, its rings as
+#: edge corrections on zero-padded phases, the encoder's convolutions with their ReLU in one
+#: cuDNN call: on an H200 at 400², rows timed in turn, 0.313 ms a frame at batch 1 (0.879x
+#: the compiled original's) and 11,399 frames/s at batch 128 (2.09x); ``docs/benchmarks.md``
+EDGE_RELU = {
     "compile": True,
     "subpixel": True,
     "edge_ring": True,
     "wide_ring": True,
     "conv_relu": True,
 }
+#: the fastest form measured at batch 1: :data:`EDGE_RELU` with the light encoder as sums
+#: and each ring one product, 0.285 ms a frame on an H200 (0.856x :data:`EDGE_RELU`'s,
+#: rows timed in turn)
+FASTEST_ONE = EDGE_RELU | {"light_sums": True, "fold_ring": True}
+#: the fastest form measured batched: :data:`EDGE_RELU` with the light encoder as sums,
+#: 12,060 frames/s at batch 128 on an H200, as many as :data:`EDGE_RELU` in the same run
+#: (the ring in one product is not measured batched yet)
+FASTEST_MANY = EDGE_RELU | {"light_sums": True}
+
+
+def fastest_form(batch: int) -> dict:
+    """:func:`fast_network`'s keywords for the fastest form measured at ``batch``."""
+    return FASTEST_ONE if batch == 1 else FASTEST_MANY
 
 
 class GraphedRenderer:
@@ -306,12 +318,13 @@ class GraphedRenderer:
     by ``benchmarks.infer`` on an H100 and an H200, not exercised by the CPU test suite.
 
     ``fast`` are :func:`fast_network`'s keywords; :meth:`fastest` captures the fastest form
-    measured (:data:`FASTEST`)."""
+    measured at the batch size (:func:`fastest_form`)."""
 
     @classmethod
     def fastest(cls, model: NeuralRenderer, batch: int) -> GraphedRenderer:
-        """The network in its fastest measured form (:data:`FASTEST`), captured at ``batch``."""
-        return cls(model, batch, **FASTEST)
+        """The network in its fastest form measured at ``batch`` (:func:`fastest_form`),
+        captured at ``batch``."""
+        return cls(model, batch, **fastest_form(batch))
 
     def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3, **fast):
         if not torch.cuda.is_available() or next(model.parameters()).device.type != "cuda":
