@@ -212,6 +212,21 @@ def zero_edge_weights(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return side, torch.stack(corners).to(w.dtype)
 
 
+def two_rings(d: torch.Tensor, n: int, h: int) -> torch.Tensor:
+    """The sides' products ``(4, N·h, 4·O)`` (top, bottom, left, right; columns in ``(phase
+    along, phase across, channel)`` order) → the ``(N, O, 2h, 2h)`` correction, zero but on
+    the two outer rings."""
+    d = d.view(4, n, 2 * h, 2, d.shape[2] // 4)
+    rows, columns = d[:2].permute(0, 1, 4, 3, 2), d[2:].permute(0, 1, 4, 2, 3)
+    far = 2 * h - 2
+    return (
+        F.pad(rows[0], (0, 0, 0, far))
+        + F.pad(rows[1], (0, 0, far, 0))
+        + F.pad(columns[0], (0, far))
+        + F.pad(columns[1], (far, 0))
+    )
+
+
 def zero_edges(z: torch.Tensor, side: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
     """What ``conv(up(z), w, padding=1)`` differs by from its sub-pixel form on a
     zero-padded ``z``, for a square ``z`` h wide and ``(side, corners) =
@@ -243,15 +258,7 @@ def zero_edges(z: torch.Tensor, side: torch.Tensor, corners: torch.Tensor) -> to
     k = torch.bmm(points, corners)  # (4, N, 4·O): top-left, bottom-left, top-right, bottom-right
     ends = F.pad(k[:2, :, None], (0, 0, 0, last)) + F.pad(k[2:, :, None], (0, 0, last, 0))
     ends = F.pad(-ends, (0, 0, 0, 0, 0, 0, 0, 2))  # (4, N, h, 4·O): none on the columns
-    d = torch.baddbmm(ends.view(4, n * h, o4), cols, side).view(4, n, 2 * h, 2, o4 // 4)
-    rows, columns = d[:2].permute(0, 1, 4, 3, 2), d[2:].permute(0, 1, 4, 2, 3)
-    far = 2 * h - 2
-    return (
-        F.pad(rows[0], (0, 0, 0, far))
-        + F.pad(rows[1], (0, 0, far, 0))
-        + F.pad(columns[0], (0, far))
-        + F.pad(columns[1], (far, 0))
-    )
+    return two_rings(torch.baddbmm(ends.view(4, n * h, o4), cols, side), n, h)
 
 
 def folded_zero_edge_weights(side: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
@@ -281,7 +288,7 @@ def zero_edges_folded(z: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     n, c, h = z.shape[:3]
     if z.shape[3] != h:
         raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
-    o4, last = weights.shape[2], h - 1
+    last = h - 1
     # (side, pixel along its line, tap): taps 0-2 along the line (ends repeated), tap 3 the
     # pixel itself where it is its side's corner, else zero; indices from aranges alone, so
     # that the gather is one kernel that computes them
@@ -297,15 +304,7 @@ def zero_edges_folded(z: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     taps = z.permute(0, 2, 3, 1).reshape(n, h * h, c)[:, row * h + col]  # (N, 4, h, 4, C)
     taps = torch.where(keep[None, :, :, :, None], taps, 0)
     cols = taps.transpose(0, 1).reshape(4, n * h, 4 * c)
-    d = torch.bmm(cols, weights).view(4, n, 2 * h, 2, o4 // 4)
-    rows, columns = d[:2].permute(0, 1, 4, 3, 2), d[2:].permute(0, 1, 4, 2, 3)
-    far = 2 * h - 2
-    return (
-        F.pad(rows[0], (0, 0, 0, far))
-        + F.pad(rows[1], (0, 0, far, 0))
-        + F.pad(columns[0], (0, far))
-        + F.pad(columns[1], (far, 0))
-    )
+    return two_rings(torch.bmm(cols, weights), n, h)
 
 
 class Conv(nn.Module):
