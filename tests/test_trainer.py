@@ -467,6 +467,8 @@ def test_conv_relu_is_one_operator_that_compiles_and_gives_convolution_then_relu
         fast_network(tiny, conv_relu=True)
     with pytest.raises(ValueError, match="light_sums is a form of the subpixel"):
         fast_network(tiny, light_sums=True)
+    with pytest.raises(ValueError, match="fold_ring is a form of the edge ring on zero-padded"):
+        fast_network(tiny, subpixel=True, edge_ring=True, fold_ring=True)
 
 
 def test_level_fusion_is_asked_for_edge_rings_on_the_torch_versions_checked():

@@ -231,6 +231,8 @@ def fast_network(
     for name, asked in (("conv_relu", conv_relu), ("light_sums", light_sums)):
         if asked and not (subpixel or streams):
             raise ValueError(f"{name} is a form of the subpixel (or streams) network")
+    if fold_ring and not (edge_ring and wide_ring and (subpixel or streams)):
+        raise ValueError("fold_ring is a form of the edge ring on zero-padded phases")
     net = fold_batchnorm(model)
     if subpixel or streams:
         plain_from = subpixel_from if subpixel else model.config.resolution
