@@ -148,6 +148,33 @@ def _serve(conn, settings: dict, log_path: str | None, scratch: str, parent: int
         os._exit(code)
 
 
+@contextlib.contextmanager
+def _parent_main_hidden():
+    """Start a spawned child without running the parent's ``__main__`` in it again.
+
+    ``multiprocessing``'s spawn runs the parent's main script (its ``__file__``, or the module
+    its ``__spec__`` names) in the child, so that a target defined there can be found. The
+    child's target is :func:`_serve`, of this module, so that run only costs: in a Ray worker
+    it is Ray's ``default_worker.py``, which imports Ray (about 0.4 s of a Blender start's
+    1.5-2 s here, in every farm worker's start and recycle), and a script without an ``if
+    __name__ == "__main__":`` guard would start its work again in the child. The parent's
+    ``__main__`` goes without the two for the length of ``Process.start()``, which reads them.
+    """
+    main = sys.modules.get("__main__")
+    if main is None:
+        yield
+        return
+    saved = {k: main.__dict__[k] for k in ("__file__", "__spec__") if k in main.__dict__}
+    main.__dict__.pop("__file__", None)
+    main.__spec__ = None
+    try:
+        yield
+    finally:
+        main.__dict__.update(saved)
+        if "__spec__" not in saved:
+            del main.__spec__
+
+
 class RenderProcess:
     """Renders in a child Blender process; use as a context manager.
 
@@ -174,17 +201,14 @@ class RenderProcess:
             args=(child, self.settings.to_dict(), self.log_path, self._scratch, os.getpid()),
             daemon=True,
         )
-        self._proc.start()
+        with _parent_main_hidden():
+            self._proc.start()
         child.close()
         self._conn = parent
         try:
             kind, payload = self._receive(READY_TIMEOUT_S)
         except WorkerDied as exc:
-            raise WorkerDied(
-                f"{exc} before it was ready; its error is above. A script that starts a "
-                'RenderProcess needs an `if __name__ == "__main__":` guard: the spawned child '
-                "imports the script again"
-            ) from None
+            raise WorkerDied(f"{exc} before it was ready; its error is above") from None
         if kind != "ready":
             self.close()
             raise RenderError(f"Blender worker failed to start: {payload}")

@@ -160,23 +160,31 @@ def test_a_worker_leaves_nothing_in_the_temp_folder(tmp_path, monkeypatch, grey_
     assert os.listdir(tmp_path) == []
 
 
-def test_script_without_main_guard_gets_a_clear_error(tmp_path):
-    """The spawned child imports the calling script again; without a main guard it cannot
-    start and the parent says why, instead of a bare 'died'."""
+def test_the_blender_child_runs_nothing_of_its_parents_main_script(tmp_path):
+    """The spawned child does not run the calling script again (``_parent_main_hidden``): a
+    script without an ``if __name__ == "__main__":`` guard renders, once, and the child of a
+    script that imports Ray at its top (as a farm worker's, Ray's ``default_worker.py``,
+    does) loads no Ray."""
     script = tmp_path / "no_guard.py"
     script.write_text(
-        "from render_jobs.specs import RenderSettings\n"
+        "import ray\n"
         "from render_jobs.process import RenderProcess\n"
-        "RenderProcess(RenderSettings(resolution=32, samples=1)).start()\n"
+        "from render_jobs.specs import RenderSettings\n"
+        "from tests.conftest import grey_uniform, uniform_maps\n"
+        "from render_jobs.sun import sun_from_angles\n"
+        "print('script ran', flush=True)\n"
+        "with RenderProcess(RenderSettings(resolution=16, samples=1, threads=1)) as w:\n"
+        "    print('child has ray:', '_raylet' in open(f'/proc/{w.pid}/maps').read())\n"
+        "    sun = sun_from_angles(35, 0, 3)\n"
+        "    r = w.render_material(uniform_maps(grey_uniform()), [sun], [0])\n"
+        "print('rendered', len(r.renders), flush=True)\n"
     )
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     run = subprocess.run(
         [sys.executable, str(script)], capture_output=True, text=True, timeout=120, env=env
     )
-    assert run.returncode == 1
-    last = run.stderr.strip().splitlines()[-1]
-    assert last.startswith("render_jobs.errors.WorkerDied: Blender worker died (exit code 1)")
-    assert 'needs an `if __name__ == "__main__":` guard' in last
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert run.stdout.splitlines() == ["script ran", "child has ray: False", "rendered 1"]
 
 
 # a parent that starts a long render, says so, and waits to be killed; with "thread", from a
