@@ -54,6 +54,7 @@ class Scale:
     batch: int
     timing_count: int  # renders timed per Cycles setting
     workers: int = 0  # Blender workers a render job (0: the farm's default, one a CPU)
+    loader_workers: int = 1  # DataLoader processes a training run (0: read in the trainer)
     width: int = 64  # the U-Nets' first level (the paper's 64; the tiny scale tests the steps)
 
 
@@ -88,6 +89,7 @@ SCALES = {
         batch=2,
         timing_count=1,
         workers=1,  # a few frames a job: one Blender load, not one a CPU
+        loader_workers=0,  # 8 samples a run: a spawned loader's torch import is 4 s of 11
         width=16,  # a sixteenth of the paper's cost: the tiny scale checks every step, not scores
     ),
 }
@@ -183,7 +185,8 @@ def train_all(plan: Plan) -> None:
             continue
         cmd = [str(BIN / "trainer"), "train", "--store", plan.store(store), "--out", str(run),
                "--loss", "l1", "--holdout-fraction", "0", "--batch-size", str(s.batch),
-               "--workers", "1", "--checkpoint-every", "200", "--log-every", "20", *extra,
+               "--workers", str(s.loader_workers), "--checkpoint-every", "200",
+               "--log-every", "20", *extra,
                *(["--resume"] if last is not None else [])]  # fmt: skip
         run.parent.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
