@@ -4,6 +4,7 @@ CPU benchmarks that no other test runs."""
 from __future__ import annotations
 
 import itertools
+import os
 import re
 import subprocess
 import sys
@@ -244,3 +245,20 @@ def test_the_materials_benchmark_reads_each_layout_and_refuses_a_tiny_texture():
     assert "texture swap" not in r.stdout  # no render worker asked for
     bad = subprocess.run([*cmd[:3], "--texture", "4"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--texture must be at least 8" in bad.stderr
+
+
+def test_worker_start_times_blender_in_a_ray_actor_both_ways_and_refuses_bad_counts():
+    """``benchmarks.worker_start`` on the farm's embedded Ray: a row for each way of spawning
+    Blender, and Ray in that Blender only where the parent's main script ran again."""
+    cmd = [sys.executable, "-m", "benchmarks.worker_start", "--starts", "1", "--resolution", "16"]
+    env = {**os.environ, "RAY_AUTH_MODE": "disabled"}
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = re.findall(r"^\| ([^|]+?) \| (\d+\.\d\d) \(\S+\) \| (\d+) \| (\w+) \|$", r.stdout, re.M)
+    assert [(row[0].split(" (")[0], row[3]) for row in rows] == [
+        ("RenderProcess", "no"),
+        ("multiprocessing's default spawn", "yes"),
+    ], r.stdout
+    assert all(float(row[1]) > 0 and int(row[2]) > 0 for row in rows)
+    bad = subprocess.run([*cmd[:3], "--starts", "0"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "--starts 0: must be at least 1" in bad.stderr
