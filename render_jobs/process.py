@@ -155,10 +155,11 @@ def _parent_main_hidden():
     ``multiprocessing``'s spawn runs the parent's main script (its ``__file__``, or the module
     its ``__spec__`` names) in the child, so that a target defined there can be found. The
     child's target is :func:`_serve`, of this module, so that run only costs: in a Ray worker
-    it is Ray's ``default_worker.py``, which imports Ray (about 0.5 s of a Blender start's
-    2 s here, in every farm worker's start and recycle), and a script without an ``if
-    __name__ == "__main__":`` guard would start its work again in the child. The parent's
-    ``__main__`` goes without the two for the length of ``Process.start()``, which reads them.
+    the script is Ray's ``default_worker.py``, which imports Ray into every Blender, at each
+    farm worker's start and recycle (its time and memory: ``benchmarks.worker_start``), and a
+    script without an ``if __name__ == "__main__":`` guard would start its work again in the
+    child. The parent's ``__main__`` goes without the two for the length of
+    ``Process.start()``, which reads them.
     """
     main = sys.modules.get("__main__")
     if main is None:
