@@ -513,6 +513,8 @@ def test_killed_blender_and_killed_worker_lose_nothing(tmp_path):
         kept, killed = descendants(proc.pid, "ray::RenderWorker")
         blender = _blender_of(kept)
         assert len(blender) == 1
+        # the render actor's Blender ran nothing of the actor's main script (Ray's worker)
+        assert not [m for m in blender[0].memory_maps() if "_raylet" in m.path]
         blender[0].send_signal(signal.SIGKILL)  # Blender dies inside a task
         wait_until(lambda: _dead(blender[0]), 30, "the killed Blender lives")
         killed.send_signal(signal.SIGKILL)  # and then a whole Ray worker
