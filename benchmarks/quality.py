@@ -89,7 +89,7 @@ SCALES = {
         batch=2,
         timing_count=1,
         workers=1,  # a few frames a job: one Blender load, not one a CPU
-        loader_workers=0,  # 8 samples a run: a spawned loader's torch import is 4 s of 11
+        loader_workers=0,  # 8 samples a run: a spawned loader's own torch import outweighs them
         width=16,  # a sixteenth of the paper's cost: the tiny scale checks every step, not scores
     ),
 }
