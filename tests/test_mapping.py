@@ -9,6 +9,7 @@ import subprocess
 import numpy as np
 import pytest
 import torch
+from click.testing import CliRunner
 from PIL import Image
 
 from render_jobs.materials import load_maps
@@ -19,6 +20,7 @@ from storage.reader import Store
 from storage.schema import MAP_CHANNELS
 from tests.test_farm import BIN, farm
 from tests.test_material_libraries import ambientcg, normal_map, write
+from trainer.cli import main as trainer_main
 from trainer.mapping import ScreenMapper, textures_from_maps
 
 #: the bound on every map of every material (uint8 maps, the store's own encoding)
@@ -280,9 +282,10 @@ def test_trainer_render_any_material_from_the_checkpoint_alone(aov_store, tmp_pa
     grey = np.repeat(normal_map(16)[..., :1], 3, 2)
     write(lib / "rust.png", np.concatenate([normal_map(16)] * 3 + [grey, normal_map(16)], 1))
 
-    def render(*args):
-        cmd = [str(BIN / "trainer"), "render", "--checkpoint", str(run), *map(str, args)]
-        return subprocess.run(cmd, capture_output=True, text=True)
+    def render(*args):  # in this process: each command's own torch import is most of its time
+        return CliRunner().invoke(
+            trainer_main, ["render", "--checkpoint", str(run), *map(str, args)]
+        )
 
     for i, material in enumerate(
         [
@@ -294,18 +297,18 @@ def test_trainer_render_any_material_from_the_checkpoint_alone(aov_store, tmp_pa
     ):
         out = tmp_path / f"m{i}.png"
         r = render("--material", material, "--sun", "0.3,-0.5,0.8", "--turbidity", "4", "-o", out)
-        assert r.returncode == 0, r.stderr
+        assert r.exit_code == 0, r.output
         img = np.asarray(Image.open(out))
         assert img.shape == (64, 64, 3) and img.std() > 1
     # the first stored material: from its stored maps, and mapped from its source id
     source = aov_store.materials()[0]["source_id"]
     light = ["--sun", "0.3,-0.5,0.8", "--turbidity", "4"]
     stored = render("--store", aov_store.url, "--sample", 0, *light, "-o", tmp_path / "a.png")
-    assert stored.returncode == 0, stored.stderr
-    assert render("--material", source, *light, "-o", tmp_path / "b.png").returncode == 0
+    assert stored.exit_code == 0, stored.output
+    assert render("--material", source, *light, "-o", tmp_path / "b.png").exit_code == 0
     a, b = (np.asarray(Image.open(tmp_path / f"{k}.png"), np.float64) for k in "ab")
     assert np.abs(a - b).mean() < 1.0, np.abs(a - b).mean()
     bad = render("--material", tmp_path / "nothing.png", "-o", tmp_path / "x.png")
-    assert bad.returncode == 1 and bad.stderr.strip().splitlines()[-1].startswith("Error: ")
+    assert bad.exit_code == 1 and bad.stderr.strip().splitlines()[-1].startswith("Error: ")
     assert "nothing.png: no such file or folder" in bad.stderr
     assert not (tmp_path / "x.png").exists()
