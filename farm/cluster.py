@@ -4,7 +4,9 @@ before anything is written, and ``ray.init`` itself.
 A job with an address (``--address`` or ``RAY_ADDRESS``) checks, in order, that:
 
 1. something accepts a connection there within :data:`REACH_TIMEOUT_S` (Ray itself would
-   retry without end, printing only warnings);
+   retry without end, printing only warnings), and it speaks gRPC: a web server there (the
+   dashboard's port given for the GCS's, say) is refused at once, where Ray's client would
+   wait some 40 s for it (:func:`not_grpc`);
 2. the cluster's GCS accepts this driver's credentials. ``ray start`` (Ray 2.60) turns
    token authentication on when ``RAY_AUTH_MODE`` is not set and a token is at hand
    (``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH`` or ``~/.ray/auth_token``, which any local
@@ -36,6 +38,11 @@ from farm.web import is_loopback
 REACH_TIMEOUT_S = 10.0
 #: how long the GCS has to list the cluster's nodes
 GCS_TIMEOUT_S = 10.0
+#: how long the server at a Ray address has to answer the HTTP/2 greeting
+GREETING_TIMEOUT_S = 5.0
+#: what an HTTP/2 client sends first (RFC 9113 3.4): the preface, then a SETTINGS frame (an
+#: empty one: a 9-byte frame header of length 0, type 4, no flags, stream 0)
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
 #: how long a job waits for a live node of its cluster on this machine: a head's GCS answers
 #: seconds before its own node has joined (5 s here, more on a busy machine), and Ray waits
 #: as long for a local node before it gives up
@@ -124,6 +131,34 @@ def check_reachable(address: str | None, timeout_s: float = REACH_TIMEOUT_S) -> 
             time.sleep(0.5)
 
 
+def not_grpc(target: tuple[str, int], timeout_s: float = GREETING_TIMEOUT_S) -> str | None:
+    """What answers at ``target`` when it is surely not a gRPC server (a GCS and Ray's client
+    server are), as words for an error; ``None`` for an HTTP/2 server, and when nothing is
+    sure (no connection, no answer in time): Ray's own client then decides.
+
+    An HTTP/2 server answers a client's preface with a SETTINGS frame first (RFC 9113 3.4).
+    The bytes are read by hand because grpc's channel states tell a server that answers
+    something else only from one that is slow, after the same wait."""
+    try:
+        with socket.create_connection(target, timeout=timeout_s) as conn:
+            conn.sendall(HTTP2_PREFACE)
+            head = b""
+            while len(head) < 9:
+                chunk = conn.recv(9 - len(head))
+                if not chunk:
+                    break
+                head += chunk
+    except OSError:  # refused, reset or silent: not sure
+        return None
+    if len(head) == 9 and head[3] == 4:  # a frame header, of type SETTINGS
+        return None
+    if head.startswith((b"HTTP/", b"<")):  # a status line, or an old-style bare page
+        return "a web server answers there, not Ray"
+    if not head:
+        return "the server there closed the connection without a gRPC greeting"
+    return "the server there does not speak gRPC, as Ray's servers do"
+
+
 def driver_node(address: str, nodes: list[str], local: set[str]) -> str:
     """The node address a driver joins a cluster at the loopback ``address`` as, from the
     addresses of the cluster's live ``nodes`` and this machine's ``local`` addresses: a
@@ -165,12 +200,29 @@ def live_nodes(gcs: str) -> list[str]:
     return [n.node_manager_address for n in info.values() if n.state == GcsNodeInfo.ALIVE]
 
 
+def check_speaks_grpc(named: str | None, source: str, target: tuple[str, int] | None) -> None:
+    """``ConnectionError`` when the server at a Ray address surely is not a GCS or Ray's
+    client server (:func:`not_grpc`). Not asked under ``RAY_USE_TLS``, where a plain
+    greeting gets a TLS alert from a real one."""
+    if target is None or os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true"):
+        return
+    why = not_grpc(target)
+    if why:
+        wanted = (
+            "Ray's client server (ray://HEAD:10001)"
+            if named.startswith("ray://")
+            else "the GCS (HEAD:6379 unless `ray start --port` said otherwise)"
+        )
+        raise ConnectionError(f"{source} {named}: {why}; give the address of {wanted}")
+
+
 def check_cluster(address: str | None) -> str | None:
     """The checks of the module docstring, before anything is written; returns the node
     address the driver joins as (``None``: Ray's choice). ``ConnectionError`` on failure."""
     check_reachable(address)
     named, source = _named(address)
     target = endpoint(named) if named else None
+    check_speaks_grpc(named, source, target)
     if named is None or target is None or "://" in named:  # embedded, auto, ray:// client
         return "127.0.0.1" if address_is_loopback(named) else None
     nodes = _nodes(named, source)

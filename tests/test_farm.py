@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import http.server
 import json
 import os
 import re
@@ -24,6 +25,7 @@ from farm.cluster import (
     check_reachable,
     driver_node,
     endpoint,
+    not_grpc,
     token_at_hand,
 )
 from farm.faults import FAULTS_ENV
@@ -370,6 +372,38 @@ def test_ray_addresses_name_what_must_answer():
     )
 
 
+def answering(reply: bytes | None, hold: threading.Event) -> tuple[str, int]:
+    """A one-connection TCP server on 127.0.0.1 that reads a greeting and sends ``reply``
+    and closes (``None``: says nothing until ``hold`` is set)."""
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def serve():
+        conn, _ = server.accept()
+        with conn, server:
+            conn.recv(64)
+            if reply is None:
+                hold.wait(10)
+            else:
+                conn.sendall(reply)
+
+    threading.Thread(target=serve, daemon=True).start()
+    return server.getsockname()[:2]
+
+
+def test_only_a_server_that_surely_is_not_grpc_is_named_so():
+    hold = threading.Event()
+    try:
+        assert "does not speak gRPC" in not_grpc(answering(b"-ERR unknown command\r\n", hold))
+        assert "closed the connection" in not_grpc(answering(b"", hold))
+        assert "a web server" in not_grpc(answering(b"HTTP/1.1 400 Bad Request\r\n\r\n", hold))
+        # an HTTP/2 server's first frame: a SETTINGS frame header (a GCS's is not empty)
+        assert not_grpc(answering(bytes([0, 0, 6, 4, 0, 0, 0, 0, 0]), hold)) is None
+        assert not_grpc(answering(None, hold), timeout_s=0.5) is None  # silent: Ray decides
+        assert not_grpc(("127.0.0.1", closed_port())) is None  # check_reachable's case
+    finally:
+        hold.set()
+
+
 def test_a_driver_joins_a_loopback_cluster_through_a_node_of_its_own_machine():
     here = {"127.0.0.1", "::1", "192.0.2.2"}
     assert driver_node("x", ["127.0.0.1"], here) == "127.0.0.1"  # --node-ip-address 127.0.0.1
@@ -447,6 +481,28 @@ def test_a_ray_cluster_out_of_reach_stops_the_job_in_one_line_before_any_write(t
     assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert f"--address {address}: nothing answers there (Connection refused" in r.stderr
     assert not (tmp_path / "x.zarr").exists()
+
+
+def test_a_web_server_at_the_ray_address_is_refused_at_once(tmp_path):
+    """Ray's client waits some 40 s for a GCS at an address where a web server answers (the
+    dashboard's port given for the GCS's); the job says so in one line at once."""
+    web = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler)
+    threading.Thread(target=web.serve_forever, daemon=True).start()
+    try:
+        for address, wanted in [
+            (f"127.0.0.1:{web.server_port}", "the GCS (HEAD:6379"),
+            (f"ray://127.0.0.1:{web.server_port}", "Ray's client server (ray://HEAD:10001)"),
+        ]:
+            start = time.monotonic()
+            r = farm("submit", "-m", "uniform:1", *TINY, "--address", address,
+                     "-o", tmp_path / "x.zarr")  # fmt: skip
+            assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+            assert f"--address {address}: a web server answers there, not Ray" in r.stderr
+            assert f"give the address of {wanted}" in r.stderr
+            assert time.monotonic() - start < 30  # not Ray's own wait
+            assert not (tmp_path / "x.zarr").exists()
+    finally:
+        web.shutdown()
 
 
 def test_bad_material_stops_before_anything_starts(tmp_path):
