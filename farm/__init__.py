@@ -10,6 +10,7 @@
 - ``farm.pool``: the pool of actors, the commit tasks;
 - ``farm.lease``: one live driver per store;
 - ``farm.cancel``: the cancel request a running driver polls;
+- ``farm.signals``: SIGTERM unwinding a command as Ctrl-C does (no Ray);
 - ``farm.faults``: fault injection for the tests (off unless its variable is set);
 - ``farm.driver``: ``farm submit``'s loop between them: dispatch, wait, commit, resume;
 - ``farm.state`` / ``farm.status``: the job state kept with the store, ``farm status``;

@@ -10,6 +10,7 @@ from pathlib import Path
 import click
 from tqdm import tqdm
 
+from farm.signals import stop_on_sigterm, terminated
 from farm.web import server_options
 from render_jobs.errors import MaterialError, RenderError
 from render_jobs.specs import DEVICES, RenderSettings
@@ -93,6 +94,14 @@ def main() -> None:
     """
 
 
+def _stopped(kept: str) -> None:
+    """Exit as a shell does for the signal that stopped the command (128 + its number),
+    after one line: which signal, and what of the work is kept."""
+    sig = signal.SIGTERM if terminated() else signal.SIGINT
+    click.echo(f"\n{sig.name}: stopped; {kept}", err=True)
+    sys.exit(128 + sig)
+
+
 @main.command()
 @click.option(
     "--material",
@@ -142,22 +151,28 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
         spec, maps = prepare(material, seed)  # validate before anything renders
     except MaterialError as exc:
         raise click.ClickException(str(exc)) from None
-    # shown after a second: an output folder that cannot be written fails in one line first
-    bar = tqdm(total=suns, desc="rendering", unit="frame", file=sys.stderr, delay=1)
+    # made at the first report (0 frames, once the output folder took a file): an output
+    # folder that cannot be written fails in one line, without a bar
+    bar = None
+
+    def progress(done: int) -> None:
+        nonlocal bar
+        bar = bar or tqdm(total=suns, desc="rendering", unit="frame", file=sys.stderr)
+        bar.update(done - bar.n)
+
+    stop_on_sigterm()  # the temporary folder goes on SIGTERM as on Ctrl-C
     try:
-        result = render_preview(
-            spec,
-            maps,
-            out,
-            settings,
-            suns=suns,
-            seed=seed,
-            on_progress=lambda k: bar.update(k - bar.n),
-        )
+        try:
+            result = render_preview(
+                spec, maps, out, settings, suns=suns, seed=seed, on_progress=progress
+            )
+        finally:  # the bar's last line before any error's
+            if bar is not None:
+                bar.close()
     except (MaterialError, RenderError) as exc:
-        bar.close()
         raise click.ClickException(str(exc)) from None
-    bar.close()
+    except KeyboardInterrupt:
+        _stopped(f"nothing was written to {out}")
     times = [r.seconds for r in result.result.renders]
     click.echo(f"material  {result.spec.source_id}")
     total = sum(times)
@@ -289,7 +304,7 @@ def submit(out, **options):
       farm submit -m uniform:20 --samples 2 --denoise -o out/small-2spp-oidn.zarr  # a baseline
     """
     _require("farm submit", "ray")
-    from farm.driver import FarmError, terminated
+    from farm.driver import FarmError
     from farm.driver import submit as run
 
     try:
@@ -297,13 +312,7 @@ def submit(out, **options):
     except (FarmError, MaterialError) as exc:
         raise click.ClickException(str(exc)) from None
     except KeyboardInterrupt:
-        sig = signal.SIGTERM if terminated() else signal.SIGINT
-        click.echo(
-            f"\n{sig.name}: stopped; every committed shard is kept (farm status {out}), and "
-            "the same command resumes",
-            err=True,
-        )
-        sys.exit(128 + sig)
+        _stopped(f"every committed shard is kept (farm status {out}), and the same command resumes")
     _echo_summary(summary)
 
 

@@ -57,12 +57,15 @@ def render_preview(
 ) -> Preview:
     """Render validated ``maps`` under ``suns`` seeded suns into the folder ``out``. The
     temporary folder is made first, so an output folder that cannot be written fails before
-    anything renders."""
+    anything renders; ``on_progress`` gets 0 once it is made (Blender loads after it), then
+    the number of frames done after each frame."""
     sun_list = suns_for_material(seed, 0, suns)
     seeds = [derive_seed(seed, 0, k) for k in range(suns)]
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    if on_progress:
+        on_progress(0)
     try:
         with RenderProcess(settings) as worker:
             result = worker.render_material(maps, sun_list, seeds, on_progress=on_progress)

@@ -210,6 +210,9 @@ class RenderProcess:
             kind, payload = self._receive(READY_TIMEOUT_S)
         except WorkerDied as exc:
             raise WorkerDied(f"{exc} before it was ready; its error is above") from None
+        except BaseException:  # Ctrl-C or SIGTERM while Blender loads: no child left behind
+            self.close(wait_s=0)
+            raise
         if kind != "ready":
             self.close()
             raise RenderError(f"Blender worker failed to start: {payload}")
@@ -285,14 +288,14 @@ class RenderProcess:
             raise RenderError(payload)
         return payload
 
-    def close(self) -> None:
-        """Ask the child to exit; kill it if it does not within 10 s."""
+    def close(self, wait_s: float = 10) -> None:
+        """Ask the child to exit; kill it if it does not within ``wait_s``."""
         if self._conn is not None:
             with contextlib.suppress(BrokenPipeError, OSError):
                 self._conn.send(None)
             self._conn.close()
         if self._proc is not None:
-            self._proc.join(timeout=10)
+            self._proc.join(timeout=wait_s)
             if self._proc.is_alive():
                 self._proc.kill()
                 self._proc.join()
@@ -307,5 +310,6 @@ class RenderProcess:
     def __enter__(self) -> RenderProcess:
         return self.start()
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, *exc) -> None:
+        # unwinding (an error, Ctrl-C, SIGTERM): the child may be mid-frame, deaf to the ask
+        self.close(wait_s=0 if exc_type else 10)

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import click
 import numpy as np
+import psutil
 import pytest
 from PIL import Image
 
@@ -76,6 +80,7 @@ def test_farm_preview_writes_maps_renders_and_a_contact_sheet(tmp_path):
     )
     assert r.returncode == 0, r.stderr
     assert "contact_sheet.png" in r.stdout
+    assert "| 0/2 [" in r.stderr and "| 2/2 [" in r.stderr  # the bar from before Blender loads
     names = {p.name for p in out.iterdir()}
     for n in (
         "maps.exr",
@@ -126,6 +131,42 @@ def test_farm_preview_to_a_folder_it_cannot_write_fails_before_rendering(tmp_pat
     assert r.returncode == 1 and len(lines) == 1, r.stderr
     assert lines[0].startswith("Error: FileExistsError") and "file" in lines[0]
     assert "rendering" not in r.stderr  # nothing rendered first
+
+
+@pytest.mark.parametrize("after_s", [0, 4], ids=["while-blender-loads", "mid-frame"])
+def test_a_preview_stopped_by_sigterm_leaves_no_folder_and_no_blender(tmp_path, after_s):
+    """SIGTERM (``timeout``, a closed terminal's job control) unwinds as Ctrl-C does: the
+    temporary folder and the Blender child go at once (a frame here takes minutes), and the
+    exit says which signal."""
+    proc = subprocess.Popen(
+        [str(BIN / "farm"), "preview", "-m", "uniform", "-o", str(tmp_path / "out"),
+         "--resolution", "400", "--samples", "4096"],
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    blender = []
+    while not blender and time.monotonic() < deadline:  # the child has mapped bpy
+        time.sleep(0.2)
+        kids = psutil.Process(proc.pid).children(recursive=True)
+        blender = [k for k in kids if _maps_bpy(k)]
+    assert blender, "no Blender child started"
+    time.sleep(after_s)  # a start takes about 1.5 s here
+    proc.send_signal(signal.SIGTERM)
+    sent = time.monotonic()
+    err = proc.communicate(timeout=60)[1]
+    assert time.monotonic() - sent < 8  # not the 10 s a polite close gives a busy child
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    last = err.strip().splitlines()[-1]
+    assert last == f"SIGTERM: stopped; nothing was written to {tmp_path / 'out'}", err
+    assert os.listdir(tmp_path) == []  # neither the output nor the temporary folder
+    gone, alive = psutil.wait_procs(blender, timeout=10)
+    assert not alive, alive
+
+
+def _maps_bpy(proc: psutil.Process) -> bool:
+    with contextlib.suppress(psutil.Error):
+        return any("bpy" in m.path for m in proc.memory_maps())
+    return False
 
 
 def test_bad_option_values_are_refused(tmp_path):
