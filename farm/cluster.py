@@ -26,6 +26,7 @@ Each failure is one :class:`ConnectionError` line that names the address and wha
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import socket
 import sys
@@ -43,6 +44,9 @@ GREETING_TIMEOUT_S = 5.0
 #: what an HTTP/2 client sends first (RFC 9113 3.4): the preface, then a SETTINGS frame (an
 #: empty one: a 9-byte frame header of length 0, type 4, no flags, stream 0)
 HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+#: the level of Ray's own logger in the driver: its start-up lines (the dashboard's address,
+#: the cluster joined) say again what the job prints itself
+QUIET = logging.WARNING
 #: how long a job waits for a live node of its cluster on this machine: a head's GCS answers
 #: seconds before its own node has joined (5 s here, more on a busy machine), and Ray waits
 #: as long for a local node before it gives up
@@ -271,7 +275,7 @@ def connect(address: str | None, dashboard: bool = True, node: str | None = None
     address, _ = _named(address)
     if address:
         extra = {"_node_ip_address": node} if node else {}
-        ctx = ray.init(address=address, log_to_driver=False, **extra)
+        ctx = ray.init(address=address, log_to_driver=False, logging_level=QUIET, **extra)
     else:
         ctx = ray.init(  # embedded: everything on the loopback interface
             # a new local Ray, even when a cluster started with `ray start` runs here (with
@@ -280,6 +284,7 @@ def connect(address: str | None, dashboard: bool = True, node: str | None = None
             num_cpus=os.cpu_count(),
             include_dashboard=dashboard,
             log_to_driver=False,
+            logging_level=QUIET,
             _node_ip_address="127.0.0.1",
             dashboard_host="127.0.0.1",
             # Ray runs its workers at nice 15 by default; here the renders are the work

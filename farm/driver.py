@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -187,6 +188,8 @@ def _run(
     import ray
 
     cfg = job.cfg
+    address = cfg.address or os.environ.get("RAY_ADDRESS")
+    echo(f"joining the Ray cluster at {address}" if address else "starting Ray on this machine")
     job.state.dashboard = connect(cfg.address, cfg.ray_dashboard, node)
     stop_on_sigterm()
     echo(f"ray dashboard: {job.state.dashboard or 'off'}")

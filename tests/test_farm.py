@@ -116,6 +116,8 @@ def test_submit_resume_and_refusal(tmp_path):
     )  # fmt: skip
     assert r.returncode == 0, r.stderr
     assert "10 rendered" in r.stdout and "ray dashboard: http" in r.stdout
+    assert r.stdout.startswith("starting Ray on this machine\n")  # before Ray's seconds
+    assert "Started a local Ray instance" not in r.stderr  # Ray's own line: said above
     assert "Token authentication" not in r.stderr  # the farm says token, so Ray need not warn
     assert f"shards info {out}" in r.stdout
     assert_exactly_once(out, 5)
@@ -442,6 +444,8 @@ def test_a_cluster_started_by_ray_start_is_joined_at_127_0_0_1_with_its_token(tm
         r = farm("submit", "-m", "uniform:1", *TINY, "--workers", "1", "--address", address,
                  "-o", out, env=as_people)  # fmt: skip
         assert r.returncode == 0, r.stderr[-2000:]
+        assert f"joining the Ray cluster at {address}\n" in r.stdout
+        assert "Connecting to existing Ray cluster" not in r.stderr  # Ray's own line
         assert_exactly_once(out, 1)
         for env, said in [
             ({"RAY_AUTH_TOKEN": "wrong"}, "token; give it the cluster's token"),
