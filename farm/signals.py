@@ -19,8 +19,8 @@ def _on_sigterm(signum, frame) -> None:
 
 
 def stop_on_sigterm() -> None:
-    """Make SIGTERM (a deleted pod, ``timeout``, ``docker stop``) unwind the job as Ctrl-C
-    does, with :func:`terminated` true after. Called when a job starts and again after
+    """Make SIGTERM unwind this process's command as Ctrl-C does (a ``KeyboardInterrupt``),
+    with :func:`terminated` true after. A farm job calls it when it starts and again after
     ``ray.init``: Ray's core worker installs its own SIGTERM handler there, which ends the
     process at once and leaves the job state saying "running"."""
     if threading.current_thread() is threading.main_thread():
@@ -48,5 +48,5 @@ def sigterm_held():
 
 
 def terminated() -> bool:
-    """Whether the ``KeyboardInterrupt`` that stopped a job came from SIGTERM."""
+    """Whether the ``KeyboardInterrupt`` that stopped a command came from SIGTERM."""
     return _TERMINATED.is_set()

@@ -64,9 +64,9 @@ def render_preview(
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    if on_progress:
-        on_progress(0)
     try:
+        if on_progress:
+            on_progress(0)
         with RenderProcess(settings) as worker:
             result = worker.render_material(maps, sun_list, seeds, on_progress=on_progress)
         _write(tmp, spec, settings, result)
