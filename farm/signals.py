@@ -1,6 +1,10 @@
 """SIGTERM (a deleted pod, ``timeout``, ``docker stop``) unwinding a command as Ctrl-C does:
 its ``finally`` blocks run, so a job saves its state and a preview removes its temporary
-folder. No Ray here: ``farm preview`` uses it without the farm extra."""
+folder. No Ray here: ``farm preview`` uses it without the farm extra.
+
+A command opts in (``farm submit``, ``farm preview``); the CLIs do not turn it on for every
+command, because torchrun's ranks (``trainer train``) must die at the agent's SIGTERM even
+when blocked in a collective, where a Python handler would run only after it returns."""
 
 from __future__ import annotations
 
