@@ -107,7 +107,7 @@ def endpoint(address: str) -> tuple[str, int] | None:
     return host.strip("[]"), int(port)
 
 
-def _named(address: str | None) -> tuple[str | None, str]:
+def address_in_force(address: str | None) -> tuple[str | None, str]:
     """The address in force and what set it, as an error names it."""
     named = address or os.environ.get("RAY_ADDRESS") or None
     return named, "--address" if address else "RAY_ADDRESS"
@@ -116,7 +116,7 @@ def _named(address: str | None) -> tuple[str | None, str]:
 def check_reachable(address: str | None, timeout_s: float = REACH_TIMEOUT_S) -> None:
     """Raise ``ConnectionError`` naming the address when nothing there accepts a connection
     within ``timeout_s``. ``None``: ``RAY_ADDRESS``, or the embedded Ray (nothing to check)."""
-    named, source = _named(address)
+    named, source = address_in_force(address)
     target = endpoint(named) if named else None
     if target is None:
         return
@@ -224,7 +224,7 @@ def check_cluster(address: str | None) -> str | None:
     """The checks of the module docstring, before anything is written; returns the node
     address the driver joins as (``None``: Ray's choice). ``ConnectionError`` on failure."""
     check_reachable(address)
-    named, source = _named(address)
+    named, source = address_in_force(address)
     target = endpoint(named) if named else None
     check_speaks_grpc(named, source, target)
     if named is None or target is None or "://" in named:  # embedded, auto, ray:// client
@@ -272,7 +272,7 @@ def connect(address: str | None, dashboard: bool = True, node: str | None = None
     ``dashboard`` is false). Returns the dashboard URL."""
     import ray
 
-    address, _ = _named(address)
+    address, _ = address_in_force(address)
     if address:
         extra = {"_node_ip_address": node} if node else {}
         ctx = ray.init(address=address, log_to_driver=False, logging_level=QUIET, **extra)

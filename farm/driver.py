@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -37,7 +36,7 @@ from farm import sizing
 from farm.actor import RenderWorker
 from farm.assembly import ShardAssembly
 from farm.cancel import cancel_requested, clear_cancel
-from farm.cluster import check_cluster, connect, ray_environment
+from farm.cluster import address_in_force, check_cluster, connect, ray_environment
 from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.pool import WorkerPool
@@ -188,7 +187,7 @@ def _run(
     import ray
 
     cfg = job.cfg
-    address = cfg.address or os.environ.get("RAY_ADDRESS")
+    address, _ = address_in_force(cfg.address)
     echo(f"joining the Ray cluster at {address}" if address else "starting Ray on this machine")
     job.state.dashboard = connect(cfg.address, cfg.ray_dashboard, node)
     stop_on_sigterm()
