@@ -3,7 +3,7 @@
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
         [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--edge-ring]
         [--zero-edge-ring] [--conv-relu] [--light-sums] [--fold-ring]
-        [--streams] [--resolution 400] [--only TEXT] [--rounds K]
+        [--streams] [--resolution 400] [--only TEXT]... [--rounds K]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
 rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
@@ -222,9 +222,11 @@ def parser() -> argparse.ArgumentParser:
     )
     ap.add_argument(
         "--only",
-        default="",
+        action="append",
+        default=[],
         metavar="TEXT",
-        help="run only the rows whose name contains TEXT (eager fp32 stays the reference)",
+        help="run only the rows whose name contains TEXT; given again, the rows that contain "
+        "any of them (eager fp32 stays the reference)",
     )
     return ap
 
@@ -333,7 +335,7 @@ class Bench:
         return (out.float() - self.reference).abs().max().item()
 
     def wanted(self, name: str) -> bool:
-        return self.args.only in name
+        return not self.args.only or any(text in name for text in self.args.only)
 
     def eager_row(self, name, net, bf16, fmt) -> None:
         if not self.wanted(name):

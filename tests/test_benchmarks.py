@@ -88,6 +88,29 @@ def test_the_profiles_flags_are_keywords_that_fast_network_takes():
                     "conv_relu": True, "light_sums": True, "fold_ring": True}  # fmt: skip
 
 
+def test_only_given_again_runs_the_rows_that_contain_any_of_its_texts():
+    """``benchmarks.infer --only``: no text runs every row; one or more, the rows whose name
+    contains any (a device call picks the rows it pays for)."""
+    from types import SimpleNamespace
+
+    from benchmarks.infer import Bench, parser
+
+    def wanted(*argv):
+        bench = SimpleNamespace(args=parser().parse_args(list(argv)))
+        names = ["torch.compile + CUDA graph", "subpixel compiled + graph",
+                 "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums"]  # fmt: skip
+        return [name for name in names if Bench.wanted(bench, name)]
+
+    assert len(wanted()) == 3
+    assert wanted("--only", "conv+ReLU") == ["subpixel compiled, zero-padded edge ring, "
+                                             "conv+ReLU, light sums"]  # fmt: skip
+    assert wanted("--only", "torch.compile", "--only", "conv+ReLU") == [
+        "torch.compile + CUDA graph",
+        "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums",
+    ]
+    assert wanted("--only", "streams") == []
+
+
 def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes():
     """``benchmarks.infer.graph_rows``: the CUDA rows each flag adds, in order, and keyword
     arguments that ``trainer.infer.fast_network`` binds (a mistake here would cost a device
