@@ -8,17 +8,16 @@
 #
 #     bash benchmarks/gpu.sh infer [ARGS]   # benchmarks.infer at batch 1 and 128, compiled rows
 #     bash benchmarks/gpu.sh train          # benchmarks.train, L1 (2,000 samples), then L1 + VGG16
-#     bash benchmarks/gpu.sh viewer         # benchmarks.viewer --device cuda (carry benchmarks/.cache
+#     bash benchmarks/gpu.sh viewer [ARGS]  # benchmarks.viewer --device cuda (carry benchmarks/.cache
 #                                           # too: the screen UV layouts `make bench-viewer` renders)
 #
-# ARGS go to benchmarks.infer after its defaults (e.g. --only "subpixel compiled", --gemm-at 50).
+# ARGS go to benchmarks.infer after its defaults (e.g. --only "subpixel compiled", --gemm-at 50),
+# or to benchmarks.viewer (e.g. --runtimes torch,graph: fp32, then the CUDA graph).
 # Output is printed and appended to ${OUT:-out}/gpu-bench.txt. The compiled rows leave the
-# convolutions to cuDNN (CONV_BACKENDS=ATEN): with Triton's convolution templates autotuned too
-# (CONV_BACKENDS=ATEN,TRITON) the infer part needs more than the device's 10-minute call.
-# GEMMs (the light MLP, --ring-gemm's strips, --gemm-at's convolutions) are autotuned over
-# cuBLAS and Triton's templates (Inductor's default) unless GEMM_BACKENDS says otherwise:
-# GEMM_BACKENDS=ATEN (cuBLAS alone) for rows with --ring-gemm, whose strips' autotuning
-# alone outlasts a device call.
+# convolutions to cuDNN and the GEMMs to cuBLAS, as the fast path does by default
+# (trainer.infer.TUNED_BACKENDS): with Triton's templates autotuned too (CONV_BACKENDS=ATEN,TRITON,
+# or GEMM_BACKENDS=ATEN,TRITON with --ring-gemm) the infer part outlasts the device's 10-minute
+# call.
 #
 # Autotuning across calls: Inductor's and Triton's caches live in .gpucache/ (ignored by git).
 # Inductor writes each operation's autotuning timings there as soon as they are measured, so a
@@ -34,7 +33,7 @@ store=out/bench-400.zarr
 part=${1:-}
 [[ $part == infer || $part == train || $part == viewer ]] || { echo "usage: bash benchmarks/gpu.sh infer|train|viewer [ARGS]" >&2; exit 2; }
 shift
-[[ $part == infer || $# -eq 0 ]] || { echo "gpu.sh: $part takes no arguments" >&2; exit 2; }
+[[ $part != train || $# -eq 0 ]] || { echo "gpu.sh: train takes no arguments" >&2; exit 2; }
 if [[ $part == viewer ]]; then
     compgen -G "benchmarks/.cache/screen_uv-*.npz" >/dev/null || { echo "gpu.sh: benchmarks/.cache has no screen UV layouts (make bench-viewer, then carry benchmarks/.cache)" >&2; exit 2; }
 else
@@ -58,7 +57,7 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
     "$py" -c 'import sys, torch; print("python", sys.version.split()[0], "torch", torch.__version__)'
     case $part in
         infer) TORCHINDUCTOR_MAX_AUTOTUNE_CONV_BACKENDS=${CONV_BACKENDS:-ATEN} \
-                   TORCHINDUCTOR_MAX_AUTOTUNE_GEMM_BACKENDS=${GEMM_BACKENDS:-ATEN,TRITON,CPP} \
+                   TORCHINDUCTOR_MAX_AUTOTUNE_GEMM_BACKENDS=${GEMM_BACKENDS:-ATEN} \
                    "${budget[@]}" "$py" -m benchmarks.infer --store "$store" --batch 128 \
                    --iters 30 --compile "$@" || echo "benchmarks.infer ended with status $?" ;;
         # L1 on 2,000 samples (63 steps an epoch: the epoch-end stall, if any, shows), then
@@ -66,7 +65,7 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
         train) "$py" "${train[@]}" --replicate 50 --steps 240 --warmup 40 --sim-epochs 4
                "$py" "${train[@]}" --replicate 200 --loss l1+vgg --steps 120 --warmup 20 \
                    --sim-epochs 0 ;;
-        viewer) "$py" -m benchmarks.viewer --device cuda ;;
+        viewer) "$py" -m benchmarks.viewer --device cuda "$@" ;;
     esac
 } 2>&1 | tee -a "$log"
 [[ $part == infer ]] || exit 0

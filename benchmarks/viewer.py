@@ -1,7 +1,7 @@
 """Viewer benchmark: the time from an edit to the new image's bytes, in three parts.
 
     .venv/bin/python -m benchmarks.viewer [--resolutions 128,256,400] [--frames 12]
-        [--texture 1024] [--device auto] [--runtimes torch,onnx] [--library N]
+        [--texture 1024] [--device auto] [--runtimes torch,graph,onnx] [--library N]
 
 For each resolution: the screen UV layout rendered by Blender at the farm's sub-sampling
 (``render_jobs.screen_uv.default_supersample``; cached in ``benchmarks/.cache``), the paper's
@@ -19,7 +19,8 @@ kind of value edit (:data:`EDIT_KINDS`): one map's slider at a time, or every ma
 
 ``--runtimes torch,onnx`` also times the same network exported (``trainer export``) and run
 by ONNX Runtime on the CPU, as ``trainer viewer --checkpoint ball.onnx`` runs it
-(``trainer.onnx_renderer``), row after row in one run.
+(``trainer.onnx_renderer``), row after row in one run; ``--runtimes torch,graph`` on CUDA,
+the frames through the network's CUDA graph, as ``trainer viewer --cuda-graph`` runs them.
 
 ``--library N`` measures a gallery of large materials instead, at the first resolution: N
 procedural ``--texture``² materials in a ``--materials`` folder, picked one after the other.
@@ -45,7 +46,7 @@ from render_jobs.screen_uv import ScreenUV, default_supersample
 from trainer.infer import Renderer, pick_device
 from trainer.mapping import ScreenMapper
 from trainer.model import ModelConfig, NeuralRenderer
-from trainer.targets import Tonemap
+from trainer.targets import Tonemap, light_vector, model_inputs
 from trainer.viewer.engine import Engine, Light
 from trainer.viewer.materials import Edits, Library
 
@@ -93,10 +94,13 @@ def library(resolution: int, count: int, texture: int, device: torch.device, tmp
 
 def renderer_for(resolution: int, device: torch.device, runtime: str, tmp: Path):
     """The paper's network at ``resolution`` with the same fresh weights every call: torch's
-    :class:`Renderer` on ``device``, or (``onnx``) exported to ``tmp`` and run by ONNX Runtime."""
+    :class:`Renderer` on ``device`` (``graph``: its frames through the CUDA graph, as
+    ``trainer viewer --cuda-graph`` runs it), or (``onnx``) exported to ``tmp`` and run by
+    ONNX Runtime."""
     torch.manual_seed(0)
-    renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
-    if runtime == "torch":
+    model = NeuralRenderer(ModelConfig(resolution))
+    renderer = Renderer(model, Tonemap(), device, graph=runtime == "graph")
+    if runtime in ("torch", "graph"):
         return renderer
     from trainer.export import export
     from trainer.onnx_renderer import OnnxRenderer
@@ -156,7 +160,9 @@ def measure(
         kinds[kind] = statistics.median(ms)
     parts = [statistics.median(x) for x in zip(*edit, strict=True)]
     retile = statistics.median(tiling)
+    maps, _, _ = engine.maps(mid, Edits(roughness_scale=0.4))
     return {
+        "graph_diff": graph_diff(renderer, maps) if runtime == "graph" else None,
         "kinds": kinds,
         "mapping": parts[0],
         "network": parts[1],
@@ -169,6 +175,17 @@ def measure(
         "supersample": suv.supersample,
         "hits": int(suv.hit.sum()),
     }
+
+
+def graph_diff(renderer: Renderer, maps: torch.Tensor) -> float:
+    """The largest difference of the CUDA graph's image of ``maps`` from the fp32 network's,
+    in display units."""
+    light = torch.from_numpy(light_vector((0.3, 0.2, 0.9), 3.0))[None]
+    graphed = renderer.render_batch(maps, light)
+    with torch.inference_mode():
+        x = model_inputs(maps, renderer.config.roughness_channels)
+        fp32 = renderer.net(x, light.to(renderer.device)).float()
+    return (graphed - fp32).abs().max().item()
 
 
 def print_library(resolution: int, args, device: torch.device) -> None:
@@ -189,7 +206,9 @@ def main() -> None:
     ap.add_argument("--texture", type=int, default=1024)
     ap.add_argument("--device", default="auto", choices=["auto", "cuda", "cpu"])
     ap.add_argument("--runtimes", default="torch",
-                    help="torch, onnx or both (torch,onnx): what runs the network")  # fmt: skip
+                    help="what runs the network, one or more of torch, graph (torch's CUDA "
+                    "graph, as trainer viewer --cuda-graph) and onnx: torch,onnx on the CPU, "
+                    "torch,graph on CUDA")  # fmt: skip
     ap.add_argument("--library", type=int, default=0, metavar="N",
                     help="time a gallery of N --texture² materials (see above)")  # fmt: skip
     args = ap.parse_args()
@@ -198,11 +217,13 @@ def main() -> None:
     if args.library < 0:
         ap.error("--library must be 0 or more")
     runtimes = args.runtimes.split(",")
-    if not set(runtimes) <= {"torch", "onnx"}:
-        ap.error(f"--runtimes {args.runtimes!r}: torch, onnx or torch,onnx")
+    if not set(runtimes) <= {"torch", "graph", "onnx"}:
+        ap.error(f"--runtimes {args.runtimes!r}: one or more of torch, graph, onnx")
     device = pick_device(args.device)
     if "onnx" in runtimes and device.type != "cpu":
         ap.error("--runtimes onnx runs on the CPU: add --device cpu")
+    if "graph" in runtimes and device.type != "cuda":
+        ap.error("--runtimes graph runs on CUDA: add --device cuda")
     if args.library:
         return print_library(int(args.resolutions.split(",")[0]), args, device)
     print(f"device: {device_name(device)}; torch threads {torch.get_num_threads()}; "
@@ -223,11 +244,14 @@ def main() -> None:
             print(
                 f"| {r}² | {runtime} | {m['supersample']}² ({m['hits']:,} hits) | "
                 f"{m['mapping']:.1f} | "
-                f"{m['network']:.1f} | {m['encoding']:.2f} | {m['frame']:.1f} | "
+                f"{m['network']:.2f} | {m['encoding']:.2f} | {m['frame']:.1f} | "
                 f"{100 * m['outside']:.1f} % | {m['tiling']:.1f} | "
                 f"{100 * m['tiling_outside']:.1f} % | {m['drag']:.1f} |",
                 flush=True,
             )
+    for r, _, m in by_kind:
+        if m["graph_diff"] is not None:
+            print(f"{r}², CUDA graph: max |diff| from fp32 {m['graph_diff']:.4f}")
     print_kinds(by_kind)
 
 

@@ -357,9 +357,9 @@ def test_bf16_fast_networks_stay_close_to_fp32():
     """The networks the CUDA benchmark rows capture (trainer.infer.fast_network: BatchNorm
     folded, bf16 weights, channels_last; plain, sub-pixel with its channels aligned or not,
     with GEMMs, with some or all levels plain, with the rings as GEMMs two deep, the fastest
-    measured forms among them), run here on CPU: bf16 images stay within 0.02 of fp32, the
+    measured form among them), run here on CPU: bf16 images stay within 0.02 of fp32, the
     rewrite no further off than the original."""
-    from trainer.infer import fast_network, fastest_form
+    from trainer.infer import FASTEST, fast_network
 
     torch.manual_seed(0)
     model = NeuralRenderer(ModelConfig(resolution=64)).eval()
@@ -405,10 +405,9 @@ def test_bf16_fast_networks_stay_close_to_fp32():
             name: (fast_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
             for name, kw in nets.items()
         }
-    # the fastest forms are among those checked here (uncompiled)
-    one, many = fastest_form(1), fastest_form(128)
-    assert nets["zero-padded, conv+ReLU, light sums, one-product ring"] | {"compile": True} == one
-    assert nets["zero-padded, conv+ReLU, light sums"] | {"compile": True} == many
+    # the fastest form is among those checked here (uncompiled)
+    fastest = nets["zero-padded, conv+ReLU, light sums, one-product ring"]
+    assert fastest | {"compile": True} == FASTEST
     plain = errors.pop("plain")
     assert 0 < plain < 0.02, errors
     for name, err in errors.items():
@@ -472,16 +471,24 @@ def test_conv_relu_is_one_operator_that_compiles_and_gives_convolution_then_relu
 
 
 def test_level_fusion_is_asked_for_edge_rings_on_the_torch_versions_checked():
-    """trainer.infer.compile_options: max-autotune always; Inductor's raised inlining limits
-    only for edge rings, and only on a torch whose Inductor compiles that plan (2.11)."""
-    from trainer.infer import LEVEL_FUSION, compile_options
+    """trainer.infer.compile_options: max-autotune always, over cuDNN and cuBLAS alone unless
+    the environment names Inductor's backends; Inductor's raised inlining limits only for
+    edge rings, and only on a torch whose Inductor compiles that plan (2.11)."""
+    from trainer.infer import LEVEL_FUSION, TUNED_BACKENDS, compile_options
 
-    base = {"max_autotune": True, "coordinate_descent_tuning": True}
-    assert compile_options(False, "2.11.0+cu130") == base
-    assert compile_options(True, "2.11.0+cu130") == base | LEVEL_FUSION
-    assert compile_options(True, "2.11.0+cu130", wide_ring=True) == base  # zero-padded: none
-    assert compile_options(True, "2.13.0+cpu") == base
-    assert compile_options(True, "2.1.0") == base  # not 2.11
+    base = {"max_autotune": True, "coordinate_descent_tuning": True} | TUNED_BACKENDS
+    assert TUNED_BACKENDS == {"max_autotune_conv_backends": "ATEN",
+                              "max_autotune_gemm_backends": "ATEN"}  # fmt: skip
+    none: dict = {}
+    assert compile_options(False, "2.11.0+cu130", environ=none) == base
+    assert compile_options(True, "2.11.0+cu130", environ=none) == base | LEVEL_FUSION
+    zero_padded = compile_options(True, "2.11.0+cu130", wide_ring=True, environ=none)
+    assert zero_padded == base  # zero-padded: no raised limits
+    assert compile_options(True, "2.13.0+cpu", environ=none) == base
+    assert compile_options(True, "2.1.0", environ=none) == base  # not 2.11
+    env = {"TORCHINDUCTOR_MAX_AUTOTUNE_GEMM_BACKENDS": "ATEN,TRITON"}
+    assert "max_autotune_gemm_backends" not in compile_options(environ=env)
+    assert compile_options(environ=env)["max_autotune_conv_backends"] == "ATEN"
 
 
 @pytest.mark.parametrize(
@@ -522,6 +529,32 @@ def test_cuda_graph_path_refuses_a_cpu_model():
         GraphedRenderer(model, 1)
     with pytest.raises(RuntimeError, match="CUDA graphs need the model on a CUDA device"):
         GraphedRenderer.fastest(model, 1)
+
+
+def test_a_renderer_refuses_a_cuda_graph_it_cannot_capture(tmp_path):
+    """``Renderer(graph=True)`` (``trainer viewer --cuda-graph``): the paper's network on a
+    CUDA device only, and never an exported model; each refusal names why."""
+    from trainer.infer import Renderer, check_graphable, load_renderer
+    from trainer.targets import Tonemap
+    from trainer.zf import ZsolnaiFeherRenderer
+
+    model = NeuralRenderer(ModelConfig(resolution=32))
+    with pytest.raises(ValueError, match="a CUDA graph needs a CUDA device, not cpu"):
+        Renderer(model, Tonemap(), torch.device("cpu"), graph=True)
+    zf = ZsolnaiFeherRenderer(ModelConfig(resolution=32, arch="zf"))
+    with pytest.raises(ValueError, match="paper's network, not from ZsolnaiFeherRenderer"):
+        check_graphable(zf, torch.device("cuda"))
+    with pytest.raises(ValueError, match="ball.onnx: a CUDA graph is captured from a torch"):
+        load_renderer(tmp_path / "ball.onnx", graph=True)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal where CUDA is absent")
+def test_cuda_is_refused_in_one_line_where_torch_sees_none():
+    from trainer.devices import NoCuda, pick_device
+
+    assert pick_device("auto").type == "cpu" and pick_device("cpu").type == "cpu"
+    with pytest.raises(NoCuda, match=r"--device cuda: this torch \(.+\) sees no CUDA device"):
+        pick_device("cuda")
 
 
 @pytest.mark.parametrize("resolution", [32, 288])

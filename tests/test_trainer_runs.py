@@ -780,6 +780,30 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
         assert line.startswith(f"Error: {tmp_path / name}: {reason}") and "weights_only" not in line
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal where CUDA is absent")
+def test_cuda_asked_for_where_torch_sees_none_is_one_line(tiny_store, trained, tmp_path):
+    """``--device cuda`` on a machine without CUDA, and ``trainer viewer --cuda-graph`` off
+    CUDA, end in one line before any work: nothing trained, written or served."""
+    nocuda = f"Error: --device cuda: this torch ({torch.__version__}) sees no CUDA device"
+    run = tmp_path / "run"
+    for cmd in ("train", "launch"):
+        argv_ = [cmd, "--loss", "l1", "--store", tiny_store.url, "--out", str(run)]
+        assert one_line_error([*argv_, "--device", "cuda"]) == nocuda
+    assert not run.exists()
+    png = tmp_path / "ball.png"
+    render = ["render", "--checkpoint", str(trained), "--store", tiny_store.url, "--sample", "0",
+              "-o", str(png)]  # fmt: skip
+    for args in (["eval", "--checkpoint", str(trained)], render,
+                 ["viewer", "--checkpoint", str(trained), "--store", tiny_store.url,
+                  "--cuda-graph"]):  # fmt: skip
+        assert one_line_error([*args, "--device", "cuda"]) == nocuda
+    assert not png.exists()
+    viewer = ["viewer", "--checkpoint", str(trained), "--cuda-graph"]
+    assert one_line_error(viewer) == (
+        "Error: --cuda-graph needs a CUDA device, and the network would run on cpu"
+    )
+
+
 def test_existing_run_needs_resume_and_eval_needs_a_holdout(tiny_store, tmp_path):
     out = tmp_path / "r"
     train(config(tiny_store, out, max_steps=1, holdout_fraction=0.0))

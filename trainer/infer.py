@@ -9,21 +9,17 @@ image is in the checkpoint's tonemapped display space (``trainer.targets.Tonemap
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import torch
 
 from trainer import checkpoint
+from trainer.devices import pick_device
 from trainer.fastnet import SubpixelRenderer
 from trainer.model import ModelConfig, NeuralRenderer, build_model, fold_batchnorm
 from trainer.streamnet import StreamedRenderer
 from trainer.targets import Tonemap, light_vector, model_inputs
-
-
-def pick_device(name: str = "auto") -> torch.device:
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    return torch.device(name)
-
 
 #: the smallest resolution at which :class:`Renderer` runs the sub-pixel rewrite on CPU; below
 #: it the folded original in channels_last is the faster (on a 2-core CPU, batch 1: the
@@ -87,11 +83,14 @@ class MapsRenderer:
         return out[0] if single else out
 
 
-def load_renderer(path, device: str = "auto", weights: str = "auto") -> MapsRenderer:
+def load_renderer(
+    path, device: str = "auto", weights: str = "auto", graph: bool = False
+) -> MapsRenderer:
     """The renderer of ``path``: a checkpoint or a run folder (:class:`Renderer`, torch on
-    ``device``, with the checkpoint's ``weights``: :func:`trainer.checkpoint.weights`), or a
-    model ``trainer export`` wrote (``.onnx``: :class:`trainer.onnx_renderer.OnnxRenderer`,
-    ONNX Runtime on the CPU, with the weights it was exported with)."""
+    ``device``, with the checkpoint's ``weights``: :func:`trainer.checkpoint.weights`; with
+    ``graph``, single frames through its CUDA graph), or a model ``trainer export`` wrote
+    (``.onnx``: :class:`trainer.onnx_renderer.OnnxRenderer`, ONNX Runtime on the CPU, with
+    the weights it was exported with)."""
     if str(path).lower().endswith(".onnx"):
         from trainer.onnx_renderer import OnnxRenderer
 
@@ -100,27 +99,45 @@ def load_renderer(path, device: str = "auto", weights: str = "auto") -> MapsRend
                 f"{path}: an exported model holds the one set of weights it was exported "
                 "with (trainer export --weights chooses them)"
             )
+        if graph:
+            raise ValueError(f"{path}: a CUDA graph is captured from a torch checkpoint, not "
+                             "from an exported model")  # fmt: skip
         return OnnxRenderer.load(path, device)
-    return Renderer.from_checkpoint(path, device, weights)
+    return Renderer.from_checkpoint(path, device, weights, graph)
 
 
 class Renderer(MapsRenderer):
     """A trained model in eval mode, with the tonemap it was trained against.
 
     It renders in fp32 through :func:`inference_network`: the same images as ``model`` to
-    about 1e-7."""
+    about 1e-7. With ``graph`` (CUDA, the paper's network), a single frame renders through
+    :meth:`GraphedRenderer.fastest` instead: bf16, within the bound the tests hold the fast
+    forms to (0.0025 of fp32 in display units on the benchmark's inputs), about a seventh of
+    fp32's time on an H100 at 400², after a compile of 20-40 s (``docs/benchmarks.md``);
+    batches still run in fp32. That is the viewer's choice (``trainer viewer
+    --cuda-graph``), where one frame follows another; eval and render keep fp32."""
 
-    def __init__(self, model: NeuralRenderer, tonemap: Tonemap, device: torch.device):
+    def __init__(
+        self, model: NeuralRenderer, tonemap: Tonemap, device: torch.device, graph: bool = False
+    ):
         self.model = model.to(device).eval()
         self.net = inference_network(self.model, device)
         self.fmt = torch.channels_last if device.type == "cpu" else torch.contiguous_format
         self.tonemap = tonemap
         self.device = device
+        self.graphed = None
+        if graph:
+            check_graphable(self.model, device)
+            self.graphed = GraphedRenderer.fastest(self.model, 1)
+            self.runtime = "torch, CUDA graph (bf16)"
 
     @classmethod
-    def from_checkpoint(cls, path, device: str = "auto", weights: str = "auto") -> Renderer:
+    def from_checkpoint(
+        cls, path, device: str = "auto", weights: str = "auto", graph: bool = False
+    ) -> Renderer:
         """The checkpoint (or run folder's latest) at ``path`` with its ``weights``
-        (:func:`trainer.checkpoint.weights`: by default the run's average when it kept one)."""
+        (:func:`trainer.checkpoint.weights`: by default the run's average when it kept one);
+        ``graph``: see the class."""
         state = checkpoint.load(path)
         model = build_model(ModelConfig(**state["model_config"]))
         try:
@@ -128,7 +145,7 @@ class Renderer(MapsRenderer):
         except checkpoint.CheckpointError as exc:
             raise checkpoint.CheckpointError(f"{path}: {exc}") from None
         model.load_state_dict(checkpoint.weights(state, which))
-        r = cls(model, Tonemap.from_dict(state["tonemap"]), pick_device(device))
+        r = cls(model, Tonemap.from_dict(state["tonemap"]), pick_device(device), graph)
         r.state, r.weights = state, which
         return r
 
@@ -162,7 +179,19 @@ class Renderer(MapsRenderer):
         x = model_inputs(maps.to(self.device), self.config.roughness_channels)
         light = light.to(self.device, torch.float32)
         self.model.check_inputs(x, light)
+        if self.graphed is not None and len(x) == 1:
+            return self.graphed(x, light).float()  # a copy: the graph's output is overwritten
         return self.net(x.contiguous(memory_format=self.fmt), light).float()
+
+
+def check_graphable(model: torch.nn.Module, device: torch.device) -> None:
+    """Raise ``ValueError`` unless :class:`GraphedRenderer` can capture ``model`` on
+    ``device``: the paper's network (:class:`NeuralRenderer`) on a CUDA device."""
+    if device.type != "cuda":
+        raise ValueError(f"a CUDA graph needs a CUDA device, not {device.type} (--device cuda)")
+    if not isinstance(model, NeuralRenderer):
+        raise ValueError(f"a CUDA graph is captured from the paper's network, not from "
+                         f"{type(model).__name__}")  # fmt: skip
 
 
 class NoScreenUV(ValueError):
@@ -270,15 +299,31 @@ LEVEL_FUSION = {
 LEVEL_FUSION_TORCH = ("2.11.",)
 
 
+#: what Inductor's autotuning weighs for the fast path: cuDNN's convolutions and cuBLAS's
+#: GEMMs alone, as the rows of ``docs/benchmarks.md`` since the aligned channels were measured
+#: (``benchmarks/gpu.sh``'s default). With Triton's templates too (Inductor's own default) a
+#: first compile takes minutes: over the device's 10-minute call for the benchmark's rows
+TUNED_BACKENDS = {"max_autotune_conv_backends": "ATEN", "max_autotune_gemm_backends": "ATEN"}
+
+
 def compile_options(
-    edge_ring: bool = False, version: str = torch.__version__, *, wide_ring: bool = False
+    edge_ring: bool = False,
+    version: str = torch.__version__,
+    *,
+    wide_ring: bool = False,
+    environ=os.environ,
 ) -> dict:
-    """The Inductor options :func:`fast_network` compiles with: ``max-autotune-no-cudagraphs``
-    and, for edge rings on replicate-padded phases (``edge_ring`` without ``wide_ring``) on a
-    torch ``version`` of :data:`LEVEL_FUSION_TORCH`, :data:`LEVEL_FUSION`."""
+    """The Inductor options :func:`fast_network` compiles with: ``max-autotune-no-cudagraphs``,
+    :data:`TUNED_BACKENDS` but where ``TORCHINDUCTOR_MAX_AUTOTUNE_CONV_BACKENDS`` or ``_GEMM_``
+    is set in ``environ`` (then Inductor reads that), and, for edge rings on replicate-padded
+    phases (``edge_ring`` without ``wide_ring``) on a torch ``version`` of
+    :data:`LEVEL_FUSION_TORCH`, :data:`LEVEL_FUSION`."""
     from torch._inductor import list_mode_options
 
     options = list_mode_options("max-autotune-no-cudagraphs")
+    for key, value in TUNED_BACKENDS.items():
+        if f"TORCHINDUCTOR_{key.upper()}" not in environ:
+            options[key] = value
     if edge_ring and not wide_ring and version.startswith(LEVEL_FUSION_TORCH):
         options |= LEVEL_FUSION
     return options
@@ -295,19 +340,12 @@ EDGE_RELU = {
     "wide_ring": True,
     "conv_relu": True,
 }
-#: the fastest form measured at batch 1: :data:`EDGE_RELU` with the light encoder as sums
-#: and each ring one product, 0.285 ms a frame on an H200 (0.856x :data:`EDGE_RELU`'s,
-#: rows timed in turn)
-FASTEST_ONE = EDGE_RELU | {"light_sums": True, "fold_ring": True}
-#: the fastest form measured batched: :data:`EDGE_RELU` with the light encoder as sums,
-#: 12,060 frames/s at batch 128 on an H200, as many as :data:`EDGE_RELU` in the same run
-#: (the ring in one product is not measured batched yet)
-FASTEST_MANY = EDGE_RELU | {"light_sums": True}
-
-
-def fastest_form(batch: int) -> dict:
-    """:func:`fast_network`'s keywords for the fastest form measured at ``batch``."""
-    return FASTEST_ONE if batch == 1 else FASTEST_MANY
+#: the fastest form measured: :data:`EDGE_RELU` with the light encoder as sums and each ring
+#: one product. On an H100 at 400², rows timed in turn: 0.280-0.291 ms a frame at batch 1
+#: (0.74-0.76x the compiled original's, 0.87-0.88x :data:`EDGE_RELU`'s) and 10,921-11,189
+#: frames/s at batch 128 (2.2x the original's; :data:`EDGE_RELU` and the light sums alone
+#: within 1 % of it); ``docs/benchmarks.md``
+FASTEST = EDGE_RELU | {"light_sums": True, "fold_ring": True}
 
 
 class GraphedRenderer:
@@ -320,13 +358,12 @@ class GraphedRenderer:
     by ``benchmarks.infer`` on an H100 and an H200, not exercised by the CPU test suite.
 
     ``fast`` are :func:`fast_network`'s keywords; :meth:`fastest` captures the fastest form
-    measured at the batch size (:func:`fastest_form`)."""
+    measured (:data:`FASTEST`)."""
 
     @classmethod
     def fastest(cls, model: NeuralRenderer, batch: int) -> GraphedRenderer:
-        """The network in its fastest form measured at ``batch`` (:func:`fastest_form`),
-        captured at ``batch``."""
-        return cls(model, batch, **fastest_form(batch))
+        """The network in its fastest form measured (:data:`FASTEST`), captured at ``batch``."""
+        return cls(model, batch, **FASTEST)
 
     def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3, **fast):
         if not torch.cuda.is_available() or next(model.parameters()).device.type != "cuda":

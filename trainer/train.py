@@ -42,6 +42,7 @@ from storage.schema import untrainable
 from trainer import checkpoint, faults, finetune, shm
 from trainer.config import TrainConfig, absolute_store
 from trainer.data import Catalog, ShardStream, loader, steps_left
+from trainer.devices import NoCuda
 from trainer.ema import WeightAverage
 from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
@@ -76,6 +77,7 @@ def train(cfg: TrainConfig) -> dict:
     rank = int(os.environ.get("RANK", 0))
     world = int(os.environ.get("WORLD_SIZE", 1))
     local_rank = int(os.environ.get("LOCAL_RANK", 0))
+    _check_device(cfg)
     use_cuda = cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available())
     if use_cuda:
         torch.cuda.set_device(local_rank)
@@ -170,7 +172,9 @@ def preflight(cfg: TrainConfig, ranks: int = 1) -> None:
     the stores open and have committed samples at a usable resolution, the run folder can be
     used (or resumed), the VGG weights load, and the data loaders of the ``ranks`` ranks on
     this node fit in its shared memory (:mod:`trainer.shm`). Raises as :func:`train` would,
-    the inputs named on the command line (run folder, stores) before the weights."""
+    the inputs named on the command line (run folder, stores) before the weights; and
+    ``--device cuda`` where torch sees no CUDA device."""
+    _check_device(cfg)
     state, found = _resume_state(cfg, Path(cfg.out))
     init = finetune.init_state(cfg, state)
     cpu = Rank(0, 1, torch.device("cpu"), False)
@@ -178,6 +182,11 @@ def preflight(cfg: TrainConfig, ranks: int = 1) -> None:
     if cfg.loss == "l1+vgg":
         load_vgg(cfg.vgg_weights)
     _check_shared_memory(cfg, catalog, ranks)
+
+
+def _check_device(cfg: TrainConfig) -> None:
+    if cfg.device == "cuda" and not torch.cuda.is_available():
+        raise RunError(str(NoCuda()))
 
 
 def _check_shared_memory(cfg: TrainConfig, catalog: Catalog, ranks: int) -> None:

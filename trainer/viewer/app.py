@@ -234,11 +234,13 @@ def build(
     folders: list[str],
     device: str,
     max_upload_bytes: int = MAX_UPLOAD_BYTES,
+    graph: bool = False,
 ) -> tuple[Viewer, list[str]]:
-    """The viewer of ``checkpoint`` with its gallery; returns it and notes for the console."""
+    """The viewer of ``checkpoint`` with its gallery; returns it and notes for the console.
+    ``graph``: frames through the CUDA graph (:class:`trainer.infer.Renderer`)."""
     from trainer.infer import NoScreenUV, load_renderer, material_mapper
 
-    renderer = load_renderer(checkpoint, device)
+    renderer = load_renderer(checkpoint, device, graph=graph)
     notes = []
     try:
         mapper = material_mapper(renderer, stores[0] if stores else None)
