@@ -78,7 +78,9 @@ def epoch_end_wait(
     return images / seconds, sum(waits) / seconds, max(waits)
 
 
-def device_name(device: str) -> str:
+def device_name(device: str | torch.device) -> str:
+    """The GPU's or the CPU's name, for ``--device``'s value or a torch device."""
+    device = device.type if isinstance(device, torch.device) else device
     if device == "cuda" or (device == "auto" and torch.cuda.is_available()):
         return torch.cuda.get_device_name()
     return f"CPU ({platform.processor() or platform.machine()}, {torch.get_num_threads()} threads)"

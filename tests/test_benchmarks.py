@@ -88,6 +88,19 @@ def test_the_profiles_flags_are_keywords_that_fast_network_takes():
                     "conv_relu": True, "light_sums": True, "fold_ring": True}  # fmt: skip
 
 
+def test_the_device_is_named_from_an_option_or_a_torch_device(monkeypatch):
+    """``benchmarks.train.device_name``: the same name for ``--device``'s text and a torch
+    device: the GPU's for CUDA (asked of torch, here stood in for), else the CPU's."""
+    import torch
+
+    from benchmarks.train import device_name
+
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda *a: "the GPU")
+    assert device_name("cuda") == device_name(torch.device("cuda")) == "the GPU"
+    assert device_name("cpu") == device_name(torch.device("cpu"))
+    assert device_name("cpu").startswith("CPU (")
+
+
 def test_only_given_again_runs_the_rows_that_contain_any_of_its_texts():
     """``benchmarks.infer --only``: no text runs every row; one or more, the rows whose name
     contains any (a device call picks the rows it pays for)."""
