@@ -161,6 +161,34 @@ def test_lookups_on_any_thread_count_are_the_same_numbers_and_finish_keeps_them(
     assert torch.equal(three, kept)
 
 
+def test_pictures_are_quantized_where_the_network_ran_to_the_bytes_of_to_uint8():
+    """``trainer.viewer.engine.to_uint8_tensor``: the bytes ``render_jobs.tonemap.to_uint8``
+    makes of the same image, the halfway values of the 8-bit rounding and values outside
+    [0, 1] among them; and a frame's picture is the network's image so quantized."""
+    from render_jobs.tonemap import to_uint8
+    from trainer.infer import Renderer
+    from trainer.model import ModelConfig, NeuralRenderer
+    from trainer.targets import Tonemap
+    from trainer.viewer.engine import Engine, to_uint8_tensor
+
+    gen = torch.Generator().manual_seed(0)
+    image = torch.rand(3, 40, 56, generator=gen) * 1.2 - 0.1
+    halfway = (torch.arange(256) + 0.5) / 255.0
+    image.view(-1)[: halfway.numel()] = halfway
+    image.view(-1)[256 : 256 + 255] = torch.nextafter(halfway[:-1], torch.zeros(()))
+    want = to_uint8(image.numpy())
+    got = to_uint8_tensor(image)
+    assert got.shape == (40, 56, 3) and got.is_contiguous()
+    assert np.array_equal(got.numpy(), want)
+
+    torch.manual_seed(0)
+    renderer = Renderer(NeuralRenderer(ModelConfig(16, width=4)), Tonemap(), torch.device("cpu"))
+    engine = Engine(renderer, None, Library([], [], Path("unused")), "-")
+    packed = torch.randint(0, 256, (1, 11, 16, 16), dtype=torch.uint8)
+    light = np.array([0.3, 0.2, 0.9, 0.3], np.float32)
+    assert np.array_equal(engine.picture(packed, light), to_uint8(engine.network(packed, light)))
+
+
 def test_the_engine_reuses_lookups_for_value_edits_and_maps_as_a_fresh_engine(tmp_path):
     """An edit of values after another maps from the kept lookups, to the same maps a fresh
     engine makes; a new tiling looks the textures up again."""

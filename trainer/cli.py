@@ -618,8 +618,8 @@ def export(ckpt, output, opset, no_catalog, weights):
               help="an upload's files together, at most (the page's upload box)")  # fmt: skip
 @click.option("--cuda-graph", is_flag=True,
               help="render each frame through the network compiled in bf16 and replayed as a "
-              "CUDA graph: a seventh of fp32's time on an H100, after 20-40 s of compiling at "
-              "start (CUDA, a torch checkpoint)")  # fmt: skip
+              "CUDA graph: 0.5 ms a 400² frame on an H100 against 2.0 in fp32, after 20-40 s "
+              "of compiling at start (CUDA, a torch checkpoint)")  # fmt: skip
 @server_options(port=8267)
 @device_option
 def viewer(ckpt, stores, folders, max_upload_mb, cuda_graph, host, port, token, device):

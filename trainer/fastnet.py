@@ -32,12 +32,11 @@ fp32 to 1e-5; about 1e-7 in practice) with about the same FLOPs, without the hig
 tensors of the original (upsampled features, concatenations, a 64-channel 400² input to the
 3-channel output convolution). ``trainer.infer.Renderer`` runs it in fp32 on CPU from 288²
 up, where it is about 1.1x faster than the folded original at batch 1 (slower below:
-``trainer.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 with aligned channels on an H100 it
-renders, with its rings as edge corrections on zero-padded phases and the encoder's
-convolutions and ReLUs fused (``trainer.infer.EDGE_RELU``), 2.09x the frames a second of the
-compiled original batched and a frame in 0.88x its time at batch 1, on an H200; with the
-light encoder as sums and each ring one product, 0.285 ms a frame at batch 1
-(``trainer.infer.fastest_form``, ``docs/benchmarks.md``).
+``trainer.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 with aligned channels, its
+rings as edge corrections on zero-padded phases, the encoder's convolutions and ReLUs fused,
+the light encoder as sums and each ring one product (``trainer.infer.FASTEST``), on an H100
+it renders 2.2x the frames a second of the compiled original batched (10,921-11,189 at 400²)
+and a frame in 0.74-0.76x its time at batch 1 (0.280-0.291 ms; ``docs/benchmarks.md``).
 BatchNorm must be folded first (:func:`trainer.model.fold_batchnorm`).
 """
 

@@ -112,10 +112,11 @@ class Renderer(MapsRenderer):
     It renders in fp32 through :func:`inference_network`: the same images as ``model`` to
     about 1e-7. With ``graph`` (CUDA, the paper's network), a single frame renders through
     :meth:`GraphedRenderer.fastest` instead: bf16, within the bound the tests hold the fast
-    forms to (0.0025 of fp32 in display units on the benchmark's inputs), about a seventh of
-    fp32's time on an H100 at 400², after a compile of 20-40 s (``docs/benchmarks.md``);
-    batches still run in fp32. That is the viewer's choice (``trainer viewer
-    --cuda-graph``), where one frame follows another; eval and render keep fp32."""
+    forms to (0.0020-0.0025 of fp32 in display units on the benchmarks' inputs), after a
+    compile of 20-40 s; in the viewer on an H100 a 400² frame's network took 0.51 ms so
+    against 1.96 in fp32 (``docs/benchmarks.md``); batches still run in fp32. That is the
+    viewer's choice (``trainer viewer --cuda-graph``), where one frame follows another; eval
+    and render keep fp32."""
 
     def __init__(
         self, model: NeuralRenderer, tonemap: Tonemap, device: torch.device, graph: bool = False

@@ -177,15 +177,27 @@ class Engine:
 
     def network(self, packed: torch.Tensor, light: np.ndarray) -> np.ndarray:
         """``(3, R, R) float32`` display image in [0, 1] of ``packed`` under ``light (4,)``."""
-        out = self.renderer.render_batch(packed, torch.from_numpy(light[None]))
-        return out[0].cpu().numpy()
+        return self._rendered(packed, light).cpu().numpy()
+
+    def picture(self, packed: torch.Tensor, light: np.ndarray) -> np.ndarray:
+        """``(R, R, 3) uint8``: :meth:`network`'s image as ``to_uint8`` makes it. On CUDA it
+        is quantized on the device (:func:`to_uint8_tensor`): a quarter of the bytes come
+        back, and the CPU is spared a float pass over the image; on the CPU numpy's pass is
+        the faster (3.0 against 4.9 ms at 400² on a 2-core CPU)."""
+        image = self._rendered(packed, light)
+        if image.device.type == "cpu":
+            return to_uint8(image.numpy())
+        return to_uint8_tensor(image).cpu().numpy()
+
+    def _rendered(self, packed: torch.Tensor, light: np.ndarray) -> torch.Tensor:
+        return self.renderer.render_batch(packed, torch.from_numpy(light[None]))[0]
 
     def frame(self, material_id: str, edits: Edits, light: Light, fmt: str = "jpeg") -> Frame:
         if fmt not in FORMATS:
             raise ValueError(f"format {fmt!r} is not one of {FORMATS}")
         packed, map_s, cached = self.maps(material_id, edits)
         t0 = time.perf_counter()
-        image = to_uint8(self.network(packed, light.vector))
+        image = self.picture(packed, light.vector)
         t1 = time.perf_counter()
         buf = io.BytesIO()
         if fmt == "jpeg":
@@ -230,6 +242,16 @@ class Engine:
             "error": _png(to_uint8(err.numpy())),
             "sun": sun,
         }
+
+
+def to_uint8_tensor(image: torch.Tensor) -> torch.Tensor:
+    """``render_jobs.tonemap.to_uint8`` for a ``(3, H, W)`` float32 tensor on its own device:
+    ``(H, W, 3) uint8``, contiguous, the same bytes (the same float32 steps, each its own
+    operation, as ``render_jobs.materials.maps.quantize_u8`` takes them)."""
+    x = image.float().clamp(0.0, 1.0)
+    x = x * 255.0
+    x = x + 0.5
+    return x.to(torch.uint8).permute(1, 2, 0).contiguous()
 
 
 def _png(image: np.ndarray) -> bytes:
