@@ -301,9 +301,9 @@ LEVEL_FUSION_TORCH = ("2.11.",)
 
 
 #: what Inductor's autotuning weighs for the fast path: cuDNN's convolutions and cuBLAS's
-#: GEMMs alone, as the rows of ``docs/benchmarks.md`` since the aligned channels were measured
-#: (``benchmarks/gpu.sh``'s default). With Triton's templates too (Inductor's own default) a
-#: first compile takes minutes: over the device's 10-minute call for the benchmark's rows
+#: GEMMs alone, as :data:`FASTEST` was measured (``benchmarks/gpu.sh``'s default,
+#: ``docs/benchmarks.md``). With Triton's templates too (Inductor's own default) a first
+#: compile takes minutes: more than a 10-minute device call for the benchmark's rows
 TUNED_BACKENDS = {"max_autotune_conv_backends": "ATEN", "max_autotune_gemm_backends": "ATEN"}
 
 
