@@ -141,9 +141,7 @@ def frustum(z0: float, z1: float, r0: float, r1: float, segments: int = 64) -> M
 
 
 def pedestal() -> Mesh:
-    top = -BALL_RADIUS * 0.9
-    column = frustum(GROUND_Z + 0.1, top, 0.30, 0.24)
-    base = frustum(GROUND_Z, GROUND_Z + 0.1, 0.62, 0.58)
+    column, base = (frustum(**f) for f in occluders()["frustums"])
     offset = len(column.verts)
     faces = column.faces + [tuple(i + offset for i in f) for f in base.faces]
     return Mesh(np.concatenate([column.verts, base.verts]), faces, smooth=False)
@@ -162,6 +160,42 @@ def shaderball() -> dict[str, Mesh]:
         "core": uv_sphere(CORE_RADIUS, 96, 48),
         "pedestal": pedestal(),
         "ground": ground(),
+    }
+
+
+def band_limits(v: int = 64) -> tuple[float, float]:
+    """The shell's cut as heights on the untilted unit sphere: the rings that bound it."""
+    mid_z = [math.cos(math.pi * (r + 0.5) / v) for r in range(v)]
+    cut = [r for r in range(v) if abs(mid_z[r]) < BAND_HALF_WIDTH]
+    return math.cos(math.pi * (cut[-1] + 1) / v), math.cos(math.pi * cut[0] / v)
+
+
+def occluders() -> dict:
+    """The scene's shadow casters as analytic shapes (JSON-safe), for a sun-visibility test
+    without Blender: spheres (``centre``, ``radius``, and the ``band`` of heights along
+    ``axis``, as fractions of the radius, where a sphere is cut open: the shell's outer and
+    inner faces, then the core) and vertical frustums (``z0``, ``z1``, ``r0``, ``r1``: the
+    stand's column and base). The floor casts no shadow on anything the camera sees."""
+    axis = _rotation_y(BAND_TILT_DEG) @ np.array([0.0, 0.0, 1.0])
+    lo, hi = band_limits()
+    band = {"axis": [float(a) for a in axis], "lo": lo, "hi": hi}
+    top = -BALL_RADIUS * 0.9
+    return {
+        "spheres": [
+            {"centre": [0.0, 0.0, 0.0], "radius": BALL_RADIUS, **band},
+            {"centre": [0.0, 0.0, 0.0], "radius": BALL_RADIUS - SHELL_THICKNESS, **band},
+            {
+                "centre": [0.0, 0.0, 0.0],
+                "radius": CORE_RADIUS,
+                "axis": [0.0, 0.0, 1.0],
+                "lo": 0.0,
+                "hi": 0.0,
+            },
+        ],  # fmt: skip
+        "frustums": [
+            {"z0": GROUND_Z + 0.1, "z1": top, "r0": 0.30, "r1": 0.24},
+            {"z0": GROUND_Z, "z1": GROUND_Z + 0.1, "r0": 0.62, "r1": 0.58},
+        ],
     }
 
 

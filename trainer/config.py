@@ -1,7 +1,12 @@
 """The training run's settings, one typed dataclass, and the CLI options made from it.
 
-Defaults follow the paper (batch 6, 30 epochs, Adam β 0.9/0.999, L1 + VGG16 relu3_3) and the
-authors' code (lr 1e-3; the paper prints 1e-2). ``trainer train`` and ``trainer launch``
+A *recipe* (:data:`RECIPES`, ``--recipe``) gives the defaults of the settings that decide
+how much the network learns per image: its inputs and shape, the loss, the batch, the
+learning rate and its schedule, the weight average. Any of them given on its own wins over
+the recipe. ``shaderball`` (the default) is the recipe that learnt the most per image pass
+in ``benchmarks/learning.py`` (docs/training.md, "Recipes"); ``paper`` is the paper's
+network and settings (batch 6, Adam β 0.9/0.999, L1 + VGG16 relu3_3, 30 epochs) with the
+authors' code's rate (1e-3; the paper prints 1e-2). ``trainer train`` and ``trainer launch``
 share these options; ``launch`` turns a config back into the exact ``trainer train``
 arguments (:func:`to_argv`).
 """
@@ -13,16 +18,79 @@ from dataclasses import MISSING, asdict, dataclass, field, fields
 
 import click
 
+from trainer.scene import CUES, check_cues, ordered
 from trainer.schedule import SCHEDULES
 
-LOSSES = ("l1+vgg", "l1")
+LOSSES = ("l1+vgg", "l1", "l1+msssim")
+NORMS = ("batch", "group")
 #: which of a checkpoint's weights a command runs (``trainer.checkpoint.weights``): here, free
 #: of torch, so that the CLI's options need not import it
 WEIGHTS = ("auto", "average", "trained")
 
 
 #: the options that shape the network: a run started from --init takes them from it
-NETWORK = ("model", "width", "skips", "roughness_channels", "exposure")
+NETWORK = (
+    "model", "width", "skips", "roughness_channels", "exposure", "inputs", "norm", "head",
+    "residual",
+)  # fmt: skip
+
+#: every recipe's settings (the fields a recipe leaves to its default are left out); a
+#: field given its own value keeps it
+RECIPES = {
+    "shaderball": {
+        "batch_size": 8,
+        "lr": 2e-3,
+        "lr_schedule": "onecycle",
+        "warmup_steps": 0,
+        "loss": "l1+msssim",
+        "width": 32,
+        "inputs": ("paint", "geometry", "light", "normal", "reflection", "shadow", "shade"),
+        "norm": "group",
+        "head": True,
+        "residual": False,
+        "ema_decay": 0.999,
+    },
+    "paper": {
+        "batch_size": 6,
+        "lr": 1e-3,
+        "lr_schedule": "constant",
+        "warmup_steps": 0,
+        "loss": "l1+vgg",
+        "width": 64,
+        "inputs": (),
+        "norm": "batch",
+        "head": False,
+        "residual": False,
+        "ema_decay": 0.0,
+    },
+}
+DEFAULT_RECIPE = "shaderball"
+#: the recipe settings that --model zf (Zsolnai-Fehér's baseline) takes from the paper's
+ZF_PLAIN = ("inputs", "norm", "head", "residual")
+#: a checkpoint whose config names no recipe was trained before recipes: the paper's
+LEGACY_RECIPE = "paper"
+
+
+def parse_inputs(value) -> tuple[str, ...]:
+    """``--inputs`` as given (``a,b,c``, ``none``, or a sequence) → the cues, in order."""
+    if isinstance(value, str):
+        value = () if value.strip() in ("", "none") else value.split(",")
+    cues = tuple(v.strip() for v in value)
+    check_cues(cues)
+    return ordered(cues)
+
+
+def recipe_help(name: str) -> str:
+    """What each recipe sets ``name`` to, for its option's help."""
+    said = []
+    for recipe, values in RECIPES.items():
+        v = values[name]
+        if isinstance(v, tuple):
+            v = ",".join(v) or "none"
+        elif isinstance(v, bool):
+            v = "on" if v else "off"
+        said.append(f"{recipe}: {v}")
+    return "[default: the recipe's; " + "; ".join(said) + "]"
 
 
 def _opt(default, help: str, **extra):
@@ -75,26 +143,43 @@ RULES = {
 @dataclass
 class TrainConfig:
     store: tuple[str, ...] = _opt((), "store to train on (path or s3://); repeat for several")
+    recipe: str = _opt(
+        DEFAULT_RECIPE,
+        "the defaults of the settings marked 'the recipe's': shaderball (learns the most per "
+        "image, docs/training.md) or paper (the paper's network and settings)",
+        choices=tuple(RECIPES),
+    )
     out: str = _opt("runs/latest", "run folder: checkpoints/, log.jsonl, tb/ (TensorBoard)")
     epochs: int = _opt(30, "epochs over the training split")
-    batch_size: int = _opt(6, "images per step on each rank (the paper: 6)")
-    lr: float = _opt(1e-3, "Adam learning rate (the authors' code: 1e-3)")
-    lr_schedule: str = _opt(
-        "constant",
-        "constant (the paper) or cosine: half a cosine from --lr to 0 over the run",
+    batch_size: int | None = _opt(None, "images per step on each rank", recipe=True)
+    lr: float | None = _opt(None, "Adam's (peak) learning rate", recipe=True)
+    lr_schedule: str | None = _opt(
+        None,
+        "constant; cosine: half a cosine from --lr to 0 over the run; onecycle: up from "
+        "--lr/25 to --lr over the first 30 %, then half a cosine to 0",
         choices=SCHEDULES,
+        recipe=True,
     )
-    warmup_steps: int = _opt(0, "steps of linear warm-up to --lr at the start")
-    ema_decay: float = _opt(
-        0.0,
-        "keep a moving average of the weights with this decay (0: none, as the paper; 0.999 "
-        "recommended, docs/training.md): what the checkpoints render with and the held-out "
-        "scores measure, beside the trained weights (trainer.ema)",
+    warmup_steps: int | None = _opt(
+        None, "steps of linear warm-up to --lr at the start (constant, cosine)", recipe=True
+    )
+    ema_decay: float | None = _opt(
+        None,
+        "keep a moving average of the weights with this decay (0: none): what the "
+        "checkpoints render with and the held-out scores measure, beside the trained "
+        "weights (trainer.ema)",
+        recipe=True,
     )
     beta1: float = _opt(0.9, "Adam β1")
     beta2: float = _opt(0.999, "Adam β2")
     clip: float = _opt(1.0, "clip the gradient norm to this (0: no clipping)")
-    loss: str = _opt("l1+vgg", "l1+vgg (the paper) or l1 (its ablation)", choices=LOSSES)
+    loss: str | None = _opt(
+        None,
+        "l1+vgg (the paper's: L1 + VGG16 relu3_3 features), l1 (its ablation), l1+msssim "
+        "(0.84 MS-SSIM + 0.16 L1, Zhao et al. 2017; no weights needed)",
+        choices=LOSSES,
+        recipe=True,
+    )
     perceptual_weight: float = _opt(1.0, "weight of the VGG16 relu3_3 feature loss")
     vgg_weights: str | None = _opt(
         None, "torchvision VGG16 state dict (.pth); default: the torch hub cache"
@@ -105,7 +190,23 @@ class TrainConfig:
         "to an image, no light input; train it on a --fixed-sun store)",
         choices=("unet", "zf"),
     )
-    width: int = _opt(64, "channels of the first U-Net level (the paper: 64)")
+    width: int | None = _opt(None, "channels of the first U-Net level", recipe=True)
+    inputs: tuple[str, ...] | None = _opt(
+        None,
+        "scene cues the network takes beside the maps, comma-separated, or none: "
+        + ", ".join(CUES)
+        + " (trainer.scene; all but light need a store rendered with geometry buffers)",
+        recipe=True,
+    )
+    norm: str | None = _opt(
+        None, "batch (BatchNorm) or group (GroupNorm)", choices=NORMS, recipe=True
+    )
+    head: bool | None = _opt(
+        None, "a full-resolution block over the decoder and the inputs", recipe=True
+    )
+    residual: bool | None = _opt(
+        None, "draw the image as a correction of the shade cue", recipe=True
+    )
     skips: bool = _opt(True, "skip connections (--no-skips: the paper's ablation)")
     roughness_channels: int = _opt(
         1, "1, or 3 to repeat roughness as the authors' 12-channel input"
@@ -143,6 +244,13 @@ class TrainConfig:
     log_samples: bool = _opt(False, "record each rank's sample ids in samples/rank-R.txt")
 
     def __post_init__(self) -> None:
+        if self.recipe not in RECIPES:
+            raise ValueError(f"--recipe must be one of {', '.join(RECIPES)}, not {self.recipe!r}")
+        for name, value in RECIPES[self.recipe].items():
+            if getattr(self, name) is None:
+                zf = self.model == "zf" and name in ZF_PLAIN  # the baseline has no such parts
+                setattr(self, name, RECIPES["paper"][name] if zf else value)
+        self.inputs = parse_inputs(self.inputs)
         self.store = tuple(absolute_store(u) for u in self.store)
         self.init = None if self.init is None else os.path.abspath(self.init)
         for name, (ok, rule) in RULES.items():
@@ -155,11 +263,14 @@ class TrainConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["store"] = list(self.store)
+        d["inputs"] = list(self.inputs)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
+        """The config ``to_dict`` made; one kept before recipes is the paper recipe's."""
         known = {f.name for f in fields(cls)}
+        d = {"recipe": LEGACY_RECIPE, **d}
         return cls(**{k: v for k, v in d.items() if k in known})
 
 
@@ -172,35 +283,42 @@ def options(command):
     for f in reversed(fields(TrainConfig)):
         help_, choices = f.metadata["help"], f.metadata.get("choices")
         default = f.default if f.default is not MISSING else None
+        if f.metadata.get("recipe"):
+            help_ = f"{help_} {recipe_help(f.name)}"
         if f.name == "store":
             opt = click.option("--store", "store", multiple=True, help=help_)
-        elif f.type == "bool":
+        elif f.type in ("bool", "bool | None"):
             on = _flag(f.name)
             off = "--no-" + f.name.replace("_", "-")
             opt = click.option(
                 f"{on}/{off}", f.name, default=default, show_default=True, help=help_
             )
         else:
-            kind = {"int": int, "float": float, "int | None": int}.get(f.type, str)
+            kind = {"int": int, "float": float}.get(f.type.removesuffix(" | None"), str)
             if choices:
                 kind = click.Choice(choices)
             opt = click.option(
-                _flag(f.name), f.name, type=kind, default=default, show_default=True, help=help_
-            )
+                _flag(f.name), f.name, type=kind, default=default,
+                show_default=default is not None, help=help_,
+            )  # fmt: skip
         command = opt(command)
     return command
 
 
 def to_argv(cfg: TrainConfig) -> list[str]:
-    """The ``trainer train`` arguments that give back ``cfg`` (defaults left out)."""
+    """The ``trainer train`` arguments that give back ``cfg`` (defaults, and the recipe's,
+    left out)."""
     argv: list[str] = []
+    recipe = RECIPES[cfg.recipe]
     for f in fields(TrainConfig):
         value = getattr(cfg, f.name)
         if f.name == "store":
             for s in value:
                 argv += ["--store", s]
-        elif value == f.default:
+        elif value == recipe.get(f.name, f.default):
             continue
+        elif f.name == "inputs":
+            argv += ["--inputs", ",".join(value) or "none"]
         elif isinstance(value, bool):
             argv.append(_flag(f.name) if value else "--no-" + f.name.replace("_", "-"))
         else:

@@ -30,16 +30,16 @@ CPU_SUBPIXEL_FROM = 288
 
 def inference_network(model: NeuralRenderer, device: torch.device) -> torch.nn.Module:
     """The fp32 network :class:`Renderer` runs on ``device``, BatchNorm folded. On CPU in
-    channels_last: from ``CPU_SUBPIXEL_FROM`` up the exact sub-pixel rewrite of
-    :mod:`trainer.fastnet`, below it the original layout; elsewhere the original layout,
-    since on an H100 the uncompiled rewrite was the slower (2.76 against 1.96 ms a frame at
-    batch 1, ``docs/benchmarks.md``)."""
+    channels_last: for the paper's network (``ModelConfig.plain``) from ``CPU_SUBPIXEL_FROM``
+    up the exact sub-pixel rewrite of :mod:`trainer.fastnet`, else the original layout;
+    elsewhere the original layout, where the uncompiled rewrite is the slower
+    (``benchmarks.infer``)."""
     if not isinstance(model, NeuralRenderer):  # the baseline (trainer.zf) runs as it is
         return model.eval()
     folded = fold_batchnorm(model)
     if device.type != "cpu":
         return folded
-    if model.config.resolution >= CPU_SUBPIXEL_FROM:
+    if model.config.plain and model.config.resolution >= CPU_SUBPIXEL_FROM:
         folded = SubpixelRenderer(folded)
     return folded.to(memory_format=torch.channels_last)
 
@@ -263,6 +263,9 @@ def fast_network(
             raise ValueError(f"{name} is a form of the subpixel (or streams) network")
     if fold_ring and not (edge_ring and wide_ring and (subpixel or streams)):
         raise ValueError("fold_ring is a form of the edge ring on zero-padded phases")
+    if (subpixel or streams) and not model.config.plain:
+        raise ValueError("the sub-pixel rewrite is of the paper's network (no scene cues, "
+                         "BatchNorm, no head)")  # fmt: skip
     net = fold_batchnorm(model)
     if subpixel or streams:
         plain_from = subpixel_from if subpixel else model.config.resolution
@@ -347,6 +350,9 @@ EDGE_RELU = {
 #: frames/s at batch 128 (2.2x the original's; :data:`EDGE_RELU` and the light sums alone
 #: within 1 % of it); ``docs/benchmarks.md``
 FASTEST = EDGE_RELU | {"light_sums": True, "fold_ring": True}
+#: the fast form of a network other than the paper's: BatchNorm folded where there is one,
+#: bf16 (the scene cues stay fp32: ``trainer.scene.SceneInputs``), channels_last, compiled
+COMPILED = {"compile": True}
 
 
 class GraphedRenderer:
@@ -363,8 +369,10 @@ class GraphedRenderer:
 
     @classmethod
     def fastest(cls, model: NeuralRenderer, batch: int) -> GraphedRenderer:
-        """The network in its fastest form measured (:data:`FASTEST`), captured at ``batch``."""
-        return cls(model, batch, **FASTEST)
+        """The network in its fastest form, captured at ``batch``: the paper's network as
+        :data:`FASTEST`, any other (scene cues, GroupNorm, a head) compiled as it is
+        (:data:`COMPILED`): the sub-pixel rewrites know the paper's layers only."""
+        return cls(model, batch, **(FASTEST if model.config.plain else COMPILED))
 
     def __init__(self, model: NeuralRenderer, batch: int, warmup: int = 3, **fast):
         if not torch.cuda.is_available() or next(model.parameters()).device.type != "cuda":

@@ -15,6 +15,17 @@ divisible by 16; ``w`` = ``width``, 64 in the paper)::
     out: 3x3 conv w → 3, Sigmoid → (N, 3, H, W) tonemapped image in [0, 1]
 
 Glorot (Xavier) uniform initialisation for every conv and linear weight, zero biases.
+
+Beyond the paper (each off in the paper's network, ``ModelConfig()``'s defaults):
+
+- ``inputs``: scene cues concatenated after the maps (:mod:`trainer.scene`: the scene's
+  geometry, the light as planes, shading normal, reflection, sun visibility, analytic
+  shading), computed inside the network from constant buffers, so every caller still
+  passes ``(maps, light)``;
+- ``norm``: ``group`` (GroupNorm, per-sample statistics) instead of BatchNorm;
+- ``head``: a full-resolution block over the last decoder level and the network's inputs
+  before the output convolution (the paper's last level works at half resolution);
+- ``residual``: the output is the ``shade`` cue corrected: ``sigmoid(out + logit(shade))``.
 """
 
 from __future__ import annotations
@@ -26,11 +37,18 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from render_jobs.screen_geometry import ScreenGeometry
+from render_jobs.tonemap import DEFAULT_EXPOSURE
 from storage.schema import untrainable
+from trainer.scene import NEEDS_GEOMETRY, SceneInputs, check_cues, cue_channels, ordered
 
 LIGHT_CHANNELS = 128
 #: the models: the paper's U-Net, and Zsolnai-Fehér et al. 2018's baseline (trainer.zf)
 ARCHS = ("unet", "zf")
+NORMS = ("batch", "group")
+#: GroupNorm's groups (Wu & He 2018's default; every level's channels are a multiple of it
+#: when the width is)
+GROUPS = 8
 
 
 @dataclass(frozen=True)
@@ -40,8 +58,15 @@ class ModelConfig:
     skips: bool = True  # False: the paper's no-skip-connection ablation
     roughness_channels: int = 1  # 3: roughness repeated, as the authors' 12-channel input
     arch: str = "unet"  # one of ARCHS
+    inputs: tuple[str, ...] = ()  # scene cues after the maps (trainer.scene.CUES)
+    norm: str = "batch"  # one of NORMS
+    head: bool = False  # a full-resolution block before the output convolution
+    residual: bool = False  # correct the shade cue instead of drawing the image
+    exposure: float = DEFAULT_EXPOSURE  # the targets' tonemap, for the shade cue
 
     def __post_init__(self) -> None:
+        check_cues(tuple(self.inputs))
+        object.__setattr__(self, "inputs", ordered(self.inputs))
         why = untrainable(self.resolution, nearest=False)
         if why:
             raise ValueError(why)
@@ -51,17 +76,44 @@ class ModelConfig:
             raise ValueError(f"arch must be one of {ARCHS}, not {self.arch!r}")
         if self.roughness_channels not in (1, 3):
             raise ValueError(f"roughness_channels must be 1 or 3, not {self.roughness_channels}")
+        if self.norm not in NORMS:
+            raise ValueError(f"norm must be one of {NORMS}, not {self.norm!r}")
+        if self.norm == "group" and self.width % GROUPS:
+            raise ValueError(f"GroupNorm needs a width that is a multiple of {GROUPS}")
+        if self.residual and "shade" not in self.inputs:
+            raise ValueError("a residual network corrects the shade cue: add it to the inputs")
+        if self.arch == "zf" and not self.plain:
+            raise ValueError("the Zsolnai-Fehér baseline takes the paper's inputs only")
 
     @property
     def in_channels(self) -> int:
+        """The maps' channels, what every caller passes (``trainer.targets.model_inputs``)."""
         return 9 + self.roughness_channels
+
+    @property
+    def network_channels(self) -> int:
+        """The channels the first convolution sees: the maps and the scene cues."""
+        return self.in_channels + cue_channels(self.inputs)
+
+    @property
+    def needs_geometry(self) -> bool:
+        """Whether the network needs the scene's geometry buffers."""
+        return any(c in NEEDS_GEOMETRY for c in self.inputs)
+
+    @property
+    def plain(self) -> bool:
+        """The paper's network: no cues, BatchNorm, no head, no residual (the form the fast
+        inference rewrites of ``trainer.fastnet`` take)."""
+        return not self.inputs and self.norm == "batch" and not self.head and not self.residual
 
     @property
     def bottleneck(self) -> int:
         return self.resolution // 16
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["inputs"] = list(self.inputs)
+        return d
 
 
 def check_inputs(cfg: ModelConfig, maps: torch.Tensor, light: torch.Tensor) -> None:
@@ -88,10 +140,11 @@ def glorot_init(model: nn.Module) -> None:
                 nn.init.zeros_(m.bias)
 
 
-def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+def _block(cin: int, cout: int, stride: int = 1, norm: str = "batch") -> nn.Sequential:
+    layer = nn.BatchNorm2d(cout) if norm == "batch" else nn.GroupNorm(GROUPS, cout)
     return nn.Sequential(
         nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
-        nn.BatchNorm2d(cout),
+        layer,
         nn.ReLU(inplace=True),
     )
 
@@ -114,25 +167,35 @@ class LightEncoder(nn.Module):
 
 
 class NeuralRenderer(nn.Module):
-    """The U-Net: ``forward(maps (N, C, H, W), light (N, 4)) → (N, 3, H, W)`` in [0, 1]."""
+    """The U-Net: ``forward(maps (N, C, H, W), light (N, 4)) → (N, 3, H, W)`` in [0, 1].
 
-    def __init__(self, config: ModelConfig | None = None):
+    ``geometry`` fills the scene cues' constant buffers (a network with cues that needs
+    them and gets none has zeros there until a checkpoint's weights are loaded)."""
+
+    def __init__(self, config: ModelConfig | None = None, geometry: ScreenGeometry | None = None):
         super().__init__()
         self.config = cfg = config or ModelConfig()
-        w = cfg.width
+        w, norm = cfg.width, cfg.norm
+        self.scene = None
+        if cfg.inputs:
+            self.scene = SceneInputs(
+                cfg.inputs, cfg.resolution, cfg.roughness_channels, cfg.exposure, geometry
+            )
         chans = [w, 2 * w, 4 * w, 8 * w]
+        firsts = [cfg.network_channels, *chans]
         self.encoder = nn.ModuleList(
-            _block(a, c, stride=2) for a, c in zip([cfg.in_channels, *chans], chans, strict=False)
+            _block(a, c, stride=2, norm=norm) for a, c in zip(firsts, chans, strict=False)
         )
         self.light = LightEncoder(cfg.bottleneck)
-        self.fuse = _block(8 * w + LIGHT_CHANNELS, 8 * w)
+        self.fuse = _block(8 * w + LIGHT_CHANNELS, 8 * w, norm=norm)
         # decoder level i works at the resolution of encoder level i (deepest first)
         outs = [8 * w, 4 * w, 2 * w, w]
         ins = [8 * w, 8 * w, 4 * w, 2 * w]
         self.decoder = nn.ModuleList(
-            _block(cin + (skip if cfg.skips else 0), cout)
+            _block(cin + (skip if cfg.skips else 0), cout, norm=norm)
             for cin, skip, cout in zip(ins, reversed(chans), outs, strict=True)
         )
+        self.head = _block(w + cfg.network_channels, w, norm=norm) if cfg.head else None
         self.out = nn.Conv2d(w, 3, 3, padding=1)
         self.reset_parameters()
 
@@ -144,7 +207,7 @@ class NeuralRenderer(nn.Module):
 
     def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         skips = []
-        x = maps
+        x = inputs = maps if self.scene is None else self.scene(maps, light)
         for enc in self.encoder:
             x = enc(x)
             skips.append(x)
@@ -153,16 +216,23 @@ class NeuralRenderer(nn.Module):
             if self.config.skips:
                 x = torch.cat([x, skips[-1 - i]], 1)
             x = F.interpolate(dec(x), scale_factor=2, mode="bilinear", align_corners=False)
-        return torch.sigmoid(self.out(x))
+        if self.head is not None:
+            x = self.head(torch.cat([x, inputs], 1))
+        out = self.out(x)
+        if self.config.residual:  # the shade cue's channels are the inputs' last three
+            shade = inputs[:, -3:].float().clamp(1e-3, 1 - 1e-3)
+            out = out + (torch.log(shade) - torch.log1p(-shade)).to(out.dtype)  # its logit
+        return torch.sigmoid(out)
 
 
-def build_model(config: ModelConfig) -> nn.Module:
-    """The model ``config.arch`` names (both take ``(maps, light)`` batches)."""
+def build_model(config: ModelConfig, geometry: ScreenGeometry | None = None) -> nn.Module:
+    """The model ``config.arch`` names (both take ``(maps, light)`` batches), its scene
+    buffers from ``geometry`` when it has cues."""
     if config.arch == "zf":
         from trainer.zf import ZsolnaiFeherRenderer
 
         return ZsolnaiFeherRenderer(config)
-    return NeuralRenderer(config)
+    return NeuralRenderer(config, geometry)
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -174,8 +244,11 @@ def fold_batchnorm(model: NeuralRenderer) -> NeuralRenderer:
     """An inference copy (eval mode) with each BatchNorm folded into the convolution before
     it, using the running statistics: the same outputs with fewer kernels and less traffic."""
     folded = copy.deepcopy(model).eval()
-    for block in [*folded.encoder, folded.fuse, *folded.decoder]:
+    blocks = [*folded.encoder, folded.fuse, *folded.decoder]
+    for block in blocks + ([folded.head] if getattr(folded, "head", None) is not None else []):
         conv, bn = block[0], block[1]
+        if not isinstance(bn, nn.BatchNorm2d):  # GroupNorm's statistics are the input's own
+            continue
         scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)
         conv.weight = nn.Parameter(conv.weight * scale[:, None, None, None])
         conv.bias = nn.Parameter(bn.bias - bn.running_mean * scale)

@@ -1,4 +1,6 @@
-"""The loss: L1 + the VGG16 relu3_3 feature reconstruction loss (Johnson et al. 2016).
+"""The losses: the paper's L1 + the VGG16 relu3_3 feature reconstruction loss (Johnson et al.
+2016), its L1 ablation, and L1 + MS-SSIM (Zhao et al. 2017, OIDN's default), which needs no
+pretrained weights.
 
 VGG16's convolutional trunk up to relu3_3 is defined here, with the layer indices of
 torchvision's ``vgg16().features`` (0..15), so a torchvision-format state dict loads into it
@@ -17,6 +19,9 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torchmetrics.functional.image import (
+    multiscale_structural_similarity_index_measure as multiscale_ssim,
+)
 
 # torchvision's vgg16 "features" up to relu3_3: conv channels, "M" = max pool
 _TRUNK = [64, 64, "M", 128, 128, "M", 256, 256, 256]
@@ -82,14 +87,60 @@ def load_vgg(path: str | os.PathLike | None = None) -> nn.Sequential:
     return trunk
 
 
+#: Zhao et al.'s weight of the MS-SSIM term (L1 gets the rest)
+MSSSIM_WEIGHT = 0.84
+#: MS-SSIM's scale weights (Wang et al. 2003), finest first
+MSSSIM_SCALES = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
+
+
+def msssim_window(side: int) -> tuple[int, tuple[float, ...]]:
+    """MS-SSIM's Gaussian window and scale weights for ``side``-pixel images: the standard
+    11-pixel window over as many of the five scales as fit (the window must fit the
+    coarsest scale, and torchmetrics' own bound must hold), or a 7-pixel one where fewer
+    than three would; the weights of the scales kept are renormalised to sum to 1."""
+
+    def fits(win: int, scales: int) -> bool:
+        coarsest = (win - 1) * 2 ** (scales - 1) < side
+        return coarsest and side // max(1, scales - 1) ** 2 > win - 1 and side >= 2**scales
+
+    for win in (11, 7):
+        scales = max([n for n in range(1, len(MSSSIM_SCALES) + 1) if fits(win, n)], default=1)
+        if scales >= 3 or win == 7:
+            kept = MSSSIM_SCALES[:scales]
+            return win, tuple(w / sum(kept) for w in kept)
+    raise AssertionError("unreachable")
+
+
+class StructuralLoss(nn.Module):
+    """``(N, 3, H, W)`` images in [0, 1] → ``0.84 (1 - MS-SSIM) + 0.16 L1`` (Zhao et al.
+    2017), in fp32, MS-SSIM over the scales that fit the image (:func:`msssim_window`).
+    torchmetrics' MS-SSIM, since pytorch-msssim asserts images over 160 pixels a side at
+    any number of scales and kornia's full-resolution form costs more than the network."""
+
+    def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        pred, target = pred.float(), target.float()
+        win, betas = msssim_window(min(pred.shape[-2:]))
+        ms = multiscale_ssim(pred, target, data_range=1.0, kernel_size=win, betas=betas)
+        return MSSSIM_WEIGHT * (1 - ms) + (1 - MSSSIM_WEIGHT) * F.l1_loss(pred, target)
+
+
 class RendererLoss(nn.Module):
     """``loss(pred, target)`` for ``(N, 3, H, W)`` images in [0, 1]: L1, plus
-    ``perceptual_weight`` × MSE of relu3_3 features when a VGG trunk is given."""
+    ``perceptual_weight`` × MSE of relu3_3 features when a VGG trunk is given; or, with
+    ``structural``, :class:`StructuralLoss`."""
 
-    def __init__(self, vgg: nn.Module | None = None, perceptual_weight: float = 1.0):
+    def __init__(
+        self,
+        vgg: nn.Module | None = None,
+        perceptual_weight: float = 1.0,
+        structural: bool = False,
+    ):
         super().__init__()
+        if vgg is not None and structural:
+            raise ValueError("the loss is L1 + VGG16 or L1 + MS-SSIM, not both")
         self.vgg = vgg
         self.perceptual_weight = perceptual_weight
+        self.structural = StructuralLoss() if structural else None
         self.register_buffer("mean", torch.tensor(MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(STD).view(1, 3, 1, 1), persistent=False)
 
@@ -97,6 +148,8 @@ class RendererLoss(nn.Module):
         """Scalar fp32 loss. Under autocast the VGG convolutions run in its dtype (bf16 on
         CUDA); the L1 and the feature MSE are always computed in fp32."""
         pred, target = pred.float(), target.float()
+        if self.structural is not None:
+            return self.structural(pred, target)
         loss = F.l1_loss(pred, target)
         if self.vgg is not None:
             fp = self.vgg((pred - self.mean) / self.std)

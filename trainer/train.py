@@ -37,7 +37,9 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
+from render_jobs.screen_uv import FILE as SCREEN_UV_FILE
 from storage.errors import StoreError
+from storage.reader import Store
 from storage.schema import untrainable
 from trainer import checkpoint, faults, finetune, shm
 from trainer.config import TrainConfig, absolute_store
@@ -47,7 +49,7 @@ from trainer.ema import WeightAverage
 from trainer.model import ModelConfig, build_model
 from trainer.perceptual import RendererLoss, load_vgg
 from trainer.runlog import RunLog
-from trainer.schedule import Knee, lr_at, record, resumed_knee, run_steps
+from trainer.schedule import DECAYING, Knee, lr_at, record, resumed_knee, run_steps
 from trainer.targets import Tonemap, model_inputs
 from trainer.validation import Validator
 
@@ -178,7 +180,10 @@ def preflight(cfg: TrainConfig, ranks: int = 1) -> None:
     state, found = _resume_state(cfg, Path(cfg.out))
     init = finetune.init_state(cfg, state)
     cpu = Rank(0, 1, torch.device("cpu"), False)
-    catalog = _catalog(finetune.with_network(cfg, init), cpu, state, found, init)
+    cfg = finetune.with_network(cfg, init)
+    catalog = _catalog(cfg, cpu, state, found, init)
+    if state is None and init is None:
+        _geometry(cfg, catalog)
     if cfg.loss == "l1+vgg":
         load_vgg(cfg.vgg_weights)
     _check_shared_memory(cfg, catalog, ranks)
@@ -209,7 +214,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     per_epoch = steps_left(len(split), rk.world, cfg.batch_size)
     t.run_steps = run_steps(cfg.epochs, cfg.max_steps, per_epoch)
     was = state.get("schedule") if state is not None else None
-    t.knee = resumed_knee(t.step, was, t.run_steps, cfg.warmup_steps)
+    t.knee = resumed_knee(t.step, was, t.run_steps, cfg.warmup_steps, cfg.lr_schedule)
     stream = ShardStream(
         split, batch=cfg.batch_size, seed=cfg.seed, buffer=cfg.shuffle_buffer, world=rk.world,
         rank=rk.rank, epochs=cfg.epochs,
@@ -335,12 +340,12 @@ def _start_notes(cfg: TrainConfig, t: Trainee, catalog: Catalog, init, found, wa
 def _schedule_note(cfg: TrainConfig, t: Trainee, was: dict | None) -> str | None:
     """A line on a resumed cosine that does not go on as it was: it starts, or it goes on
     over another length."""
-    if cfg.lr_schedule != "cosine" or was is None or t.knee == tuple(was["knee"]):
+    if cfg.lr_schedule not in DECAYING or was is None or t.knee == tuple(was["knee"]):
         return None
     start, scale = t.knee
     how = (
         f"the run is {t.run_steps} steps long, not {was['total']}: the cosine rate goes on"
-        if was["schedule"] == "cosine"
+        if was["schedule"] in DECAYING
         else "the cosine rate starts"
     )
     return f"{how} from {cfg.lr * scale:.3g} at step {start} to 0 at step {t.run_steps}"
@@ -409,7 +414,7 @@ def _check_schedule(cfg: TrainConfig, state: dict, found: Path) -> None:
     """Refuse to train on past the end of a cosine rate, where every step would be at rate
     0. (A resume that asks for no more steps, or changes the schedule, is let through.)"""
     was = state.get("schedule")
-    if not was or was["schedule"] != "cosine" or cfg.lr_schedule != "cosine":
+    if not was or was["schedule"] not in DECAYING or cfg.lr_schedule not in DECAYING:
         return
     more = state["epoch"] < cfg.epochs and (cfg.max_steps is None or state["step"] < cfg.max_steps)
     if more and state["step"] >= was["total"]:
@@ -478,16 +483,19 @@ def _build(
 ) -> Trainee:
     """Model, loss and optimizer: fresh (seeded), loaded from ``state``, or a fresh optimizer
     on the network of ``init``."""
-    model_cfg = ModelConfig(
-        catalog.resolution, cfg.width, cfg.skips, cfg.roughness_channels, arch=cfg.model
-    )
+    model_cfg = network_config(cfg, catalog.resolution)
     tonemap = Tonemap(exposure=cfg.exposure)
+    geometry = None
     if (loaded := state if state is not None else init) is not None:
         model_cfg = ModelConfig(**loaded["model_config"])
         tonemap = Tonemap.from_dict(loaded["tonemap"])
+    else:  # a fresh network takes the scene's buffers from the store
+        geometry = _geometry(cfg, catalog)
     torch.manual_seed(cfg.seed)
-    model = build_model(model_cfg).to(rk.device, memory_format=rk.fmt)
-    criterion = RendererLoss(vgg, cfg.perceptual_weight).to(rk.device, memory_format=rk.fmt)
+    model = build_model(model_cfg, geometry).to(rk.device, memory_format=rk.fmt)
+    structural = cfg.loss == "l1+msssim"
+    criterion = RendererLoss(vgg, cfg.perceptual_weight, structural)
+    criterion = criterion.to(rk.device, memory_format=rk.fmt)
     if rk.cuda:
         torch.backends.cudnn.benchmark = True  # fixed shapes: let cuDNN pick its fastest convs
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
@@ -507,8 +515,40 @@ def _build(
         if state is not None and state.get("ema") is not None:
             t.ema.load_state_dict(state["ema"])
     if rk.distributed:
+        # the scene's buffers are constants: not broadcast every step as BatchNorm's are
+        constants = [name for name, _ in model.named_buffers() if name.startswith("scene.")]
+        DDP._set_params_and_buffers_to_ignore_for_model(model, constants)
         t.net = DDP(model, device_ids=[rk.device.index] if rk.cuda else None)
     return t
+
+
+def network_config(cfg: TrainConfig, resolution: int) -> ModelConfig:
+    """The network ``cfg`` asks for at ``resolution``."""
+    return ModelConfig(
+        resolution, cfg.width, cfg.skips, cfg.roughness_channels, arch=cfg.model,
+        inputs=cfg.inputs, norm=cfg.norm, head=cfg.head, residual=cfg.residual,
+        exposure=cfg.exposure,
+    )  # fmt: skip
+
+
+def _geometry(cfg: TrainConfig, catalog: Catalog):
+    """The scene's geometry buffers from the first store, when the network's cues need
+    them (``None`` when they do not); raises :class:`RunError` when the store has none."""
+    try:
+        model_cfg = network_config(cfg, catalog.resolution)
+    except ValueError as exc:
+        raise RunError(str(exc)) from None
+    if not model_cfg.needs_geometry:
+        return None
+    url = catalog.urls[0]
+    layout = Store(url).screen_uv()
+    if layout is None or layout.geometry is None:
+        what = "no screen UV layout" if layout is None else "a layout without geometry buffers"
+        raise RunError(
+            f"{url} has {what}, which --inputs {','.join(cfg.inputs)} needs: farm "
+            "screen-uv STORE renders them (or train with --inputs light, or --recipe paper)"
+        )
+    return layout.geometry
 
 
 def _screen_uv(catalog: Catalog, state: dict | None, init: dict | None = None) -> bytes | None:
@@ -516,13 +556,10 @@ def _screen_uv(catalog: Catalog, state: dict | None, init: dict | None = None) -
     (checked against that store), else the fine-tuned checkpoint's, else none."""
     if state is not None and state.get("screen_uv") is not None:
         return state["screen_uv"]
-    from render_jobs.screen_uv import FILE
-    from storage.reader import Store
-
     store = Store(catalog.urls[0])
     if store.screen_uv() is None:  # raises StoreError when it is unusable
         return None if init is None else init.get("screen_uv")
-    return store.backend.get(FILE)
+    return store.backend.get(SCREEN_UV_FILE)
 
 
 def train_step(cfg: TrainConfig, rk: Rank, t: Trainee, batch: dict) -> torch.Tensor:

@@ -24,7 +24,13 @@ import psutil
 
 from render_jobs.blender import shaderball
 from render_jobs.blender.bpy_guard import bpy
-from render_jobs.blender.shading import UV_AOV, SvbrdfMaterial, neutral_material, register_aovs
+from render_jobs.blender.shading import (
+    UV_AOV,
+    GeometryAovs,
+    SvbrdfMaterial,
+    neutral_material,
+    register_aovs,
+)
 from render_jobs.blender.sky import SkyAndSun
 from render_jobs.errors import RenderError
 from render_jobs.exr import read_layers
@@ -32,7 +38,8 @@ from render_jobs.geometry import MATERIAL_OBJECTS, geometry_hash
 from render_jobs.geometry import shaderball as shaderball_meshes
 from render_jobs.materials.maps import MapBytes, MaterialMaps
 from render_jobs.results import MaterialRender, ScreenMaps, SunRender
-from render_jobs.screen_uv import FILTER_WIDTH, PIXEL_FILTER, ScreenUV
+from render_jobs.screen_geometry import PASS_INDEX, SCENE_MATERIALS, from_subsamples
+from render_jobs.screen_uv import FILTER_WIDTH, PIXEL_FILTER, ScreenUV, filter_taps
 from render_jobs.specs import RenderSettings, Sun
 
 PURGE_EVERY = 16
@@ -112,10 +119,17 @@ class ShaderballRenderer:
         self.material = SvbrdfMaterial(settings.texture_tiling)
         for name in MATERIAL_OBJECTS:
             objects[name].data.materials.append(self.material.material)
-        objects["pedestal"].data.materials.append(
-            neutral_material("pedestal", 0.06, gloss=0.25, roughness=0.35)
-        )
-        objects["ground"].data.materials.append(neutral_material("ground", 0.35))
+        floor, stand = SCENE_MATERIALS["floor"], SCENE_MATERIALS["stand"]
+        self.neutral = [
+            neutral_material(
+                "pedestal", stand["diffuse"], gloss=stand["specular"], roughness=stand["roughness"]
+            ),
+            neutral_material("ground", floor["diffuse"]),
+        ]
+        objects["pedestal"].data.materials.append(self.neutral[0])
+        objects["ground"].data.materials.append(self.neutral[1])
+        for name, index in PASS_INDEX.items():  # the geometry buffers' parts
+            objects[name].pass_index = index
         register_aovs(scene.view_layers[0])
         self.sky = SkyAndSun(scene)
         self.geometry_hash = shaderball.mesh_hash(objects, camera)
@@ -233,9 +247,11 @@ class ShaderballRenderer:
         )
 
     def screen_uv(self, supersample: int) -> ScreenUV:
-        """The ball's UV layout as the camera sees it (:class:`ScreenUV`): the scene rendered
-        once at ``supersample`` times the resolution, one sample per pixel at its centre
-        (filter width 0.01), the UV map and a mask written as AOVs; settings restored after."""
+        """The ball's UV layout as the camera sees it (:class:`ScreenUV`), with the scene's
+        geometry buffers (:mod:`render_jobs.screen_geometry`): the scene rendered once at
+        ``supersample`` times the resolution, one sample per pixel at its centre (filter
+        width 0.01), the UV map, a mask and the geometry written as AOVs; settings restored
+        after."""
         if supersample < 1:
             raise ValueError(f"supersample must be >= 1, not {supersample}")
         scene, render, cycles = self.scene, self.scene.render, self.scene.cycles
@@ -249,6 +265,8 @@ class ShaderballRenderer:
         }
         path = self.scratch / f"screen-uv-{os.getpid()}.exr"
         uv_aov = self.material.add_uv_aov(scene.view_layers[0])
+        materials = [self.material.material, *self.neutral]
+        geometry = GeometryAovs(scene.view_layers[0], materials, self.material)
         try:
             render.resolution_x = render.resolution_y = self.settings.resolution * supersample
             cycles.samples, cycles.filter_width, cycles.max_bounces = 1, 0.01, 0
@@ -264,6 +282,7 @@ class ShaderballRenderer:
         finally:
             path.unlink(missing_ok=True)
             self.material.remove_uv_aov(scene.view_layers[0], uv_aov)
+            geometry.remove()
             for (owner, name), value in saved.items():
                 setattr(owner, name, value)
         hit = layers["mask"][0] > 0.5
@@ -275,7 +294,23 @@ class ShaderballRenderer:
             supersample=supersample,
             texture_tiling=self.settings.texture_tiling,
             geometry_hash=geometry_hash(shaderball_meshes()),
+            geometry=_geometry_buffers(layers, supersample),
         )
+
+
+def _geometry_buffers(layers: dict, supersample: int):
+    """The per-pixel geometry buffers from the supersampled render's AOVs."""
+    world = {k: layers[k][:3].transpose(1, 2, 0) for k in ("geo_position", "geo_normal")}
+    frame = {k: layers[k][:3].transpose(1, 2, 0) for k in ("geo_tangent", "geo_bitangent")}
+    return from_subsamples(
+        world["geo_position"],
+        world["geo_normal"],
+        frame["geo_tangent"],
+        frame["geo_bitangent"],
+        layers["geo_part"][0],
+        supersample,
+        filter_taps(supersample, FILTER_WIDTH),
+    )
 
 
 def _flat_maps() -> MaterialMaps:

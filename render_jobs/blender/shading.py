@@ -40,6 +40,15 @@ AOVS = {
 }
 #: the AOV of the UV map, present only while ``ShaderballRenderer.screen_uv`` renders
 UV_AOV = "uv"
+#: the AOVs of the geometry buffers (``render_jobs.screen_geometry``), world space, present
+#: only while ``ShaderballRenderer.screen_uv`` renders
+GEOMETRY_AOVS = {
+    "geo_position": "COLOR",
+    "geo_normal": "COLOR",
+    "geo_tangent": "COLOR",
+    "geo_bitangent": "COLOR",
+    "geo_part": "VALUE",
+}
 _COLOUR_SPACE = {
     "diffuse": "sRGB",
     "specular": "sRGB",
@@ -127,6 +136,21 @@ class SvbrdfMaterial:
         self.material.node_tree.nodes.remove(self._uv_output)
         view_layer.aovs.remove(aov)
 
+    def tangent_frame(self) -> dict:
+        """Normal Map nodes (as the material's) fed a map of pure +x and of pure +y: their
+        outputs are the directions that the map's x and y mean, by AOV name."""
+        nodes = self.material.node_tree.nodes
+        out = {}
+        for name, colour in (
+            ("geo_tangent", (1.0, 0.5, 0.5, 1.0)),
+            ("geo_bitangent", (0.5, 1.0, 0.5, 1.0)),
+        ):
+            node = nodes.new("ShaderNodeNormalMap")
+            node.space, node.uv_map = "TANGENT", "UVMap"
+            node.inputs["Color"].default_value = colour
+            out[name] = node
+        return out
+
     def set_maps(self, maps: MaterialMaps | MapBytes, folder: Path) -> None:
         """Write ``maps`` as 8-bit PNGs under new names in ``folder`` and point the textures
         at them; the previous material's files are deleted (Cycles read them at its sync)."""
@@ -150,6 +174,47 @@ class SvbrdfMaterial:
             tex.image.colorspace_settings.name = space
         for path in stale:
             path.unlink(missing_ok=True)
+
+
+class GeometryAovs:
+    """The geometry buffers' AOVs (:data:`GEOMETRY_AOVS`) on every material of the scene,
+    for one render: position and shading normal (world space) and the object's pass index
+    everywhere, the material's tangent frame on the ball. :meth:`remove` takes them away."""
+
+    def __init__(self, view_layer, materials: list, ball: SvbrdfMaterial):
+        self.view_layer = view_layer
+        self.aovs = []
+        for name, kind in GEOMETRY_AOVS.items():
+            aov = view_layer.aovs.add()
+            aov.name, aov.type = name, kind
+            self.aovs.append(aov)
+        self.added: list[tuple] = []  # (node tree, node)
+        for mat in materials:
+            nt = mat.node_tree
+            geometry = nt.nodes.new("ShaderNodeNewGeometry")
+            info = nt.nodes.new("ShaderNodeObjectInfo")
+            sockets = {
+                "geo_position": geometry.outputs["Position"],
+                "geo_normal": geometry.outputs["Normal"],
+                "geo_part": info.outputs["Object Index"],
+            }
+            frame = ball.tangent_frame() if mat == ball.material else {}
+            sockets |= {k: node.outputs["Normal"] for k, node in frame.items()}
+            made = [geometry, info, *frame.values()]
+            for name, socket in sockets.items():
+                out = nt.nodes.new("ShaderNodeOutputAOV")
+                out.aov_name = name
+                nt.links.new(
+                    socket, out.inputs["Color" if GEOMETRY_AOVS[name] == "COLOR" else "Value"]
+                )
+                made.append(out)
+            self.added += [(nt, node) for node in made]
+
+    def remove(self) -> None:
+        for nt, node in self.added:
+            nt.nodes.remove(node)
+        for aov in self.aovs:
+            self.view_layer.aovs.remove(aov)
 
 
 def neutral_material(name: str, grey: float, gloss: float = 0.0, roughness: float = 0.5):

@@ -1,0 +1,222 @@
+"""How much the network learns per image pass: recipes trained for the same number of image
+passes on one store, scored on the same held-out materials.
+
+    make bench-learning                                      # 64², 16k and 64k passes (hours)
+    python -m benchmarks.learning --resolution 128 --budget 64000 --rows paper,shaderball
+    python -m benchmarks.learning --budget 800 --rows paper,shaderball --work /tmp/l  # a look
+
+The store (``benchmarks/.cache/learning-R.zarr``) is rendered once by the farm: 100 uniform
+and 100 procedural materials x 5 suns at 32 spp; the trainer's seeded split holds 15 % of the
+materials out. Each row of :data:`ROWS` runs ``trainer train`` with its settings for
+``budget / batch`` steps (one CPU process, one loader worker), then its network is scored on
+every held-out sample (PSNR with its 95 % interval over materials, SSIM, FLIP;
+``trainer.evaluate``). Throughput is the training loop's image passes per second (from the
+run's log) and per CPU-second of the whole run (the trainer and its loader, from the
+operating system's accounting, so a busy machine changes it little).
+
+The rows change one thing at a time from the paper's recipe (``--recipe paper``) at width 32
+(the ``w32`` row; the ``paper`` rows keep the paper's width 64), then the project's default
+recipe (``shaderball``). The paper's loss adds VGG16 features, whose ImageNet weights these
+machines do not have: every ``paper`` row trains with its L1 ablation.
+
+Every row's result is kept in its run folder (``--work``), so a run resumes and rows can be
+added; the tables go to ``benchmarks/results/learning-R.json`` (``python -m
+benchmarks.report`` renders them into docs/benchmarks.md), each row's picture grid (ground
+truth | network | |error| x 4) beside its run, and a grid of ``--grid-rows`` side by side to
+``docs/img/learning-R.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from benchmarks.results import Table, save
+from trainer.config import TrainConfig, to_argv
+
+BIN = Path(sys.executable).parent
+CACHE = Path(__file__).resolve().parent / ".cache"
+DOC_IMG = Path(__file__).resolve().parent.parent / "docs" / "img"
+#: the store's materials (uniform, procedural), suns and samples per pixel
+MATERIALS = (100, 100)
+SUNS = 5
+SPP = 32
+HOLDOUT = 0.15
+BUDGETS = (16_000, 64_000)
+#: held-out samples shown in each grid
+GRID_COUNT = 6
+
+#: the width-32 paper recipe the one-change rows start from (L1: no VGG16 weights here)
+W32 = {"recipe": "paper", "loss": "l1", "width": 32}
+#: name: (what it changes, TrainConfig settings)
+ROWS = {
+    "paper": ("the paper's recipe: width 64, batch 6, Adam 1e-3 (the authors'), L1",
+              {"recipe": "paper", "loss": "l1"}),
+    "paper-lr1e-2": ("the paper's recipe with its printed rate, 1e-2",
+                     {"recipe": "paper", "loss": "l1", "lr": 1e-2}),
+    "w32": ("the paper's recipe at width 32: the rows below change one thing from it", W32),
+    "onecycle": ("one-cycle schedule to 2e-3", W32 | {"lr_schedule": "onecycle", "lr": 2e-3}),
+    "cosine": ("cosine schedule from 1e-3", W32 | {"lr_schedule": "cosine"}),
+    "msssim": ("loss L1 + MS-SSIM", W32 | {"loss": "l1+msssim"}),
+    "groupnorm": ("GroupNorm", W32 | {"norm": "group"}),
+    "batch16": ("batch 16", W32 | {"batch_size": 16}),
+    "ema": ("weights averaged (0.999)", W32 | {"ema_decay": 0.999}),
+    "paint": ("input: maps painted with the scene's parts", W32 | {"inputs": "paint"}),
+    "geometry": ("input: normal, depth, part coverage", W32 | {"inputs": "geometry"}),
+    "light": ("input: light as full-resolution planes", W32 | {"inputs": "light"}),
+    "normal": ("input: shading normal, reflection", W32 | {"inputs": "normal,reflection"}),
+    "shadow": ("input: sun visibility", W32 | {"inputs": "shadow"}),
+    "shade": ("input: analytic shading", W32 | {"inputs": "shade"}),
+    "residual": ("output: a correction of the analytic shading",
+                 W32 | {"inputs": "shade", "residual": True}),
+    "head": ("a full-resolution head", W32 | {"head": True}),
+    "shaderball": ("the default recipe (trainer.config.RECIPES)", {}),
+}  # fmt: skip
+
+
+def ensure_store(resolution: int, cache: Path = CACHE) -> str:
+    """The benchmark's store at ``resolution``, rendered by the farm on first use."""
+    path = cache / f"learning-{resolution}.zarr"
+    if (path / "zarr.json").exists():
+        return str(path)
+    from farm.driver import submit
+    from farm.plan import JobConfig
+
+    uniform, procedural = MATERIALS
+    print(f"rendering {path} ({sum(MATERIALS)} materials x {SUNS} suns, once)", flush=True)
+    cfg = JobConfig(
+        sources=(f"uniform:{uniform}", f"procedural:{procedural}"), out=str(path),
+        resolution=resolution, samples=SPP, suns=SUNS, shard_size=5 * SUNS,
+        ray_dashboard=False,
+    )  # fmt: skip
+    summary = submit(cfg, progress=True, echo=lambda *_: None)
+    if not summary.ok:
+        raise RuntimeError(f"the learning store failed: {summary.failed_materials}")
+    return str(path)
+
+
+def row_config(name: str, store: str, run: Path, budget: int) -> TrainConfig:
+    """The training run of row ``name`` for ``budget`` image passes."""
+    settings = ROWS[name][1]
+    probe = TrainConfig(store=(store,), **settings)
+    return TrainConfig(
+        store=(store,), out=str(run), max_steps=max(1, budget // probe.batch_size),
+        epochs=100_000, holdout_fraction=HOLDOUT, val_samples=0, workers=1,
+        checkpoint_every=1_000_000, keep=1, log_every=50, **settings,
+    )  # fmt: skip
+
+
+def train_row(cfg: TrainConfig) -> dict:
+    """Run ``trainer train`` for ``cfg`` (resuming a run it left); its throughput."""
+    argv = [str(BIN / "trainer"), "train", *to_argv(cfg)]
+    if (Path(cfg.out) / "checkpoints").exists():
+        argv.append("--resume")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    started = time.perf_counter()
+    subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    lines = [json.loads(x) for x in (Path(cfg.out) / "log.jsonl").read_text().splitlines()]
+    steps = [x for x in lines if "images_per_second" in x and x.get("images_per_second")]
+    images = sum(x["images"] for x in steps)
+    loop_seconds = sum(x["images"] / x["images_per_second"] for x in steps)
+    return {
+        "images": images,
+        "passes_per_second": images / loop_seconds if loop_seconds else None,
+        "passes_per_cpu_second": images / cpu if cpu else None,
+        "wall_seconds": time.perf_counter() - started,
+    }
+
+
+def score_run(run: Path, grid: Path | None = None) -> dict:
+    """The run's network on its held-out split: the summary of ``trainer.evaluate``."""
+    from trainer.evaluate import score, test_split, write_grid
+    from trainer.infer import load_renderer
+
+    renderer = load_renderer(run, "cpu")
+    split = test_split(renderer, None, None)
+    scored = score([renderer], split, 16, GRID_COUNT)
+    if grid is not None:
+        write_grid(grid, scored.shown)
+    return scored.summary()["overall"]
+
+
+def run_row(name: str, store: str, work: Path, budget: int) -> dict:
+    """Row ``name`` at ``budget`` passes: trained and scored once, then read from its file."""
+    run = work / str(budget) / name
+    done = run / "result.json"
+    if done.exists():
+        return json.loads(done.read_text())
+    cfg = row_config(name, store, run, budget)
+    print(f"{name} ({budget:,} passes, {cfg.max_steps} steps)", flush=True)
+    speed = train_row(cfg)
+    result = {"row": name, "budget": budget, **speed, **score_run(run, run / "grid.png")}
+    done.write_text(json.dumps(result, indent=1))
+    print(f"  {result['psnr']:.2f} dB, {result['passes_per_second']:.1f} passes/s", flush=True)
+    return result
+
+
+def table(resolution: int, budget: int, results: list[dict]) -> Table:
+    t = Table(
+        title=f"Learning per image pass: {resolution}², {budget:,} passes, held-out materials",
+        columns=["row", "what changes", "PSNR dB", "95 % interval", "SSIM", "FLIP",
+                 "passes / s", "passes / CPU-s"],
+        notes=[f"{sum(MATERIALS)} materials x {SUNS} suns at {SPP} spp, {HOLDOUT:.0%} of the "
+               "materials held out; every row trains one CPU process with one loader worker"],
+    )  # fmt: skip
+    for r in results:
+        t.rows.append([
+            r["row"], ROWS[r["row"]][0], round(r["psnr"], 2),
+            f"{r['psnr_low']:.2f}-{r['psnr_high']:.2f}" if r.get("psnr_low") else None,
+            round(r["ssim"], 4), round(r["flip"], 4),
+            round(r["passes_per_second"], 1), round(r["passes_per_cpu_second"], 1),
+        ])  # fmt: skip
+    return t
+
+
+def side_by_side(work: Path, budget: int, names: list[str], path: Path) -> None:
+    """One grid of the rows ``names`` on the same held-out samples."""
+    from trainer.evaluate import score, test_split, write_grid
+    from trainer.infer import load_renderer
+
+    renderers = [load_renderer(work / str(budget) / n, "cpu") for n in names]
+    scored = score(renderers, test_split(renderers[0], None, None), 16, GRID_COUNT)
+    write_grid(path, scored.shown, labels=tuple(names))
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--resolution", type=int, default=64)
+    p.add_argument("--budget", type=int, action="append", help="image passes (repeatable)")
+    p.add_argument("--rows", default=None, help="comma-separated rows (default: every row)")
+    p.add_argument("--grid-rows", default="paper,shaderball")
+    p.add_argument("--work", type=Path, default=CACHE / "learning")
+    p.add_argument("--results", type=Path, default=None, help="folder of the result tables")
+    args = p.parse_args(argv)
+    names = args.rows.split(",") if args.rows else list(ROWS)
+    if unknown := [n for n in names if n not in ROWS]:
+        p.error(f"unknown row {unknown[0]!r}: one of {', '.join(ROWS)}")
+    store = ensure_store(args.resolution)
+    work = args.work / str(args.resolution)
+    os.environ.setdefault("OMP_NUM_THREADS", str(len(os.sched_getaffinity(0))))
+    for budget in args.budget or BUDGETS:
+        results = [run_row(n, store, work, budget) for n in names]
+        t = table(args.resolution, budget, results)
+        print(t.markdown(), flush=True)
+        name = f"learning-{args.resolution}-{budget // 1000}k"
+        save(name, t, *([args.results] if args.results else []))
+        shown = [n for n in args.grid_rows.split(",") if n in names]
+        if shown:
+            grid = (args.results or DOC_IMG) / f"{name}.png"
+            side_by_side(work, budget, shown, grid)
+            print(f"grid: {grid}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,300 @@
+"""The scene's geometry buffers and the network's scene cues, the network's options beyond the
+paper, the training recipes, the one-cycle schedule and the MS-SSIM loss: plain parts without
+processes, and (slow) the buffers Blender renders."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from render_jobs.screen_geometry import (
+    PARTS,
+    ScreenGeometry,
+    camera_rays,
+    camera_to_world,
+    from_subsamples,
+    half_width,
+)
+from render_jobs.screen_uv import ScreenUV, filter_taps
+from render_jobs.specs import CAMERA, Sun
+from render_jobs.sun import sun_lamp
+from trainer.config import RECIPES, TrainConfig, parse_inputs, to_argv
+from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
+from trainer.perceptual import RendererLoss, msssim_window
+from trainer.scene import CUES, SceneInputs, cue_channels, sun_irradiance
+from trainer.schedule import lr_at, resumed_knee
+from trainer.targets import light_vector
+
+ALL = tuple(CUES)
+
+
+def geometry_at(world: dict[tuple[int, int], tuple], n: int = 4) -> ScreenGeometry:
+    """Made-up buffers: pixel ``(row, col)`` sees the surface ``(world position, world
+    normal, part)``; every other pixel sees sky."""
+    rot = camera_to_world()
+    g = {k: np.zeros((3, n, n), np.float32) for k in ("position", "normal", "tangent", "bitangent")}
+    parts = np.zeros((len(PARTS), n, n), np.float32)
+    parts[PARTS.index("sky")] = 1
+    for (i, j), (p, normal, part) in world.items():
+        g["position"][:, i, j] = (np.asarray(p) - CAMERA.location) @ rot
+        g["normal"][:, i, j] = np.asarray(normal) @ rot
+        parts[:, i, j] = 0
+        parts[PARTS.index(part), i, j] = 1
+        if part in ("ball", "ring", "core"):  # a tangent frame around the normal
+            t = np.cross([0.0, 0.0, 1.0], normal)
+            t = t / np.linalg.norm(t) if np.linalg.norm(t) > 0 else np.array([1.0, 0, 0])
+            g["tangent"][:, i, j] = t @ rot
+            g["bitangent"][:, i, j] = np.cross(normal, t) @ rot
+    return ScreenGeometry(
+        **g, parts=parts, camera_to_world=tuple(map(tuple, rot)),
+        camera_location=CAMERA.location, half_width=half_width(),
+    )  # fmt: skip
+
+
+def light(direction, turbidity=3.0) -> torch.Tensor:
+    return torch.from_numpy(light_vector(direction, turbidity))[None]
+
+
+# ---- the geometry buffers -------------------------------------------------------------------
+
+
+def test_the_camera_looks_at_its_target_from_blenders_track_to_frame():
+    rot = camera_to_world()
+    np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-12)
+    forward = np.subtract(CAMERA.look_at, CAMERA.location)
+    forward /= np.linalg.norm(forward)
+    np.testing.assert_allclose(-rot[:, 2], forward, atol=1e-12)  # the camera looks down -z
+    assert rot[2, 1] > 0 and abs(rot[2, 0]) < 1e-12  # its up leans to world up, no roll
+    centre = camera_rays(2, half_width())  # the four rays around the image centre
+    np.testing.assert_allclose(centre.mean((0, 1)) / np.linalg.norm(centre.mean((0, 1))),
+                               [0, 0, -1], atol=1e-12)  # fmt: skip
+
+
+def test_buffers_from_subsamples_filter_each_part_and_round_trip_in_the_layout():
+    s, n = 2, 4  # 2x2 sub-samples a pixel, 4² pixels
+    rays = camera_rays(n * s, half_width()) @ camera_to_world().T
+    world = CAMERA.location + rays * 5.0
+    up = np.broadcast_to([0.0, 0.0, 1.0], world.shape)
+    index = np.zeros((n * s, n * s))
+    index[n:, :] = 1  # the lower half sees the floor
+    index[n:, : n // 2] = 5  # its left corner the core
+    g = from_subsamples(world, up, up, up, index, s, filter_taps(s))
+    np.testing.assert_allclose(g.parts.sum(0), 1, atol=1e-6)
+    assert g.parts[PARTS.index("sky"), 0, 0] > 0.99 and g.parts[PARTS.index("floor"), -1, -1] > 0.99
+    assert g.tangent[:, 0, -1].tolist() == [0, 0, 0]  # the floor has no tangent frame
+    inside = g.parts[0] < 0.01
+    depth = np.linalg.norm(g.position, axis=0)[inside]
+    np.testing.assert_allclose(depth, 5.0, rtol=0.01)  # the mean of points 5 m away
+    layout = ScreenUV(
+        uv=np.zeros((n * s, n * s, 2), np.float32), hit=index == 5, resolution=n, supersample=s,
+        texture_tiling=2.0, geometry_hash="x", geometry=g,
+    )  # fmt: skip
+    back = ScreenUV.from_bytes(layout.to_bytes())
+    for name, a in g.arrays().items():
+        np.testing.assert_array_equal(getattr(back.geometry, name), a)
+    assert back.geometry.meta() == g.meta()
+    old = dataclasses.replace(layout, geometry=None)  # a layout rendered before the buffers
+    assert ScreenUV.from_bytes(old.to_bytes()).geometry is None
+
+
+@pytest.mark.slow
+def test_blender_renders_the_buffers_with_the_layout(worker):
+    layout = worker.screen_uv(4)
+    g = layout.geometry
+    assert g is not None and g.resolution == layout.resolution
+    np.testing.assert_allclose(g.parts.sum(0), 1, atol=1e-5)
+    material = g.parts[[PARTS.index(p) for p in ("ball", "ring", "core")]].sum(0)
+    np.testing.assert_allclose(material, layout.coverage(), atol=1e-5)  # the UV render's hits
+    for part in ("floor", "stand", "ball", "core", "sky"):
+        assert (g.parts[PARTS.index(part)] > 0.99).any(), part
+    full = g.parts[PARTS.index("sky")] < 1e-6
+    seen = g.position[:, full] / np.linalg.norm(g.position[:, full], axis=0)
+    rays = camera_rays(g.resolution, g.half_width).transpose(2, 0, 1)[:, full]
+    assert np.abs(seen - rays).max() < 0.01  # what each pixel sees lies on its camera ray
+    flat = full & (g.parts[PARTS.index("floor")] > 0.999)
+    up = np.asarray(g.camera_to_world) @ g.normal[:, flat]
+    np.testing.assert_allclose(up, np.broadcast_to([[0], [0], [1]], up.shape), atol=1e-3)
+    ball = material > 0.999
+    dot = (g.tangent[:, ball] * g.normal[:, ball]).sum(0)
+    assert np.abs(dot).max() < 0.05  # the tangent frame lies in the surface
+
+
+# ---- the cues ---------------------------------------------------------------------------------
+
+
+def test_the_sun_lamps_irradiance_in_torch_is_the_renderers():
+    for direction, turbidity in [
+        ((0.3, 0.2, 0.5), 3.0),
+        ((0.1, -0.5, 0.2), 9.0),
+        ((1, 0, 0.18), 6),
+    ]:
+        strength, colour = sun_lamp(Sun(tuple(np.asarray(direction) / np.linalg.norm(direction)),
+                                        turbidity))  # fmt: skip
+        got = sun_irradiance(light(direction, turbidity))[0].numpy()
+        np.testing.assert_allclose(got, strength * np.asarray(colour), rtol=1e-5)
+
+
+def test_shadows_of_the_ball_and_the_stand_on_the_floor_and_in_the_cut():
+    g = geometry_at({
+        (0, 0): ((0.0, 0.0, -1.5), (0, 0, 1), "floor"),  # under the ball
+        (0, 1): ((4.0, 0.0, -1.5), (0, 0, 1), "floor"),  # far from it
+        (0, 2): ((0.45, 0.0, -1.5), (0, 0, 1), "floor"),  # beside the column, under the ball
+        (0, 3): ((0.0, -0.86, 0.0), (0, -1, 0), "core"),  # the core where the cut shows it
+    })  # fmt: skip
+    scene = SceneInputs(("shadow",), 4, 1, 1.0, g)
+    overhead = scene.visibility(light((0, 0, 1))[:, :3])[0, 0]
+    assert overhead[0, 0] == 0 and overhead[0, 1] == 1 and overhead[0, 2] == 0
+    low = scene.visibility(light((1, 0, 0.2))[:, :3])[0, 0]  # from the side, 11° up
+    assert low[0, 2] == 0  # the column shades the floor beside it
+    assert low[0, 1] == 1
+    tilt = np.radians(25.0)  # along the cut's tilted plane the sun reaches the core...
+    along = (-np.cos(tilt) * 0.2, -0.98, np.sin(tilt) * 0.2)
+    assert scene.visibility(light(along)[:, :3])[0, 0, 0, 3] == 1
+    across = (0.0, -0.5, 0.87)  # ...from steeply above, the shell's upper half shades it
+    assert scene.visibility(light(across)[:, :3])[0, 0, 0, 3] == 0
+
+
+def test_cue_channels_painting_normals_and_shading():
+    g = geometry_at({
+        (1, 1): ((0.0, -1.0, 0.0), (0, -1, 0), "ball"),
+        (2, 2): ((3.0, 0.0, -1.5), (0, 0, 1), "floor"),
+    })  # fmt: skip
+    scene = SceneInputs(ALL, 4, 1, 1.0, g)
+    maps = torch.zeros(2, 10, 4, 4)
+    maps[:, :3, 1, 1] = 0.8  # a light grey diffuse material, a flat normal map
+    maps[:, 7:10, 1, 1] = torch.tensor([0.5, 0.5, 1.0])
+    facing = light((0.0, -1.0, 0.3))  # the sun behind the camera lights the ball's front
+    behind = light((0.0, 1.0, 0.3))
+    out = scene(maps, torch.cat([facing, behind]))
+    assert out.shape == (2, 10 + cue_channels(ALL), 4, 4) == (2, scene.out_channels, 4, 4)
+    floor = g.materials["floor"]
+    assert out[0, 0, 2, 2] == pytest.approx(float(_srgb(floor["diffuse"])), abs=1e-6)
+    assert torch.all(out[0, :10, 0, 0] == 1)  # the sky painted white
+    normal = out[:, 24:27, 1, 1]  # paint 0 + geometry 10 + light 4 after the 10 maps
+    np.testing.assert_allclose(normal[0].numpy(), g.normal[:, 1, 1], atol=1e-5)
+    shade = out[:, -3:]
+    assert shade[0, :, 1, 1].mean() > shade[1, :, 1, 1].mean() + 0.2  # lit from the front
+    assert shade[0, :, 0, 0].tolist() == pytest.approx([0.5] * 3)  # the sky is not shaded
+
+
+def _srgb(x: float) -> float:
+    return 12.92 * x if x <= 0.0031308 else 1.055 * x ** (1 / 2.4) - 0.055
+
+
+# ---- the network's options --------------------------------------------------------------------
+
+
+def test_networks_with_cues_keep_their_buffers_through_a_checkpoint():
+    g = geometry_at({(1, 1): ((0.0, -1.0, 0.0), (0, -1, 0), "ball")}, n=16)
+    cfg = ModelConfig(16, 8, inputs=ALL, norm="group", head=True, residual=True)
+    model = NeuralRenderer(cfg, g).eval()
+    assert model.encoder[0][0].in_channels == cfg.network_channels == 10 + cue_channels(ALL)
+    x, lt = torch.rand(2, 10, 16, 16), torch.rand(2, 4)
+    again = NeuralRenderer(cfg).eval()  # zeros until the weights are loaded
+    again.load_state_dict(model.state_dict())
+    with torch.no_grad():
+        assert torch.equal(again(x, lt), model(x, lt))
+        np.testing.assert_allclose(fold_batchnorm(model)(x, lt), model(x, lt), atol=1e-6)
+    half = again.to(torch.bfloat16)
+    assert half.scene.position.dtype == torch.float32  # positions keep their centimetres
+    assert half(x.bfloat16(), lt.bfloat16()).dtype == torch.bfloat16
+
+
+@pytest.mark.parametrize(
+    "kw, says",
+    [
+        ({"inputs": ("glow",)}, "unknown input cue 'glow'"),
+        ({"residual": True}, "add it to the inputs"),
+        ({"norm": "group", "width": 12}, "multiple of 8"),
+        ({"norm": "layer"}, "norm must be one of"),
+        ({"arch": "zf", "inputs": ("light",)}, "paper's inputs only"),
+    ],
+)
+def test_network_options_are_checked(kw, says):
+    with pytest.raises(ValueError, match=says):
+        ModelConfig(16, **{"width": 8, **kw})
+
+
+def test_the_paper_network_is_the_plain_one():
+    assert ModelConfig().plain and not ModelConfig(inputs=("light",)).plain
+    assert not ModelConfig(norm="group").plain and not ModelConfig(head=True).plain
+
+
+# ---- recipes ------------------------------------------------------------------------------------
+
+
+def test_recipes_give_defaults_that_a_setting_of_ones_own_overrides(tmp_path):
+    default = TrainConfig(store=("s",))
+    assert default.recipe == "shaderball"
+    for name, value in RECIPES["shaderball"].items():
+        assert getattr(default, name) == value, name
+    paper = TrainConfig(store=("s",), recipe="paper", lr=1e-2, inputs="light")
+    assert (paper.width, paper.batch_size, paper.lr, paper.inputs) == (64, 6, 1e-2, ("light",))
+    assert to_argv(paper)[2:] == ["--recipe", "paper", "--lr", "0.01", "--inputs", "light"]
+    assert TrainConfig(store=("s",), model="zf").inputs == ()  # the baseline takes maps only
+    assert TrainConfig(store=("s",), inputs="none").inputs == ()
+    with pytest.raises(ValueError, match="unknown input cue"):
+        parse_inputs("geometry,glow")
+
+
+def test_a_config_kept_before_recipes_is_the_papers():
+    kept = TrainConfig(store=("s",), recipe="paper").to_dict()
+    for name in ("recipe", "inputs", "norm", "head", "residual"):
+        kept.pop(name)
+    back = TrainConfig.from_dict(kept)
+    assert back.recipe == "paper" and back.inputs == () and back.norm == "batch"
+
+
+def test_the_cli_rebuilds_a_config_from_its_argv():
+    from click.testing import CliRunner
+
+    from trainer.cli import main
+
+    cfg = TrainConfig(store=("s",), recipe="paper", inputs="geometry,light", head=True)
+    r = CliRunner().invoke(main, ["train", "--help"])
+    assert "shaderball: l1+msssim; paper: l1+vgg" in " ".join(r.output.split())
+    seen = {}
+
+    def fake(cfg):  # what `trainer train` would train
+        seen["cfg"] = cfg
+        return {"steps": 0, "images_per_second": 0, "seconds": 0, "checkpoint": "",
+                "val": None, "best": None}  # fmt: skip
+
+    import trainer.train
+
+    original, trainer.train.train = trainer.train.train, fake
+    try:
+        r = CliRunner().invoke(main, ["train", *to_argv(cfg)])
+    finally:
+        trainer.train.train = original
+    assert r.exit_code == 0, r.output
+    assert seen["cfg"] == cfg
+
+
+# ---- schedule and loss ------------------------------------------------------------------------
+
+
+def test_one_cycle_rises_to_its_peak_then_falls_to_zero():
+    rates = [lr_at(s, 1.0, "onecycle", 100) for s in range(100)]
+    assert rates[0] == pytest.approx(1 / 25, abs=0.01)
+    assert max(rates) == pytest.approx(1.0) and rates.index(max(rates)) in (29, 30)
+    assert rates[-1] < 1e-3 and all(a >= b for a, b in zip(rates[30:], rates[31:], strict=False))
+    was = {"schedule": "onecycle", "total": 100, "knee": [30, 1.0]}
+    knee = resumed_knee(60, was, 200, 0, "onecycle")  # resumed for a longer run
+    assert lr_at(60, 1.0, "onecycle", 200, 0, knee) == pytest.approx(rates[60])
+
+
+@pytest.mark.parametrize("side", [16, 32, 64, 128])
+def test_msssim_loss_fits_small_images(side):
+    win, weights = msssim_window(side)
+    assert sum(weights) == pytest.approx(1) and win in (7, 11)
+    loss = RendererLoss(structural=True)
+    a = torch.rand(2, 3, side, side, requires_grad=True)
+    b = torch.rand(2, 3, side, side)
+    assert float(loss(b, b)) == pytest.approx(0, abs=1e-6)
+    value = loss(a, b)
+    value.backward()
+    assert float(value.detach()) > 0.1 and torch.isfinite(a.grad).all()

@@ -1,0 +1,352 @@
+"""The network's scene inputs: what the fixed camera sees of the scene, and cheap shading of it.
+
+The paper's network sees only the material maps (zeros off the ball) and a light vector
+at its bottleneck. Every render shares the camera, the ball, the stand and the floor, so the
+per-pixel geometry (``render_jobs.screen_geometry``, rendered once by Blender and kept with
+each store and checkpoint) can be given too, and from it and the sun a cheap analytic
+shading. :class:`SceneInputs` computes the chosen cues (:data:`CUES`) from a batch's maps and
+light and concatenates them after the maps:
+
+- ``paint``: the maps outside the material painted with the floor's and the stand's own
+  (constant) materials, and white where the camera sees sky, so every pixel says what it is
+  (the authors' released inputs paint the parts of their scene alike);
+- ``geometry`` (10): camera-space surface normal (3), inverse depth (1, ``3 / depth``), and
+  the pixel's coverage of each part of the scene (6: sky, floor, stand, ball, ring, core);
+- ``light`` (4): the sun direction in camera space and turbidity / 10, as constant planes at
+  full resolution (the paper's light encoder reaches only the bottleneck);
+- ``normal`` (3): the shading normal in camera space, the normal map turned by the
+  material's tangent frame;
+- ``reflection`` (3): the view direction mirrored about the shading normal, in world space
+  (z up): where a glossy surface reflects the sky and where the floor;
+- ``shadow`` (1): the sun's visibility, a ray from each pixel's surface towards the sun
+  tested against the scene's analytic shadow casters (``render_jobs.geometry.occluders``);
+- ``shade`` (3): Cook-Torrance under the sun lamp (Lambert + GGX as the renderer's
+  material, the lamp's strength and colour from ``render_jobs.sun``), times the sun's
+  visibility, plus a hemispherical sky term, tonemapped as the targets are; mid-grey
+  where the camera sees sky.
+
+Shapes: maps ``(N, 9 + r, H, W)`` in [0, 1] (``trainer.targets.model_inputs``), light
+``(N, 4)``; out ``(N, 9 + r + channels(cues), H, W)``. Everything is a differentiable torch
+expression of the inputs and constant buffers, so ONNX export and every inference path run it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from render_jobs import sun as sunlib
+from render_jobs.screen_geometry import PARTS, ScreenGeometry, camera_rays, half_width
+from trainer.targets import TURBIDITY_SCALE, Tonemap, srgb_decode, srgb_encode
+
+#: each cue and its channels, in the order they are concatenated
+CUES = {
+    "paint": 0,
+    "geometry": 10,
+    "light": 4,
+    "normal": 3,
+    "reflection": 3,
+    "shadow": 1,
+    "shade": 3,
+}
+#: the parts that carry the material's maps
+MATERIAL_PARTS = ("ball", "ring", "core")
+#: the cues that need the scene's geometry buffers
+NEEDS_GEOMETRY = ("paint", "geometry", "normal", "reflection", "shadow", "shade")
+#: horizontal irradiance of the sky alone (W/m², Blender's Hosek-Wilkie at strength 1;
+#: ``render_jobs.sun.SUN_ZENITH_IRRADIANCE``'s comment measures it at 0.24-0.27)
+SKY_IRRADIANCE = 0.25
+#: what the shade cue holds where the camera sees sky (mid-grey: a residual network's
+#: neutral start there)
+SKY_SHADE = 0.5
+#: the least GGX alpha shaded (a mirror's sun highlight would be a single huge pixel)
+MIN_ALPHA = 0.02
+#: how far a shadow ray starts off its surface, metres
+RAY_OFFSET = 2e-3
+
+
+def check_cues(cues: tuple[str, ...]) -> None:
+    """Raise ``ValueError`` naming an unknown or repeated cue."""
+    for i, c in enumerate(cues):
+        if c not in CUES:
+            raise ValueError(f"unknown input cue {c!r}: one of {', '.join(CUES)}")
+        if c in cues[:i]:
+            raise ValueError(f"input cue {c!r} is given twice")
+
+
+def cue_channels(cues: tuple[str, ...]) -> int:
+    return sum(CUES[c] for c in cues)
+
+
+def ordered(cues) -> tuple[str, ...]:
+    """``cues`` in :data:`CUES` order (the order their channels are concatenated)."""
+    return tuple(c for c in CUES if c in set(cues))
+
+
+class SceneInputs(nn.Module):
+    """The maps with the cues ``cues`` concatenated (see the module docstring).
+
+    ``geometry`` fills the constant buffers; without it they are zeros of the right shapes,
+    for a checkpoint's ``load_state_dict`` to fill. ``exposure`` is the targets' tonemap's."""
+
+    def __init__(
+        self,
+        cues: tuple[str, ...],
+        resolution: int,
+        roughness_channels: int,
+        exposure: float,
+        geometry: ScreenGeometry | None = None,
+    ):
+        super().__init__()
+        check_cues(cues)
+        self.cues = ordered(cues)
+        self.r = roughness_channels
+        self.tonemap = Tonemap(exposure=exposure)
+        n = resolution
+        self.register_buffer("position", torch.zeros(3, n, n))
+        self.register_buffer("normal", torch.zeros(3, n, n))
+        self.register_buffer("tangent", torch.zeros(3, n, n))
+        self.register_buffer("bitangent", torch.zeros(3, n, n))
+        self.register_buffer("parts", torch.zeros(len(PARTS), n, n))
+        self.register_buffer("camera_to_world", torch.eye(3))
+        self.register_buffer("camera_location", torch.zeros(3))
+        self.register_buffer("part_materials", torch.zeros(len(PARTS), 3))  # diffuse, spec, r
+        self.register_buffer("spheres", torch.zeros(0, 9))  # centre, radius, axis, lo, hi
+        self.register_buffer("frustums", torch.zeros(0, 4))  # z0, z1, r0, r1
+        self.register_buffer("rays", _rays(n, half_width()), persistent=False)
+        if geometry is not None:
+            self.set_geometry(geometry)
+
+    @torch.no_grad()
+    def set_geometry(self, g: ScreenGeometry) -> None:
+        """Fill the buffers from ``g``."""
+        for name in ("position", "normal", "tangent", "bitangent", "parts"):
+            getattr(self, name).copy_(torch.from_numpy(getattr(g, name)))
+        self.camera_to_world.copy_(torch.tensor(g.camera_to_world))
+        self.camera_location.copy_(torch.tensor(g.camera_location))
+        self.rays.copy_(_rays(self.rays.shape[-1], g.half_width))
+        mats = torch.zeros(len(PARTS), 3)
+        mats[PARTS.index("sky")] = torch.tensor([1.0, 1.0, 1.0])
+        for part, m in g.materials.items():
+            mats[PARTS.index(part)] = torch.tensor([m["diffuse"], m["specular"], m["roughness"]])
+        self.part_materials.copy_(mats)
+        spheres = [
+            [*s["centre"], s["radius"], *s["axis"], s["lo"], s["hi"]]
+            for s in g.occluders["spheres"]
+        ]
+        frustums = [[f["z0"], f["z1"], f["r0"], f["r1"]] for f in g.occluders["frustums"]]
+        self.spheres = torch.tensor(spheres, dtype=torch.float32).view(-1, 9)
+        self.frustums = torch.tensor(frustums, dtype=torch.float32).view(-1, 4)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        for name in ("spheres", "frustums"):  # their count is the checkpoint's
+            key = prefix + name
+            if key in state_dict:
+                setattr(self, name, torch.empty_like(state_dict[key]))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    @property
+    def out_channels(self) -> int:
+        return 9 + self.r + cue_channels(self.cues)
+
+    def _apply(self, fn, recurse=True):
+        """Moves keep the buffers in float32 (a network cast to bf16 would otherwise round
+        the positions by centimetres and the shadows with them); only the device follows."""
+        device = fn(torch.zeros(0)).device
+        for name, buf in self._buffers.items():
+            if buf is not None:
+                self._buffers[name] = buf.to(device)
+        return self
+
+    def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+        """The cues in float32, outside any autocast; returned in ``maps``' dtype."""
+        with torch.autocast(maps.device.type, enabled=False):
+            return self._cues(maps.float(), light.float()).to(maps.dtype)
+
+    def _cues(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+        cov = self.material_coverage()
+        painted = self.painted(maps, cov)
+        out = [painted if "paint" in self.cues else maps]
+        sun = light[:, :3] @ self.camera_to_world  # camera space, (N, 3)
+        shaded = {"normal", "reflection", "shade"} & set(self.cues)
+        normal = self.shading_normal(painted, cov) if shaded else None
+        vis = self.visibility(light[:, :3]) if {"shadow", "shade"} & set(self.cues) else None
+        for cue in self.cues:
+            if cue == "geometry":
+                out.append(self.geometry_planes().expand(len(maps), -1, -1, -1))
+            elif cue == "light":
+                planes = torch.cat([sun, light[:, 3:]], 1)[:, :, None, None]
+                out.append(planes.expand(-1, -1, *maps.shape[-2:]))
+            elif cue == "normal":
+                out.append(normal)
+            elif cue == "reflection":
+                out.append(self.reflection(normal))
+            elif cue == "shadow":
+                out.append(vis)
+            elif cue == "shade":
+                out.append(self.shade(painted, normal, vis, light))
+        return torch.cat(out, 1)
+
+    # ---- the cues ---------------------------------------------------------------------------
+
+    def material_coverage(self) -> torch.Tensor:
+        """``(1, 1, H, W)``: the pixel's coverage of the material."""
+        idx = [PARTS.index(p) for p in MATERIAL_PARTS]
+        return self.parts[idx].sum(0)[None, None]
+
+    def painted(self, maps: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+        """The maps with every other part's material added in its coverage: diffuse and
+        specular as sRGB-encoded greys, roughness, and a flat normal (sky: all white)."""
+        r = self.r
+        m = self.part_materials  # (P, 3) linear diffuse, specular, roughness
+        grey = srgb_encode(m[:, :2])
+        flat = torch.tensor([0.5, 0.5, 1.0], device=maps.device)
+        values = torch.cat(
+            [grey[:, :1].expand(-1, 3), grey[:, 1:2].expand(-1, 3), m[:, 2:3].expand(-1, r),
+             flat.expand(len(m), 3)], 1,
+        )  # fmt: skip
+        values[PARTS.index("sky")] = 1.0
+        others = [i for i, p in enumerate(PARTS) if p not in MATERIAL_PARTS]
+        fill = _mix(values[others].T, self.parts[others])
+        return maps + fill[None]
+
+    def geometry_planes(self) -> torch.Tensor:
+        """``(1, 10, H, W)``: normal, inverse depth, part coverages."""
+        depth = (-self.position[2:3]).clamp_min(0)
+        inverse = torch.where(depth > 1e-3, 3.0 / depth.clamp_min(1e-3), torch.zeros_like(depth))
+        return torch.cat([self.normal, inverse, self.parts])[None]
+
+    def shading_normal(self, painted: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+        """``(N, 3, H, W)`` unit camera-space normals: the material's normal map in its
+        tangent frame where the material is, the surface normal elsewhere."""
+        k = 6 + self.r
+        # the maps are the material's values weighted by its coverage: undo that first
+        nmap = painted[:, k : k + 3] / cov.clamp_min(0.05) * 2 - 1
+        tb = (self.tangent, self.bitangent, self.normal)
+        mapped = sum(nmap[:, i : i + 1] * v[None] for i, v in enumerate(tb))
+        n = cov * mapped + (1 - cov) * self.normal[None]
+        return F.normalize(n, dim=1, eps=1e-6)
+
+    def reflection(self, normal: torch.Tensor) -> torch.Tensor:
+        """``(N, 3, H, W)``: the view direction mirrored about ``normal``, in world space."""
+        view = -self.rays[None]
+        r = 2 * (normal * view).sum(1, keepdim=True) * normal - view
+        return _mix(self.camera_to_world, r)
+
+    def visibility(self, sun_world: torch.Tensor) -> torch.Tensor:
+        """``(N, 1, H, W)``: 1 where the sun is seen from the pixel's surface, else 0."""
+        surface = (1 - self.parts[PARTS.index("sky")]).clamp_min(1e-6)
+        p_cam = self.position / surface  # the surface's own position
+        n_world = F.normalize(_mix(self.camera_to_world, self.normal), dim=0)
+        p = _mix(self.camera_to_world, p_cam) + self.camera_location[:, None, None]
+        origin = (p + RAY_OFFSET * n_world)[None]  # (1, 3, H, W)
+        d = F.normalize(sun_world, dim=1)[:, :, None, None]  # (N, 3, 1, 1)
+        blocked = torch.zeros(len(d), 1, *p.shape[-2:], dtype=torch.bool, device=p.device)
+        for s in self.spheres:
+            blocked = blocked | _sphere_blocks(origin, d, s)
+        for f in self.frustums:
+            blocked = blocked | _frustum_blocks(origin, d, f)
+        return (~blocked).float()
+
+    def shade(self, painted, normal, vis, light) -> torch.Tensor:
+        """``(N, 3, H, W)`` tonemapped radiance of the sun and a sky term on every surface."""
+        r = self.r
+        diffuse = srgb_decode(painted[:, 0:3].clamp(0, 1))
+        specular = srgb_decode(painted[:, 3:6].clamp(0, 1))
+        rough = painted[:, 6:7] if r == 1 else painted[:, 6:9].mean(1, keepdim=True)
+        sun_cam = F.normalize(light[:, :3] @ self.camera_to_world, dim=1)[:, :, None, None]
+        view = -self.rays[None]
+        nl = (normal * sun_cam).sum(1, keepdim=True)
+        nv = (normal * view).sum(1, keepdim=True).clamp_min(1e-4)
+        lit = nl.clamp_min(0) * vis
+        h = F.normalize(sun_cam + view, dim=1)
+        nh = (normal * h).sum(1, keepdim=True).clamp(0, 1)
+        alpha = (rough * rough).clamp_min(MIN_ALPHA)
+        a2 = alpha * alpha
+        d = a2 / (math.pi * (nh * nh * (a2 - 1) + 1) ** 2)
+        g = _smith_g1(nl.clamp_min(1e-4), a2) * _smith_g1(nv, a2)
+        brdf = diffuse / math.pi + specular * d * g / (4 * nl.clamp_min(1e-4) * nv)
+        sun_rgb = sun_irradiance(light)[:, :, None, None]
+        up = (normal * self.camera_to_world[2][None, :, None, None]).sum(1, keepdim=True)
+        sky = diffuse * SKY_IRRADIANCE / math.pi * (1 + up) / 2
+        sky_cov = self.parts[PARTS.index("sky")]
+        radiance = (brdf * sun_rgb * lit + sky) * (1 - sky_cov)
+        return self.tonemap(radiance) + SKY_SHADE * sky_cov  # the sky itself is not shaded
+
+
+def _mix(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``m (O, C)`` applied to the channels of ``x (..., C, H, W)`` → ``(..., O, H, W)``: a
+    matrix product (ONNX's oldest opsets have no Einsum)."""
+    flat = x.flatten(-2)
+    return (m @ flat).view(*x.shape[:-3], m.shape[0], *x.shape[-2:])
+
+
+def _rays(n: int, tangent: float) -> torch.Tensor:
+    """``(3, n, n) float32`` unit camera-space directions through the pixel centres."""
+    return torch.from_numpy(camera_rays(n, tangent)).permute(2, 0, 1).float().contiguous()
+
+
+def _smith_g1(x: torch.Tensor, a2: torch.Tensor) -> torch.Tensor:
+    return 2 * x / (x + torch.sqrt(a2 + (1 - a2) * x * x))
+
+
+def _sphere_blocks(o: torch.Tensor, d: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Whether the rays ``o + t d`` (t > 0) meet the sphere ``s`` (centre, radius, band axis,
+    band lo and hi as fractions of the radius) outside its open band."""
+    c, radius, axis, lo, hi = s[:3, None, None], s[3], s[4:7, None, None], s[7], s[8]
+    oc = o - c
+    b = (oc * d).sum(1, keepdim=True)
+    cc = (oc * oc).sum(1, keepdim=True) - radius * radius
+    disc = b * b - cc
+    root = torch.sqrt(disc.clamp_min(0))
+    hit = torch.zeros_like(disc, dtype=torch.bool)
+    for t in (-b - root, -b + root):
+        height = ((oc + t * d) * axis).sum(1, keepdim=True) / radius
+        open_ = (height > lo) & (height < hi)
+        hit = hit | ((disc > 0) & (t > 0) & ~open_)
+    return hit
+
+
+def _frustum_blocks(o: torch.Tensor, d: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+    """Whether the rays ``o + t d`` (t > 0) meet the vertical frustum ``f`` (z0, z1, r0, r1)
+    about the world's z axis: its side or its caps."""
+    z0, z1, r0, r1 = f[0], f[1], f[2], f[3]
+    k = (r1 - r0) / (z1 - z0)
+    ox, oy, oz = o[:, 0:1], o[:, 1:2], o[:, 2:3]
+    dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
+    rad0 = r0 + k * (oz - z0)  # the radius at the origin's height
+    a = dx * dx + dy * dy - (k * dz) ** 2
+    b = 2 * (ox * dx + oy * dy - rad0 * k * dz)
+    c = ox * ox + oy * oy - rad0 * rad0
+    disc = b * b - 4 * a * c
+    root = torch.sqrt(disc.clamp_min(0))
+    safe = torch.where(a.abs() < 1e-9, torch.full_like(a, 1e-9), a)
+    hit = torch.zeros_like(disc + oz, dtype=torch.bool)
+    for t in ((-b - root) / (2 * safe), (-b + root) / (2 * safe)):
+        z = oz + t * dz
+        radius = r0 + k * (z - z0)
+        hit = hit | ((disc > 0) & (t > 0) & (z >= z0) & (z <= z1) & (radius > 0))
+    for zc, rc in ((z0, r0), (z1, r1)):
+        t = (zc - oz) / torch.where(dz.abs() < 1e-9, torch.full_like(dz, 1e-9), dz)
+        x, y = ox + t * dx, oy + t * dy
+        hit = hit | ((t > 0) & (x * x + y * y <= rc * rc))
+    return hit
+
+
+def sun_irradiance(light: torch.Tensor) -> torch.Tensor:
+    """``(N, 3)`` linear RGB irradiance of the sun lamp for light vectors ``(N, 4)``: the
+    torch form of :func:`render_jobs.sun.sun_lamp` (strength x colour)."""
+    z = F.normalize(light[:, :3], dim=1)[:, 2].clamp(-1, 1)
+    zenith = 90.0 - torch.rad2deg(torch.asin(z))
+    cosz = torch.cos(torch.deg2rad(zenith))
+    mass = 1.0 / (cosz + 0.50572 * (96.07995 - zenith).clamp_min(1e-3) ** -1.6364)
+    lam = torch.tensor([0.680, 0.550, 0.440], device=light.device)
+    tau_r = 0.008569 * lam**-4 * (1 + 0.0113 * lam**-2 + 0.00013 * lam**-4)
+    turbidity = light[:, 3:4] * TURBIDITY_SCALE
+    beta = (0.04608 * turbidity - 0.04586).clamp_min(0)
+    t = torch.exp(-mass[:, None] * (tau_r[None] + beta * lam[None] ** -1.3))
+    strength = sunlib.SUN_ZENITH_IRRADIANCE * t[:, 1:2] / float(sunlib.transmittance(90.0, 2.0)[1])
+    return strength * t / t.amax(1, keepdim=True)
