@@ -39,7 +39,11 @@ from tabulate import tabulate
 from benchmarks.trainstore import DEFAULT, ensure_store
 from farm.actor import Revocable
 from farm.assembly import ShardAssembly
+from farm.cluster import ray_environment
+from farm.driver import submit
+from farm.plan import JobConfig
 from farm.scheduler import Scheduler
+from render_jobs.screen_uv import ScreenUV
 from storage.convert import payload_from_packed
 from storage.reader import Store
 from storage.schema import Layout
@@ -146,8 +150,6 @@ class SimWorker(Revocable):
         """An empty layout of the template store's size (no Blender to render one)."""
         import numpy as np
 
-        from render_jobs.screen_uv import ScreenUV
-
         src = Store(self.store)
         n = src.layout.resolution * supersample
         return ScreenUV(np.zeros((n, n, 2), np.float32), np.zeros((n, n), bool),
@@ -160,13 +162,8 @@ class SimWorker(Revocable):
 
 def simulated(store: str, workers: int, materials: int) -> dict:
     """The real driver over a local Ray cluster of ``workers`` :class:`SimWorker` actors."""
-    from farm.cluster import ray_environment
-
     ray_environment("127.0.0.1")  # before Ray is imported
     from ray.cluster_utils import Cluster
-
-    from farm.driver import submit
-    from farm.plan import JobConfig
 
     os.environ.setdefault("RAY_AUTH_MODE", "disabled")
     SimWorker.store = os.path.abspath(store)

@@ -7,8 +7,8 @@ The quality table (``benchmarks.quality``, ``docs/quality.md``) times each metho
 day of its run. This re-times them all side by side, so their ratios come from one run on one
 machine: the networks of the table (the U-Net, the U-Net without skips, Zsolnai-Fehér) with
 fresh weights (a network's time does not depend on its weights) through
-``trainer.infer.Renderer`` at batch 1 on CPU, all threads; Cycles at each ``--spp``, raw and
-with OpenImageDenoise, and at ``--truth`` spp, as one kept-loaded ``RenderProcess`` a
+``trainer.rendering.infer.Renderer`` at batch 1 on CPU, all threads; Cycles at each ``--spp``, raw
+and with OpenImageDenoise, and at ``--truth`` spp, as one kept-loaded ``RenderProcess`` a
 setting, over ``--frames`` materials of the full run's test set (uniform and procedural in
 turn, each under its first sun). The first frame of each Blender warms it up and is not
 counted. Cycles times are whole render calls (scene changes, path tracing, denoising, EXR
@@ -24,9 +24,14 @@ import time
 import numpy as np
 import torch
 
+from benchmarks.quality_plan import SCALES
+from farm.plan import JobConfig, material_specs, task_for
+from render_jobs.materials import load_maps
+from render_jobs.process import RenderProcess
 from render_jobs.specs import RenderSettings
-from trainer.infer import Renderer
-from trainer.model import ModelConfig, build_model
+from trainer.model import ModelConfig
+from trainer.networks import build_model
+from trainer.rendering.infer import Renderer
 from trainer.targets import Tonemap
 
 
@@ -45,7 +50,6 @@ def network_ms(renderer: Renderer, maps: torch.Tensor, iters: int = 20) -> float
 def cycles_ms(settings: RenderSettings, frames: list) -> float:
     """Median ms of a whole render call with ``settings`` over ``frames`` (``(maps, sun,
     seed)`` each), in one fresh Blender; the first frame warms it up and is not counted."""
-    from render_jobs.process import RenderProcess
 
     times = []
     with RenderProcess(settings) as worker:
@@ -57,9 +61,6 @@ def cycles_ms(settings: RenderSettings, frames: list) -> float:
 def sample_frames(count: int, resolution: int) -> list:
     """The first ``count`` frames of the full quality run's test set, alternating its
     uniform and procedural materials, each under its first sun: ``(maps, sun, seed)``."""
-    from benchmarks.quality import SCALES
-    from farm.plan import JobConfig, material_specs, task_for
-    from render_jobs.materials import load_maps
 
     scale = SCALES["full"]
     uniform, procedural = scale.test

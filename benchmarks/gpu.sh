@@ -15,7 +15,7 @@
 # or to benchmarks.viewer (e.g. --runtimes torch,graph: fp32, then the CUDA graph).
 # Output is printed and appended to ${OUT:-out}/gpu-bench.txt. The compiled rows leave the
 # convolutions to cuDNN and the GEMMs to cuBLAS, as the fast path does by default
-# (trainer.infer.TUNED_BACKENDS): with Triton's templates autotuned too (CONV_BACKENDS=ATEN,TRITON,
+# (trainer.rendering.infer.TUNED_BACKENDS): with Triton's templates autotuned too (CONV_BACKENDS=ATEN,TRITON,
 # or GEMM_BACKENDS=ATEN,TRITON with --ring-gemm) the infer part outlasts the device's 10-minute
 # call.
 #

@@ -6,12 +6,12 @@
         [--streams] [--resolution 400] [--only TEXT]... [--rounds K]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
-rewrite (``trainer.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
-every device (``trainer.infer.Renderer`` runs one of the last two on CPU, by resolution:
-``trainer.infer.CPU_SUBPIXEL_FROM``); on CPU, where onnxruntime is installed, the folded
+rewrite (``trainer.rendering.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
+every device (``trainer.rendering.infer.Renderer`` runs one of the last two on CPU, by resolution:
+``trainer.rendering.infer.CPU_SUBPIXEL_FROM``); on CPU, where onnxruntime is installed, the folded
 network exported as ``trainer export`` exports it, run by ONNX Runtime; on CUDA also bf16 +
 channels_last eager (cudnn.benchmark), the same with BatchNorm folded, that with the weights
-cast to bf16 once and replayed as a CUDA graph (``trainer.infer.GraphedRenderer``), the
+cast to bf16 once and replayed as a CUDA graph (``trainer.rendering.infer.GraphedRenderer``), the
 rewrite so replayed, and with ``--compile`` both after torch.compile (Inductor
 ``max-autotune-no-cudagraphs``: fused pointwise work around the tuned convolutions, then
 captured); ``--gemm-at N`` and ``--subpixel-from N`` add the compiled rewrite with GEMM
@@ -20,22 +20,22 @@ in the original upsample-and-concatenate form (both given: the GEMM row is of th
 ``--subpixel-from`` at the resolution makes every level plain: the original network with
 its light plane as one channel, so ``--gemm-at`` then applies to the original's layers).
 Every rewrite row pads its channel counts to multiples of ``--align`` (8, the fast path's
-default: ``trainer.infer.fast_network``) with zero-weight channels; ``--align 1`` keeps the
-model's own counts. ``--ring-gemm`` and ``--wide-ring`` add the compiled rewrite with each
-ring's grouped convolution as a batched matrix product (``trainer.fastnet.strip_gemm``), and
-with the sub-pixel convolutions on zero-padded inputs and the ring two deep
-(``trainer.fastnet.UpConv``). ``--edge-ring`` adds the compiled rewrite whose rings are
-corrections from the edges of each level's input (``trainer.fastnet.edges``);
+default: ``trainer.rendering.infer.fast_network``) with zero-weight channels; ``--align 1`` keeps
+the model's own counts. ``--ring-gemm`` and ``--wide-ring`` add the compiled rewrite with each
+ring's grouped convolution as a batched matrix product (``trainer.rendering.fastnet.strip_gemm``),
+and with the sub-pixel convolutions on zero-padded inputs and the ring two deep
+(``trainer.rendering.fastnet.UpConv``). ``--edge-ring`` adds the compiled rewrite whose rings are
+corrections from the edges of each level's input (``trainer.rendering.fastnet.edges``);
 ``--zero-edge-ring`` the same with the sub-pixel convolutions on zero-padded inputs and the
-corrections two deep (``trainer.fastnet.zero_edges``). ``--conv-relu`` adds the compiled
+corrections two deep (``trainer.rendering.fastnet.zero_edges``). ``--conv-relu`` adds the compiled
 rewrite (with the zero-padded edge ring when that is asked for) whose encoder convolutions
-run with their ReLU in one cuDNN call (``trainer.convrelu``). ``--light-sums`` adds the
-zero-padded edge ring with conv + ReLU (``trainer.infer.EDGE_RELU``) with the light
-encoder's layers as sums (``trainer.fastnet.SummedMLP``); ``--fold-ring`` that form (with
+run with their ReLU in one cuDNN call (``trainer.rendering.convrelu``). ``--light-sums`` adds the
+zero-padded edge ring with conv + ReLU (``trainer.rendering.infer.EDGE_RELU``) with the light
+encoder's layers as sums (``trainer.rendering.fastnet.SummedMLP``); ``--fold-ring`` that form (with
 ``--light-sums``, with its sums) with each ring's correction as one product
-(``trainer.fastnet.zero_edges_folded``). ``--streams``
+(``trainer.rendering.fastnet.zero_edges_folded``). ``--streams``
 adds the network compiled segment by segment on two CUDA streams, the skip convolutions and
-the light MLP beside the critical path, every level plain (``trainer.streamnet``; for
+the light MLP beside the critical path, every level plain (``benchmarks.streamnet``; for
 batch 1).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
@@ -67,13 +67,16 @@ import time
 import torch
 import torch.nn.functional as F
 
+from benchmarks.streamnet import streamed_network
 from benchmarks.train import device_name
 from benchmarks.trainstore import DEFAULT, ensure_store
-from trainer.data import Catalog, SampleReader
-from trainer.fastnet import SubpixelRenderer
-from trainer.infer import EDGE_RELU, GraphedRenderer, pick_device
 from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
+from trainer.rendering.export import save_onnx
+from trainer.rendering.fastnet import SubpixelRenderer
+from trainer.rendering.infer import EDGE_RELU, GraphedRenderer, pick_device
+from trainer.samples import SampleReader
 from trainer.targets import model_inputs
+from trainer.training.data import Catalog
 
 
 def timed(fn, iters: int, cuda: bool) -> float:
@@ -101,6 +104,15 @@ def interleaved(rows, rounds: int, clock) -> dict[str, list[float]]:
         for name, fn in rows:
             times[name].append(clock(fn))
     return times
+
+
+def graphed(model, batch: int, fast: dict) -> GraphedRenderer:
+    """A row's CUDA graph: ``fast`` are :func:`trainer.rendering.infer.fast_network`'s
+    keywords, or, with ``streams``, :func:`benchmarks.streamnet.streamed_network`'s."""
+    if fast.get("streams"):
+        keywords = {k: v for k, v in fast.items() if k != "streams"}
+        return GraphedRenderer(model, batch, net=streamed_network(model, **keywords))
+    return GraphedRenderer(model, batch, **fast)
 
 
 def built(name: str, build):
@@ -153,7 +165,7 @@ def parser() -> argparse.ArgumentParser:
         default=0,
         metavar="N",
         help="add a compiled subpixel row with the convolutions on inputs at most N wide as "
-        "GEMMs (trainer.fastnet.Conv; CUDA)",
+        "GEMMs (trainer.rendering.fastnet.Conv; CUDA)",
     )
     ap.add_argument(
         "--subpixel-from",
@@ -161,7 +173,7 @@ def parser() -> argparse.ArgumentParser:
         default=0,
         metavar="N",
         help="add a compiled subpixel row whose decoder levels on inputs narrower than N keep "
-        "the upsample-and-concatenate form (trainer.fastnet.PlainLevel; CUDA)",
+        "the upsample-and-concatenate form (trainer.rendering.fastnet.PlainLevel; CUDA)",
     )
     ap.add_argument(
         "--align",
@@ -186,39 +198,40 @@ def parser() -> argparse.ArgumentParser:
         "--edge-ring",
         action="store_true",
         help="add a compiled subpixel row whose rings are corrections computed from the "
-        "edges of each level's input (trainer.fastnet.edges; CUDA)",
+        "edges of each level's input (trainer.rendering.fastnet.edges; CUDA)",
     )
     ap.add_argument(
         "--zero-edge-ring",
         action="store_true",
         help="add a compiled subpixel row whose sub-pixel convolutions read zero-padded "
-        "inputs, with rings as two-deep corrections from the edges (trainer.fastnet."
+        "inputs, with rings as two-deep corrections from the edges (trainer.rendering.fastnet."
         "zero_edges; CUDA)",
     )
     ap.add_argument(
         "--conv-relu",
         action="store_true",
         help="add a compiled subpixel row (with --zero-edge-ring: of that form) whose encoder "
-        "convolutions run with their ReLU in one cuDNN call (trainer.convrelu; CUDA)",
+        "convolutions run with their ReLU in one cuDNN call (trainer.rendering.convrelu; CUDA)",
     )
     ap.add_argument(
         "--light-sums",
         action="store_true",
-        help="add the zero-padded edge ring with conv + ReLU (trainer.infer.EDGE_RELU) with "
-        "the light encoder's layers as sums, one kernel each (trainer.fastnet.SummedMLP; CUDA)",
+        help="add the zero-padded edge ring with conv + ReLU (trainer.rendering.infer.EDGE_RELU) "
+        "with the light encoder's layers as sums, one kernel each "
+        "(trainer.rendering.fastnet.SummedMLP; CUDA)",
     )
     ap.add_argument(
         "--fold-ring",
         action="store_true",
         help="add the zero-padded edge ring with conv + ReLU (with --light-sums: with its "
         "light sums) with each ring's correction as one batched product "
-        "(trainer.fastnet.zero_edges_folded; CUDA)",
+        "(trainer.rendering.fastnet.zero_edges_folded; CUDA)",
     )
     ap.add_argument(
         "--streams",
         action="store_true",
         help="add a compiled row on two CUDA streams: skip convolutions and the light MLP "
-        "beside the critical path (trainer.streamnet; CUDA)",
+        "beside the critical path (benchmarks.streamnet; CUDA)",
     )
     ap.add_argument(
         "--only",
@@ -233,8 +246,8 @@ def parser() -> argparse.ArgumentParser:
 
 def graph_rows(args: argparse.Namespace) -> list[tuple[str, dict]]:
     """The CUDA-graph rows that ``args`` ask for, in order: ``(name, keyword arguments of
-    trainer.infer.GraphedRenderer)``. The rewrite's rows take ``--align``'s channels (named
-    when not the default 8) and are compiled unless told."""
+    trainer.rendering.infer.GraphedRenderer)``. The rewrite's rows take ``--align``'s channels
+    (named when not the default 8) and are compiled unless told."""
     x1 = f", channels x{args.align}" if args.align != 8 else ""
 
     def rewrite(name: str, **fast) -> tuple[str, dict]:
@@ -264,7 +277,9 @@ def graph_rows(args: argparse.Namespace) -> list[tuple[str, dict]]:
         zero = args.zero_edge_ring
         name = f"subpixel compiled{', zero-padded edge ring' * zero}, conv+ReLU"
         rows.append(rewrite(name, edge_ring=zero, wide_ring=zero, conv_relu=True))
-    edge_relu = "subpixel compiled, zero-padded edge ring, conv+ReLU"  # trainer.infer.EDGE_RELU
+    edge_relu = (
+        "subpixel compiled, zero-padded edge ring, conv+ReLU"  # trainer.rendering.infer.EDGE_RELU
+    )
     if args.light_sums:
         rows.append(rewrite(f"{edge_relu}, light sums", **(EDGE_RELU | {"light_sums": True})))
     if args.fold_ring:  # with --light-sums, of that form
@@ -361,12 +376,12 @@ class Bench:
         if not self.wanted(name):
             return
         start = time.perf_counter()
-        if (g1 := built(name, lambda: GraphedRenderer(self.model, 1, **fast))) is None:
+        if (g1 := built(name, lambda: graphed(self.model, 1, fast))) is None:
             return
         # on stderr, so that a run stopped while building says how far it got
         print(f"{name}: batch 1 built in {time.perf_counter() - start:.0f} s", file=sys.stderr)
         batch = self.args.batch
-        if (gb := built(name, lambda: GraphedRenderer(self.model, batch, **fast))) is None:
+        if (gb := built(name, lambda: graphed(self.model, batch, fast))) is None:
             return
         build = time.perf_counter() - start
         x1, l1, xb, lb = self.x_all[:1], self.l_all[:1], self.x_all, self.l_all
@@ -375,13 +390,11 @@ class Bench:
         self.report(name, one, many, self.error(g1(x1, l1)), build, replay)
 
     def onnx_row(self, name, net) -> None:
-        """The folded network exported (``trainer.export.save_onnx``) and run by ONNX
+        """The folded network exported (``trainer.rendering.export.save_onnx``) and run by ONNX
         Runtime's CPU provider, on numpy copies of the same inputs."""
         if not self.wanted(name) or self.cuda or importlib.util.find_spec("onnxruntime") is None:
             return
         import onnxruntime as ort
-
-        from trainer.export import save_onnx
 
         with tempfile.TemporaryDirectory() as tmp:
             path = f"{tmp}/net.onnx"

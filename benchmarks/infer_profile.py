@@ -16,8 +16,8 @@ import torch
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
 
-from trainer.infer import fast_network
 from trainer.model import ModelConfig, NeuralRenderer
+from trainer.rendering.infer import fast_network
 
 #: the profiler's names of the operators that run one convolution each
 CONVOLUTIONS = ("aten::convolution", "aten::cudnn_convolution_relu")
@@ -45,7 +45,7 @@ def conv_flops(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> di
     return flops
 
 
-#: the ``--subpixel`` flags, each a keyword of :func:`trainer.infer.fast_network`
+#: the ``--subpixel`` flags, each a keyword of :func:`trainer.rendering.infer.fast_network`
 FAST_FLAGS = (
     "gemm_at",
     "subpixel_from",
@@ -64,7 +64,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--batch", type=int, default=128)
     ap.add_argument("--compile", action="store_true", help="profile torch.compile instead")
     ap.add_argument("--rows", type=int, default=25)
-    ap.add_argument("--subpixel", action="store_true", help="the trainer.fastnet rewrite")
+    ap.add_argument("--subpixel", action="store_true", help="the trainer.rendering.fastnet rewrite")
     ap.add_argument("--gemm-at", type=int, default=0, help="with --subpixel: GEMM convs this wide")
     ap.add_argument(
         "--subpixel-from", type=int, default=0, help="with --subpixel: plain levels narrower"
@@ -95,7 +95,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def fast_kwargs(args: argparse.Namespace) -> dict:
-    """The keywords of :func:`trainer.infer.fast_network` that ``args`` ask for."""
+    """The keywords of :func:`trainer.rendering.infer.fast_network` that ``args`` ask for."""
     return {"subpixel": args.subpixel} | {k: getattr(args, k) for k in FAST_FLAGS}
 
 

@@ -2,7 +2,7 @@
 
     python3 -m benchmarks.input_copy [--batch 128] [--resolution 400] [--iters 30]
 
-``trainer.infer.GraphedRenderer`` copies each fp32 NCHW batch of maps into its bf16
+``trainer.rendering.infer.GraphedRenderer`` copies each fp32 NCHW batch of maps into its bf16
 channels_last input (the first 10 of 16 channels) before the replay: at batch 128 and 400²
 it reads 0.82 GB and writes 0.41 GB, 5.6-6.2 % of the batched frames' time on an H100
 (``docs/benchmarks.md``). This times that copy as the renderer does it (``Tensor.copy_``)
@@ -18,9 +18,9 @@ import argparse
 import torch
 
 from benchmarks.infer import timed
-from trainer.fastnet import round_up
-from trainer.infer import pick_device
 from trainer.model import ModelConfig
+from trainer.rendering.fastnet import round_up
+from trainer.rendering.infer import pick_device
 
 #: the maps' channels and the graph input's, aligned as ``fast_network`` aligns them
 CHANNELS = ModelConfig().in_channels

@@ -4,7 +4,7 @@
         [--conv-relu] [--light-sums] [--fold-ring] [--batch 8] [--resolution 400] [--width 64]
         [--subpixel-from N] [--align 8]
 
-Compiles ``trainer.infer.fast_network`` (bf16, channels_last) with Inductor's Triton
+Compiles ``trainer.rendering.infer.fast_network`` (bf16, channels_last) with Inductor's Triton
 backend on the CPU and prints, in launch order, what the generated program calls: each
 extern kernel (cuDNN convolutions, cuBLAS products on a GPU) and each fused Triton kernel
 with the elements it covers; then the fused kernels' elements in all (a stand-in for the
@@ -17,7 +17,7 @@ run, run this with the device's torch (``gpu.sh`` prints it), for example in a s
 virtual environment: ``python3.11 -m venv /tmp/t && /tmp/t/bin/pip install torch==2.11.0
 numpy zarr tenacity click``, then ``PYTHONPATH=. /tmp/t/bin/python -m
 benchmarks.kernel_plan``. It compiles with ``fast_network``'s Inductor options
-(``trainer.infer.compile_options``) but the autotuning, at the dtype and sizes of the
+(``trainer.rendering.infer.compile_options``) but the autotuning, at the dtype and sizes of the
 device's run; the choice of each convolution's algorithm is the device's (cuDNN, at run
 time).
 """
@@ -29,8 +29,8 @@ import re
 
 import torch
 
-from trainer.infer import compile_options, fast_network
 from trainer.model import ModelConfig, NeuralRenderer
+from trainer.rendering.infer import compile_options, fast_network
 
 #: a kernel launch in Inductor's generated ``call``: a fused Triton kernel or an extern one
 #: (one of Inductor's, or an operator it calls as it is, such as ``shaderball.conv_relu``)
@@ -99,7 +99,7 @@ def main() -> None:
     ap.add_argument("--resolution", type=int, default=400)
     ap.add_argument("--width", type=int, default=64)
     ap.add_argument("--batch", type=int, default=8)
-    ap.add_argument("--subpixel", action="store_true", help="the trainer.fastnet rewrite")
+    ap.add_argument("--subpixel", action="store_true", help="the trainer.rendering.fastnet rewrite")
     ap.add_argument("--edge-ring", action="store_true", help="with --subpixel: edge rings")
     ap.add_argument(
         "--wide-ring", action="store_true", help="with --edge-ring: two deep, zero-padded phases"

@@ -10,7 +10,7 @@ and 100 procedural materials x 5 suns at 32 spp; the trainer's seeded split hold
 materials out. Each row of :data:`ROWS` runs ``trainer train`` with its settings for
 ``budget / batch`` steps (one CPU process, one loader worker), then its network is scored on
 every held-out sample (PSNR with its 95 % interval over materials, SSIM, FLIP;
-``trainer.evaluate``). Throughput is the training loop's image passes per second (from the
+``trainer.rendering.evaluate``). Throughput is the training loop's image passes per second (from the
 run's log) and per CPU-second of the whole run (the trainer and its loader, from the
 operating system's accounting, so a busy machine changes it little).
 
@@ -38,7 +38,10 @@ import time
 from pathlib import Path
 
 from benchmarks.results import Table, save
-from trainer.config import TrainConfig, to_argv
+from farm.driver import submit
+from farm.plan import JobConfig
+from trainer import runfiles
+from trainer.training.config import TrainConfig, to_argv
 
 BIN = Path(sys.executable).parent
 CACHE = Path(__file__).resolve().parent / ".cache"
@@ -76,7 +79,7 @@ ROWS = {
     "residual": ("output: a correction of the analytic shading",
                  W32 | {"inputs": "shade", "residual": True}),
     "head": ("a full-resolution head", W32 | {"head": True}),
-    "shaderball": ("the default recipe (trainer.config.RECIPES)", {}),
+    "shaderball": ("the default recipe (trainer.training.config.RECIPES)", {}),
 }  # fmt: skip
 
 
@@ -85,8 +88,6 @@ def ensure_store(resolution: int, cache: Path = CACHE) -> str:
     path = cache / f"learning-{resolution}.zarr"
     if (path / "zarr.json").exists():
         return str(path)
-    from farm.driver import submit
-    from farm.plan import JobConfig
 
     uniform, procedural = MATERIALS
     print(f"rendering {path} ({sum(MATERIALS)} materials x {SUNS} suns, once)", flush=True)
@@ -115,14 +116,14 @@ def row_config(name: str, store: str, run: Path, budget: int) -> TrainConfig:
 def train_row(cfg: TrainConfig) -> dict:
     """Run ``trainer train`` for ``cfg`` (resuming a run it left); its throughput."""
     argv = [str(BIN / "trainer"), "train", *to_argv(cfg)]
-    if (Path(cfg.out) / "checkpoints").exists():
+    if (Path(cfg.out) / runfiles.CHECKPOINTS).exists():
         argv.append("--resume")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()
     subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    lines = [json.loads(x) for x in (Path(cfg.out) / "log.jsonl").read_text().splitlines()]
+    lines = [json.loads(x) for x in (Path(cfg.out) / runfiles.LOG).read_text().splitlines()]
     steps = [x for x in lines if "images_per_second" in x and x.get("images_per_second")]
     images = sum(x["images"] for x in steps)
     loop_seconds = sum(x["images"] / x["images_per_second"] for x in steps)
@@ -135,9 +136,10 @@ def train_row(cfg: TrainConfig) -> dict:
 
 
 def score_run(run: Path, grid: Path | None = None) -> dict:
-    """The run's network on its held-out split: the summary of ``trainer.evaluate``."""
-    from trainer.evaluate import score, test_split, write_grid
-    from trainer.infer import load_renderer
+    """The run's network on its held-out split: the summary of ``trainer.rendering.evaluate``."""
+    from trainer.rendering.evaluate import score, test_split
+    from trainer.rendering.load import load_renderer
+    from trainer.scoring import write_grid
 
     renderer = load_renderer(run, "cpu")
     split = test_split(renderer, None, None)
@@ -182,8 +184,9 @@ def table(resolution: int, budget: int, results: list[dict]) -> Table:
 
 def side_by_side(work: Path, budget: int, names: list[str], path: Path) -> None:
     """One grid of the rows ``names`` on the same held-out samples."""
-    from trainer.evaluate import score, test_split, write_grid
-    from trainer.infer import load_renderer
+    from trainer.rendering.evaluate import score, test_split
+    from trainer.rendering.load import load_renderer
+    from trainer.scoring import write_grid
 
     renderers = [load_renderer(work / str(budget) / n, "cpu") for n in names]
     scored = score(renderers, test_split(renderers[0], None, None), 16, GRID_COUNT)

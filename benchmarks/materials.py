@@ -39,6 +39,12 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from render_jobs.materials.files import read_svbrdf, read_svbrdf_bytes
+from render_jobs.materials.procedural import procedural_maps
+from render_jobs.process import RenderProcess
+from render_jobs.specs import RenderSettings
+from render_jobs.sun import sun_from_angles
+
 LAYOUTS = ("panel", "metal-rough", "mixed")
 READERS = ("floats", "bytes")
 
@@ -46,7 +52,6 @@ READERS = ("floats", "bytes")
 def panel_png(folder: Path, texture: int, seed: int = 7) -> Path:
     """A 5-panel PNG of a procedural material at ``texture``² (photo, normal, diffuse,
     roughness, specular), ``folder/bench-<seed>.png``."""
-    from render_jobs.materials.procedural import procedural_maps
 
     m = procedural_maps(seed, texture)
     panels = [m.diffuse, m.normal, m.diffuse, np.repeat(m.roughness, 3, 2), m.specular]
@@ -60,8 +65,6 @@ def metal_rough_folder(folder: Path, texture: int, seed: int = 7, mixed: bool = 
     """A metal-rough per-map folder of 8-bit PNGs named as ambientCG names them,
     ``folder/bench-<seed>/``; ``mixed``: all but the normal map at half the size (a set the
     reader resamples to its largest map)."""
-    from render_jobs.materials.procedural import procedural_maps
-
     m = procedural_maps(seed, texture)
     out = folder / f"bench-{seed}"
     out.mkdir()
@@ -106,7 +109,6 @@ def read_once(path: Path, reader: str, render: bool) -> dict:
     """Read ``path`` in this process with ``reader`` (seconds, MB resident before, peak MB,
     maps MB) and, with ``render``, render it once in a fresh render worker (texture swap
     seconds, peaks after)."""
-    from render_jobs.materials.files import read_svbrdf, read_svbrdf_bytes
 
     before = resident_mb()
     t0 = time.perf_counter()
@@ -123,10 +125,6 @@ def read_once(path: Path, reader: str, render: bool) -> dict:
 
 def render_once(maps) -> dict:
     """Render ``maps`` once at 32², 1 sample, in a fresh render worker."""
-    from render_jobs.process import RenderProcess
-    from render_jobs.specs import RenderSettings
-    from render_jobs.sun import sun_from_angles
-
     with RenderProcess(RenderSettings(resolution=32, samples=1)) as worker:
         result = worker.render_material(maps, [sun_from_angles(40, 30, 3.0)], [0])
         status = Path(f"/proc/{worker.pid}/status").read_text().splitlines()

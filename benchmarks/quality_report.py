@@ -1,11 +1,11 @@
 """The quality comparison's measurements and report (``benchmarks.quality`` runs them).
 
 Every score is against the test set's own renders, in the tonemapped display space the
-networks predict (``trainer.evaluate.Tally``: PSNR, SSIM, FLIP), per material kind. A
+networks predict (``trainer.rendering.evaluate.Tally``: PSNR, SSIM, FLIP), per material kind. A
 baseline store must pair with the test set sample by sample (same materials, suns, Cycles
 seeds), which is checked. Times are per frame on this machine: the networks through
-``trainer.infer.Renderer`` at batch 1 (all threads), Cycles as one ``RenderProcess`` with all
-threads, the whole render call (scene changes, path tracing, denoising, EXR out and in).
+``trainer.rendering.infer.Renderer`` at batch 1 (all threads), Cycles as one ``RenderProcess`` with
+all threads, the whole render call (scene changes, path tracing, denoising, EXR out and in).
 Measured times are kept in the work folder (``timings.json``) so a report is redone cheaply.
 
 Each scored method keeps its per-sample scores (sorted by test sample, with each sample's
@@ -29,12 +29,13 @@ import torch
 from PIL import Image, ImageDraw, ImageFont
 
 from benchmarks import frame_times
-from benchmarks.quality import baseline_store, load_json, save_json
+from benchmarks.quality_plan import baseline_store, load_json, save_json
+from render_jobs.materials import load_maps
+from render_jobs.process import RenderProcess
+from render_jobs.specs import MaterialSpec, RenderSettings
 from render_jobs.tonemap import to_uint8
 from storage.backend import write_atomic
 from storage.reader import Store
-from trainer.evaluate import METRICS, Tally, evaluate
-from trainer.infer import Renderer
 from trainer.intervals import (
     LEVEL,
     MIN_MATERIALS,
@@ -45,6 +46,9 @@ from trainer.intervals import (
     paired_difference,
 )
 from trainer.model import count_parameters
+from trainer.rendering.evaluate import evaluate
+from trainer.rendering.infer import Renderer
+from trainer.scoring import METRICS, Tally
 from trainer.targets import Tonemap, light_vector
 
 PAIRED = ("material_index", "sun_direction", "turbidity", "seed")
@@ -148,10 +152,6 @@ def reference_samples(store: Store, count: int) -> list[int]:
 
 def reference(plan) -> None:
     """Render the reference samples at ``reference_spp`` (kept in ``reference.npz``)."""
-    from render_jobs.materials import load_maps
-    from render_jobs.process import RenderProcess
-    from render_jobs.specs import MaterialSpec, RenderSettings
-
     s = plan.scale
     path = plan.work / "reference.npz"
     store = Store(plan.store("test"))
@@ -203,9 +203,6 @@ def network_ms(run: Path, store: Store, iters: int = 20) -> tuple[float, int]:
 def cycles_ms(plan, samples: int, denoise: bool) -> float:
     """Median ms of a whole Cycles render call with all threads, over test samples (kept in
     ``timings.json``)."""
-    from render_jobs.materials import load_maps
-    from render_jobs.specs import MaterialSpec, RenderSettings
-
     key = f"cycles-{samples}spp{'-oidn' if denoise else ''}"
     path = plan.work / "timings.json"
     known = load_json(path)

@@ -16,14 +16,15 @@ import os
 import sys
 import tempfile
 
+from render_jobs.materials.uniform import uniform_maps
+from render_jobs.specs import RenderSettings, UniformValues
+from render_jobs.sun import sun_from_angles, sun_lamp
+
 
 def main() -> None:
     os.environ["SHADERBALL_BLENDER_WORKER"] = "1"
     from render_jobs.blender import sky as sky_module
     from render_jobs.blender.renderer import ShaderballRenderer
-    from render_jobs.materials.uniform import uniform_maps
-    from render_jobs.specs import RenderSettings, UniformValues
-    from render_jobs.sun import sun_from_angles, sun_lamp
 
     albedo = 0.35  # the ground's (render_jobs.blender.renderer)
     renderer = ShaderballRenderer(

@@ -28,8 +28,12 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
+from render_jobs.materials.procedural import procedural_maps
+from render_jobs.process import RenderProcess
+from render_jobs.specs import RenderSettings
+from render_jobs.sun import sun_from_angles
 from storage.reader import Store
-from storage.schema import Layout, ShardPayload, decode_maps
+from storage.schema import Layout, ShardPayload, decode_maps, encode_maps
 from storage.writer import create_store, write_shard
 
 RES = 400
@@ -43,11 +47,6 @@ def render_pool(spp: int) -> tuple[np.ndarray, np.ndarray]:
     if path.exists():
         z = np.load(path)
         return z["maps"], z["renders"]
-    from render_jobs.materials.procedural import procedural_maps
-    from render_jobs.process import RenderProcess
-    from render_jobs.specs import RenderSettings
-    from render_jobs.sun import sun_from_angles
-    from storage.schema import encode_maps
 
     suns = [sun_from_angles(40, 30, 3.0), sun_from_angles(25, 200, 7.0)]
     maps, renders = [], []
@@ -120,8 +119,8 @@ def timed_pool(init, initargs, fn, parts, processes):
 
     Forked, as the MDS and WebDataset DataLoaders below are (the Linux default), so that every
     format's time is its reading, not a spawned worker's imports (seconds, against a pass of
-    about 2 s here); the trainer spawns its workers (``trainer.data.WORKER_START``) and pays
-    that once a run."""
+    about 2 s here); the trainer spawns its workers (``trainer.training.data.WORKER_START``) and
+    pays that once a run."""
     t0 = time.perf_counter()
     if processes == 1:
         init(*initargs)

@@ -8,7 +8,7 @@ Rows: the loader alone (DataLoader over the shards, no model: the data path's ce
 loader feeding a consumer that sleeps ``--step-ms`` a batch (a stand-in for a GPU step) over
 ``--sim-epochs`` epochs, read in one iteration (as training does) and, for comparison, in one
 iteration an epoch (the cost of restarting the workers' read-ahead at every epoch); and
-``trainer.train.train`` itself (L1, from scratch, ``--max-steps``), whose images/s and data
+``trainer.training.train.train`` itself (L1, from scratch, ``--max-steps``), whose images/s and data
 wait are read from the run's ``log.jsonl`` after the first ``--warmup`` steps. On CUDA the
 loop runs with bf16 autocast and channels_last, as in real runs. ``--loss l1+vgg`` times the
 perceptual loss with random VGG16 weights (speed does not depend on them). ``--replicate N``
@@ -29,10 +29,11 @@ import torch
 from torch.utils.data import DataLoader
 
 from benchmarks.trainstore import DEFAULT, ensure_store, replicate
-from trainer.config import TrainConfig
-from trainer.data import PREFETCH, WORKER_START, Catalog, ShardStream, Split, loader
-from trainer.perceptual import vgg16_relu3_3
-from trainer.train import train
+from trainer import runfiles
+from trainer.training.config import TrainConfig
+from trainer.training.data import PREFETCH, WORKER_START, Catalog, ShardStream, Split, loader
+from trainer.training.losses import vgg16_relu3_3
+from trainer.training.train import train
 
 
 def loader_rate(split: Split, batch: int, workers: int, batches: int) -> float:
@@ -52,11 +53,11 @@ def epoch_end_wait(
     """Images/s, data-wait share and longest wait (s) of a consumer that spends ``step_ms`` on
     every batch (a stand-in for a GPU step) over ``epochs`` epochs, timed from the first batch
     to the end of the last step (the workers' shutdown is not timed). ``across``: one
-    iteration over all epochs, as ``trainer.train`` reads; otherwise one iteration an epoch
+    iteration over all epochs, as ``trainer.training.train`` reads; otherwise one iteration an epoch
     (persistent workers), where each epoch's start waits for every worker's first batch."""
     stream = ShardStream(split, batch=batch, seed=0, buffer=256, epochs=epochs if across else None)
     if across:
-        batches_in = loader(stream, workers)  # as trainer.train makes it
+        batches_in = loader(stream, workers)  # as trainer.training.train makes it
     else:
         batches_in = DataLoader(
             stream, batch_size=None, num_workers=workers, prefetch_factor=PREFETCH,
@@ -122,7 +123,7 @@ def trainer_log(args: argparse.Namespace, store: str, tmp: str) -> list[dict]:
         holdout_fraction=0.0, device=args.device, checkpoint_every=10**9,
     )  # fmt: skip
     train(cfg)
-    return [json.loads(x) for x in (Path(run) / "log.jsonl").read_text().splitlines()]
+    return [json.loads(x) for x in (Path(run) / runfiles.LOG).read_text().splitlines()]
 
 
 def print_table(args, load: float, step_ms: float, ends: dict, log: list[dict]) -> None:

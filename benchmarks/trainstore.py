@@ -11,6 +11,12 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from farm.driver import submit
+from farm.plan import JobConfig
+from storage.reader import Store
+from storage.schema import Layout
+from storage.writer import create_store, write_shard
+
 DEFAULT = "out/bench-400.zarr"
 
 
@@ -18,8 +24,6 @@ def ensure_store(path: str = DEFAULT) -> str:
     """``path`` if it holds a store, else a fresh one rendered there by ``farm submit``."""
     if (Path(path) / "zarr.json").exists():
         return path
-    from farm.driver import submit
-    from farm.plan import JobConfig
 
     print(f"rendering the benchmark store {path} (40 frames at 400², 4 spp; once)", flush=True)
     cfg = JobConfig(
@@ -34,9 +38,6 @@ def ensure_store(path: str = DEFAULT) -> str:
 def replicate(src: str, dst: str, copies: int) -> str:
     """Write ``dst``: ``copies`` x every shard of ``src`` (all committed, whole shards), with
     material indices renumbered; returns ``dst``. For load tests where Blender is absent."""
-    from storage.reader import Store
-    from storage.schema import Layout
-    from storage.writer import create_store, write_shard
 
     source = Store(src)
     lay = source.layout

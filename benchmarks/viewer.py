@@ -8,9 +8,9 @@ For each resolution: the screen UV layout rendered by Blender at the farm's sub-
 network (width 64, skips) with fresh weights (speed does not depend on them), and one
 procedural material with ``--texture``² maps, read as the viewer reads a folder material.
 Each **edit** frame changes the roughness scale, so it applies the edit to the looked-up
-sub-samples of that map and filters them again (``trainer.mapping``), runs the network
-(``trainer.infer.Renderer``'s inference path) and encodes a JPEG, exactly as ``trainer
-viewer`` answers the page (``trainer.viewer.engine``); each **tiling edit** frame changes
+sub-samples of that map and filters them again (``trainer.rendering.mapping``), runs the network
+(``trainer.rendering.infer.Renderer``'s inference path) and encodes a JPEG, exactly as ``trainer
+viewer`` answers the page (``trainer.rendering.viewer.engine``); each **tiling edit** frame changes
 the tiling, so it also looks the textures up again; each **drag** frame moves the sun (the
 mapping is cached). Medians over ``--frames``; the share outside the network is (mapping +
 encoding) / frame. Targets on CPU: under 6 % for an edit of values, under 20 % for a tiling
@@ -19,15 +19,15 @@ kind of value edit (:data:`EDIT_KINDS`): one map's slider at a time, or every ma
 
 ``--runtimes torch,onnx`` also times the same network exported (``trainer export``) and run
 by ONNX Runtime on the CPU, as ``trainer viewer --checkpoint ball.onnx`` runs it
-(``trainer.onnx_renderer``), row after row in one run; ``--runtimes torch,graph`` on CUDA,
+(``trainer.rendering.onnx_renderer``), row after row in one run; ``--runtimes torch,graph`` on CUDA,
 the frames through the network's CUDA graph, as ``trainer viewer --cuda-graph`` runs them.
 
 ``--library N`` measures a gallery of large materials instead, at the first resolution: N
 procedural ``--texture``² materials in a ``--materials`` folder, picked one after the other.
-For each: its gallery picture (``trainer.viewer.app.Viewer.thumb``), its first frame (the
+For each: its gallery picture (``trainer.rendering.viewer.app.Viewer.thumb``), its first frame (the
 files read, mapped, rendered), the process's resident memory after it, which the viewer's
-caches bound (``trainer.viewer.recent``), and its peak resident memory so far (``ru_maxrss``:
-the caches plus what reading a material holds for a moment).
+caches bound (``trainer.rendering.viewer.recent``), and its peak resident memory so far
+(``ru_maxrss``: the caches plus what reading a material holds for a moment).
 """
 
 from __future__ import annotations
@@ -42,13 +42,17 @@ import torch
 
 from benchmarks.materials import panel_png, peak_mb, resident_mb, write_apart
 from benchmarks.train import device_name
+from render_jobs.process import RenderProcess
 from render_jobs.screen_uv import ScreenUV, default_supersample
-from trainer.infer import Renderer, pick_device
-from trainer.mapping import ScreenMapper
+from render_jobs.specs import RenderSettings
 from trainer.model import ModelConfig, NeuralRenderer
+from trainer.rendering.export import export
+from trainer.rendering.infer import Renderer, pick_device
+from trainer.rendering.mapping import ScreenMapper
+from trainer.rendering.onnx_renderer import OnnxRenderer
+from trainer.rendering.viewer.engine import Engine, Light
+from trainer.rendering.viewer.materials import Edits, Library
 from trainer.targets import Tonemap, light_vector, model_inputs
-from trainer.viewer.engine import Engine, Light
-from trainer.viewer.materials import Edits, Library
 
 CACHE = Path(__file__).resolve().parent / ".cache"
 
@@ -59,8 +63,6 @@ def layout(resolution: int) -> ScreenUV:
     path = CACHE / f"screen_uv-{resolution}-{s}.npz"
     if path.exists():
         return ScreenUV.from_bytes(path.read_bytes(), str(path))
-    from render_jobs.process import RenderProcess
-    from render_jobs.specs import RenderSettings
 
     with RenderProcess(RenderSettings(resolution=resolution, samples=1)) as worker:
         suv = worker.screen_uv(s)
@@ -72,7 +74,7 @@ def layout(resolution: int) -> ScreenUV:
 def library(resolution: int, count: int, texture: int, device: torch.device, tmp: Path):
     """Per material of a ``count``-material folder: (gallery picture s, first frame s,
     resident MB after it, peak resident MB so far)."""
-    from trainer.viewer.app import Viewer
+    from trainer.rendering.viewer.app import Viewer
 
     write_apart(tmp, texture, count)  # apart: the peak column is the viewer's own
     renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
@@ -102,8 +104,6 @@ def renderer_for(resolution: int, device: torch.device, runtime: str, tmp: Path)
     renderer = Renderer(model, Tonemap(), device, graph=runtime == "graph")
     if runtime in ("torch", "graph"):
         return renderer
-    from trainer.export import export
-    from trainer.onnx_renderer import OnnxRenderer
 
     return OnnxRenderer.load(export(renderer, tmp / "net.onnx").model)
 

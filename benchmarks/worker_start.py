@@ -22,6 +22,10 @@ import contextlib
 import statistics
 import time
 
+import render_jobs.process as rp
+from farm.cluster import connect, ray_environment
+from render_jobs.specs import RenderSettings
+
 WAYS = {
     "RenderProcess (the parent's main script not run again)": False,
     "multiprocessing's default spawn (Ray's worker script run again)": True,
@@ -32,9 +36,6 @@ class Starter:
     """The actor: starts one Blender at a time and reports on it."""
 
     def start(self, resolution: int, default_spawn: bool) -> dict:
-        import render_jobs.process as rp
-        from render_jobs.specs import RenderSettings
-
         hidden = rp._parent_main_hidden  # the one step this benchmark takes away
         if default_spawn:
             rp._parent_main_hidden = contextlib.nullcontext
@@ -57,7 +58,6 @@ class Starter:
 def measure(starts: int, resolution: int) -> dict[str, list[dict]]:
     """``starts`` Blender starts each way, taking turns, in one actor on the farm's embedded
     Ray (or the cluster ``RAY_ADDRESS`` names), started as ``farm submit`` starts it."""
-    from farm.cluster import connect, ray_environment
 
     ray_environment(None)
     import ray

@@ -10,15 +10,15 @@
 - ``farm.pool``: the pool of actors, the commit tasks;
 - ``farm.lease``: one live driver per store;
 - ``farm.cancel``: the cancel request a running driver polls;
-- ``farm.signals``: SIGTERM unwinding a command as Ctrl-C does (no Ray);
 - ``farm.faults``: fault injection for the tests (off unless its variable is set);
 - ``farm.driver``: ``farm submit``'s loop between them: dispatch, wait, commit, resume;
 - ``farm.state`` / ``farm.status``: the job state kept with the store, ``farm status``;
 - ``farm.materials``: ``farm materials``, the dry run of material sources;
-- ``farm.web``: the guarded web layer (loopback, token, POST secret, confined paths);
 - ``farm.dashboard``: ``farm dashboard``, the web page and ``/metrics``;
 - ``farm.cli``: ``farm submit``, ``status``, ``cancel``, ``materials``, ``preview``,
   ``screen-uv``, ``dashboard``.
 
-Importing ``farm`` never loads Blender (nor Ray: the driver imports it when a job starts).
+Its commands and dashboard stand on ``shaderball`` (the click group, SIGTERM unwinding, the
+guarded web layer). Importing ``farm`` never loads Blender (nor Ray: the driver imports it
+when a job starts).
 """

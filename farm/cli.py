@@ -3,29 +3,31 @@
 from __future__ import annotations
 
 import json
-import signal
 import sys
 from pathlib import Path
 
 import click
 from tqdm import tqdm
 
-from farm.signals import stop_on_sigterm, terminated
-from farm.web import server_options
-from render_jobs.errors import MaterialError, RenderError
+from farm.cancel import request_cancel
+from farm.driver import FarmError
+from farm.driver import submit as run
+from farm.materials import dry_run, format_dry_run
+from farm.plan import JobConfig
+from farm.state import load_state
+from farm.status import WORKER_ROWS, format_status
+from render_jobs.preview import prepare, render_preview
+from render_jobs.process import RenderProcess
+from render_jobs.screen_uv import default_supersample
 from render_jobs.specs import DEVICES, RenderSettings
-from storage.cli_group import Commands
+from shaderball.cli import Commands
+from shaderball.signals import exit_stopped, stop_on_sigterm
+from shaderball.web import serve, server_options, token_for
+from storage.backend import Backend
+from storage.extras import require
+from storage.reader import Store
 from storage.schema import untrainable
-
-
-def _require(what: str, *modules: str) -> None:
-    """One line naming the install extra when ``what`` lacks a module."""
-    from storage.extras import MissingExtra, require
-
-    try:
-        require(what, *modules)
-    except MissingExtra as exc:
-        raise click.ClickException(str(exc)) from None
+from storage.writer import put_screen_uv
 
 
 def _job_config(cls, **kwargs):
@@ -94,14 +96,6 @@ def main() -> None:
     """
 
 
-def _stopped(kept: str) -> None:
-    """Exit as a shell does for the signal that stopped the command (128 + its number),
-    after one line: which signal, and what of the work is kept."""
-    sig = signal.SIGTERM if terminated() else signal.SIGINT
-    click.echo(f"\n{sig.name}: stopped; {kept}", err=True)
-    sys.exit(128 + sig)
-
-
 @main.command()
 @click.option(
     "--material",
@@ -141,16 +135,12 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
       farm preview -m textures/leather.png -o out/leather
       farm preview -m 'uniform:diffuse=#b03a2e;specular=0.04;roughness=0.3' -o out/red
     """
-    _require("farm preview", "bpy")
-    from render_jobs.preview import prepare, render_preview
+    require("farm preview", "bpy")
 
     settings = RenderSettings(
         resolution=resolution, samples=samples, threads=threads, device=device
     )
-    try:
-        spec, maps = prepare(material, seed)  # validate before anything renders
-    except MaterialError as exc:
-        raise click.ClickException(str(exc)) from None
+    spec, maps = prepare(material, seed)  # validate before anything renders
     # made at the first report (0 frames, once the output folder took a file): an output
     # folder that cannot be written fails in one line, without a bar
     bar = None
@@ -169,10 +159,8 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
         finally:  # the bar's last line before any error's
             if bar is not None:
                 bar.close()
-    except (MaterialError, RenderError) as exc:
-        raise click.ClickException(str(exc)) from None
     except KeyboardInterrupt:
-        _stopped(f"nothing was written to {out}")
+        exit_stopped(f"nothing was written to {out}")
     times = [r.seconds for r in result.result.renders]
     click.echo(f"material  {result.spec.source_id}")
     total = sum(times)
@@ -303,16 +291,14 @@ def submit(out, **options):
       farm submit -m svbrdf:data/deschaintre -o s3://bucket/set.zarr --address ray://head:10001
       farm submit -m uniform:20 --samples 2 --denoise -o out/small-2spp-oidn.zarr  # a baseline
     """
-    _require("farm submit", "ray")
-    from farm.driver import FarmError
-    from farm.driver import submit as run
+    require("farm submit", "ray")
 
     try:
         summary = run(_submit_config(out, **options), echo=click.echo)
-    except (FarmError, MaterialError) as exc:
-        raise click.ClickException(str(exc)) from None
     except KeyboardInterrupt:
-        _stopped(f"every committed shard is kept (farm status {out}), and the same command resumes")
+        exit_stopped(
+            f"every committed shard is kept (farm status {out}), and the same command resumes"
+        )
     _echo_summary(summary)
 
 
@@ -320,9 +306,6 @@ def _submit_config(
     out, sources, task_timeout, placement_timeout, fixed_sun, fixed_turbidity, **options
 ):
     """``farm submit``'s options → its ``JobConfig``; a refused setting ends in one line."""
-    from farm.driver import FarmError
-    from farm.plan import JobConfig
-
     cfg = _job_config(
         JobConfig,
         sources=tuple(sources),
@@ -392,7 +375,6 @@ def materials(sources, seed, as_json):
       farm materials svbrdf:textures/polyhaven/brick_wall_001 --json
       farm materials uniform:10 svbrdf:data/deschaintre
     """
-    from farm.materials import dry_run, format_dry_run
 
     def progress(items):
         return tqdm(
@@ -422,9 +404,8 @@ def dashboard(roots, run_dirs, host, port, token):
       farm dashboard out --runs runs                  # http://127.0.0.1:8266
       farm dashboard s3://bucket/sets --host 0.0.0.0  # prints a token; needed by every request
     """
-    _require("farm dashboard", "aiohttp", "jinja2", "prometheus_client")
+    require("farm dashboard", "aiohttp", "jinja2", "prometheus_client")
     from farm.dashboard.app import Dashboard, make_app
-    from farm.web import serve, token_for
 
     token = token_for(host, token, echo=click.echo)
     roots = list(roots) or ["out"]
@@ -459,27 +440,19 @@ def screen_uv(store, supersample, threads):
     Example:
       farm screen-uv out/set.zarr
     """
-    _require("farm screen-uv", "bpy")
-    from render_jobs.process import RenderProcess
-    from render_jobs.screen_uv import default_supersample
-    from storage.errors import StoreError
-    from storage.reader import Store
-    from storage.writer import put_screen_uv
+    require("farm screen-uv", "bpy")
 
-    try:
-        s = Store(store)
-        settings = RenderSettings(
-            resolution=s.layout.resolution,
-            samples=1,
-            threads=threads,
-            texture_tiling=s.settings.get("texture_tiling", 2.0),
-        )
-        factor = supersample or default_supersample(s.layout.resolution)
-        with RenderProcess(settings) as worker:
-            layout = worker.screen_uv(factor)
-        put_screen_uv(s, layout)
-    except (StoreError, RenderError) as exc:
-        raise click.ClickException(str(exc)) from None
+    s = Store(store)
+    settings = RenderSettings(
+        resolution=s.layout.resolution,
+        samples=1,
+        threads=threads,
+        texture_tiling=s.settings.get("texture_tiling", 2.0),
+    )
+    factor = supersample or default_supersample(s.layout.resolution)
+    with RenderProcess(settings) as worker:
+        layout = worker.screen_uv(factor)
+    put_screen_uv(s, layout)
     click.echo(f"wrote {store}/screen_uv.npz: {factor}x{factor} sub-samples a pixel")
 
 
@@ -496,10 +469,6 @@ def cancel(store):
     Example:
       farm cancel out/set.zarr
     """
-    from farm.cancel import request_cancel
-    from farm.state import load_state
-    from storage.backend import Backend
-
     state = load_state(store)
     if state is None:
         raise click.ClickException(f"{store}: no farm job state (was it made by farm submit?)")
@@ -526,9 +495,6 @@ def status(store, as_json, watch, all_workers):
       farm status s3://bucket/sets/paper-400.zarr --all-workers
     """
     import time
-
-    from farm.state import load_state
-    from farm.status import WORKER_ROWS, format_status
 
     while True:
         state = load_state(store)

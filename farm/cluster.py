@@ -33,7 +33,7 @@ import sys
 import time
 from pathlib import Path
 
-from farm.web import is_loopback
+from shaderball.web import is_loopback
 
 #: how long a job waits for its Ray address to accept a connection
 REACH_TIMEOUT_S = 10.0

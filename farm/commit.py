@@ -26,6 +26,7 @@ import os
 import socket
 import time
 
+from storage.backend import is_remote
 from storage.convert import payload_from_packed
 from storage.errors import ShardCommittedError
 from storage.reader import Store
@@ -82,6 +83,5 @@ def commit_shard(
 def placement(url: str) -> str:
     """Where a shard of the store at ``url`` may be written: ``anywhere`` (object stores) or
     ``driver`` (a local path, which only the driver's machine is known to see)."""
-    from storage.backend import is_remote
 
     return "anywhere" if is_remote(url) else "driver"

@@ -41,13 +41,15 @@ from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.pool import WorkerPool
 from farm.scheduler import Scheduler
-from farm.signals import sigterm_held, stop_on_sigterm
 from farm.state import JobState, now
 from farm.validate import pending, read_all
 from render_jobs.errors import MaterialError
 from render_jobs.screen_uv import FILE as SCREEN_UV_FILE
 from render_jobs.screen_uv import default_supersample
+from shaderball.errors import UserError
+from shaderball.signals import sigterm_held, stop_on_sigterm
 from storage.backend import Backend
+from storage.errors import StoreError
 from storage.writer import create_store, put_screen_uv
 
 log = logging.getLogger("shaderball.farm")
@@ -65,7 +67,7 @@ def commit_slots(workers: int) -> int:
     return max(2, workers // 8)
 
 
-class FarmError(RuntimeError):
+class FarmError(UserError, RuntimeError):
     """The job could not start (bad input, incompatible store, no Ray)."""
 
 
@@ -126,8 +128,6 @@ class Job:
 
 def prepare(cfg: JobConfig, specs: list, echo) -> Job:
     """Create (or reopen, to resume) the store and see what is left to render."""
-    from storage.errors import StoreError
-
     layout = layout_for(cfg, len(specs))
     settings = cfg.dataset_settings()
     try:

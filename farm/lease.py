@@ -30,6 +30,7 @@ from pathlib import Path
 
 import psutil
 
+from shaderball.errors import UserError
 from storage.backend import Backend
 
 LEASE_KEY = "farm/lease.json"
@@ -39,7 +40,7 @@ LEASE_S = 30.0
 SETTLE_S = 1.5
 
 
-class LeaseHeld(RuntimeError):
+class LeaseHeld(UserError, RuntimeError):
     """Another driver holds the store's lease."""
 
 
@@ -59,15 +60,17 @@ def read_lease(backend: Backend) -> dict | None:
 
 def holder_alive(rec: dict, now: float, here: str | None = None) -> bool:
     """Whether the lease ``rec`` still binds: renewed within ``LEASE_S``, and, when its
-    driver ran on this host (``here``), that very process still running."""
+    driver ran on this host (``here``), that very process still running (the same process:
+    its start time, where the record has it)."""
     if now - rec.get("renewed", 0.0) > LEASE_S:
         return False
-    if rec.get("host") != (here or socket.gethostname()):
+    if rec.get("host") != (here or socket.gethostname()) or rec.get("pid") is None:
         return True
     try:
-        return psutil.Process(rec["pid"]).create_time() == rec.get("started")
-    except (psutil.NoSuchProcess, KeyError):
+        started = psutil.Process(rec["pid"]).create_time()
+    except psutil.NoSuchProcess:
         return False
+    return rec.get("started") is None or started == rec["started"]
 
 
 def describe(url: str, rec: dict, now: float) -> str:

@@ -130,11 +130,6 @@ def add_point(
     return out
 
 
-#: a running driver rewrites the state every few seconds; this long without, it is gone
-#: (for a state without a lease record beside it: otherwise the lease decides)
-LOST_AFTER_S = 60.0
-
-
 def load_state(url: str, storage_options: dict | None = None) -> dict | None:
     """The job state as saved, plus ``effective_status`` (:func:`effective_status`) and, for
     a running job, ``cancel_requested``: the standing request (:mod:`farm.cancel`) or ``None``."""
@@ -153,12 +148,16 @@ def load_state(url: str, storage_options: dict | None = None) -> dict | None:
 
 
 def effective_status(st: dict, lease: dict | None, at: float) -> str:
-    """The state's status, or ``lost`` when it says ``running`` but its driver is gone: its
-    lease is dead (not renewed for ``LEASE_S``, or its driver ran on this machine and that
-    process has ended: ``farm.lease.holder_alive``), or it has no lease and the state has
-    not been updated for :data:`LOST_AFTER_S`."""
+    """The state's status, or ``lost`` when it says ``running`` but its driver is gone, by
+    the lease's one rule (``farm.lease.holder_alive``): not renewed for ``LEASE_S``, or its
+    driver ran on this machine and that process has ended. A state with no lease record
+    beside it stands for its own: its driver and its last update."""
     if st["status"] != "running":
         return st["status"]
-    if lease is None:
-        return "running" if at - st["updated"] <= LOST_AFTER_S else "lost"
-    return "running" if holder_alive(lease, at) else "lost"
+    return "running" if holder_alive(lease or _as_lease(st), at) else "lost"
+
+
+def _as_lease(st: dict) -> dict:
+    """A lease record of the state's driver (``host:pid``), renewed when it was updated."""
+    host, _, pid = st.get("driver", "").rpartition(":")
+    return {"host": host, "pid": int(pid) if pid.isdigit() else None, "renewed": st["updated"]}

@@ -26,6 +26,9 @@ from tqdm import tqdm
 
 from render_jobs.cpus import omp_threads, usable_cpus
 from render_jobs.materials import load_map_bytes
+from storage.errors import StoreError
+from storage.reader import Store
+from storage.retry import StoreUnreachable
 
 #: reading processes at most: each may hold a 4K material's files and 8-bit maps, about 0.5 GB
 MAX_PROCESSES = 4
@@ -41,9 +44,6 @@ def pending(cfg, layout) -> range | list[int]:
     in its store, or all of them when there is no store yet or it is another job's (which the
     submit then refuses). A store out of reach (:class:`StoreUnreachable`, after its tries)
     is raised: the submit would only try it again."""
-    from storage.errors import StoreError
-    from storage.reader import Store
-    from storage.retry import StoreUnreachable
 
     every = range(layout.num_materials)
     try:

@@ -45,7 +45,7 @@ def filter_taps(supersample: int, width: float = FILTER_WIDTH) -> np.ndarray:
 
 def filter_image(x: np.ndarray, supersample: int, taps: np.ndarray) -> np.ndarray:
     """Sub-sampled ``(C, S R, S R)`` → ``(C, R, R) float32`` with the separable ``taps``
-    (numpy reference of what ``trainer.mapping`` does with convolutions)."""
+    (numpy reference of what ``trainer.rendering.mapping`` does with convolutions)."""
     s, k = supersample, len(taps)
     c, n, _ = x.shape
     r = n // s

@@ -31,6 +31,7 @@ import numpy as np
 from render_jobs.geometry import occluders
 from render_jobs.pixel_filter import filter_image
 from render_jobs.specs import CAMERA, Camera
+from shaderball.errors import UserError
 
 #: what a pixel can see, in the order of the ``parts`` channels: the sky (nothing hit), the
 #: floor, the stand, the ball's outer shell, its ring (the shell's inner face and the rims of
@@ -50,7 +51,7 @@ SCENE_MATERIALS = {
 }
 
 
-class ScreenGeometryError(ValueError):
+class ScreenGeometryError(UserError, ValueError):
     """Geometry buffers that are unreadable or do not fit what they are used with."""
 
 

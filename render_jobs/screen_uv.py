@@ -1,8 +1,8 @@
 """What the camera sees of the shaderball's UV layout: per sub-pixel sample, the UV that the
 camera ray hits on the material (ball shell and core), or nothing. Plain numpy, no ``bpy``.
 
-With it, screen-space material maps are made without Blender (``trainer.mapping``): look the
-textures up at every sub-sample's UV, as Cycles' image textures do, then average the
+With it, screen-space material maps are made without Blender (``trainer.rendering.mapping``): look
+the textures up at every sub-sample's UV, as Cycles' image textures do, then average the
 sub-samples of each pixel with Cycles' own pixel filter. That is what the render's AOVs are
 (``render_jobs.blender.shading``): the expectation of the texture value under the pixel
 filter, taken by Cycles with random samples, and here with a regular grid of
@@ -32,6 +32,7 @@ from render_jobs.pixel_filter import (
     filter_taps,
 )
 from render_jobs.screen_geometry import ScreenGeometry, ScreenGeometryError
+from shaderball.errors import UserError
 
 __all__ = [
     "FILTER_WIDTH",
@@ -58,7 +59,7 @@ def default_supersample(resolution: int) -> int:
     return max(2, min(DEFAULT_SUPERSAMPLE, -(-1024 // resolution)))
 
 
-class ScreenUVError(ValueError):
+class ScreenUVError(UserError, ValueError):
     """A screen UV layout that is unreadable or does not fit what it is used with."""
 
 

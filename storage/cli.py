@@ -13,24 +13,28 @@ from PIL import Image
 from tabulate import tabulate
 from tqdm import tqdm
 
-from storage.cli_group import Commands, check_picture_name, human_bytes
+from render_jobs.contact_sheet import contact_sheet, display_maps
+from render_jobs.exr import write_exr, write_image_exr
+from render_jobs.results import ScreenMaps
+from render_jobs.tonemap import to_uint8, tonemap
+from shaderball.cli import Commands, human_bytes
+from shaderball.signals import exit_stopped, stop_on_sigterm
 from storage.errors import StoreError
+from storage.image_files import check_picture_name, save_image
+from storage.reader import Store
+from storage.summary import list_shards, store_info, text_histogram
+from storage.verify import verify as run_verify
 
 
 def _open(url: str):
-    from storage.reader import Store
-
-    try:
-        return Store(url)
-    except StoreError as exc:
-        raise click.ClickException(str(exc)) from None
+    return Store(url)
 
 
 def _sample(store, index: int):
     try:
         return store.sample(index)
-    except StoreError as exc:
-        raise click.ClickException(str(exc)) from None
+    except StoreError:
+        raise
     except Exception as exc:  # noqa: BLE001 - corrupt bytes surface as decode errors
         raise click.ClickException(
             f"{store.url}: sample {index} is unreadable ({type(exc).__name__}: {exc})"
@@ -58,8 +62,6 @@ def ls_cmd(store, as_json):
     Example:
       shards ls out/dataset.zarr
     """
-    from storage.summary import list_shards
-
     rows = list_shards(_open(store))
     if as_json:
         click.echo(json.dumps(rows, indent=1))
@@ -78,8 +80,6 @@ def info(store, as_json):
     Example:
       shards info out/dataset.zarr
     """
-    from storage.summary import store_info, text_histogram
-
     data = store_info(_open(store))
     if as_json:
         click.echo(json.dumps(data, indent=1))
@@ -138,8 +138,6 @@ def verify(store, as_json):
     Example:
       shards verify out/dataset.zarr
     """
-    from storage.verify import verify as run_verify
-
     s = _open(store)
     bar = tqdm(
         total=s.layout.num_shards, desc="verifying", unit="shard", file=sys.stderr, disable=as_json
@@ -203,10 +201,6 @@ def show(store, index, out):
     Example:
       shards show out/dataset.zarr --sample 12 -o sample12.png
     """
-    from render_jobs.contact_sheet import contact_sheet
-    from render_jobs.results import ScreenMaps
-    from storage.image_files import save_image
-
     check_picture_name(out, "-o")
     s = _sample(_open(store), index)
     title = f"sample {s.index}  material {s.material_index} ({s.kind}: {s.source_id})"
@@ -236,15 +230,11 @@ def export(store, directory, samples, fmt):
       shards export out/dataset.zarr --samples 0:10 --format png -o exported/
       shards export s3://bucket/set.zarr --samples 5 --format exr -o one/
     """
-    from render_jobs.contact_sheet import display_maps
-    from render_jobs.exr import write_exr, write_image_exr
-    from render_jobs.results import ScreenMaps
-    from render_jobs.tonemap import to_uint8, tonemap
-
     s = _open(store)
     wanted = _parse_range(samples, s.layout.num_samples)
     items = [_sample(s, i) for i in wanted]  # read (and fail) before writing anything
     directory.mkdir(parents=True, exist_ok=True)
+    stop_on_sigterm()  # the temporary folder goes on SIGTERM as on Ctrl-C
     tmp = Path(tempfile.mkdtemp(prefix=".export.", dir=directory))
     try:
         for x in items:
@@ -278,6 +268,9 @@ def export(store, directory, samples, fmt):
             )
         for f in sorted(tmp.iterdir()):
             f.replace(directory / f.name)
+    except KeyboardInterrupt:
+        shutil.rmtree(tmp, ignore_errors=True)
+        exit_stopped(f"the files already in {directory} are whole")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     click.echo(f"wrote {len(items)} sample(s) to {directory}")

@@ -39,10 +39,3 @@ def payload_from_packed(
         render_seconds=np.concatenate([p["seconds"] for p in packed]),
         materials=list(records),
     )
-
-
-def payload_from_renders(
-    layout: Layout, shard: int, results: list[MaterialRender], records: list[dict]
-) -> ShardPayload:
-    """Pack one shard from its materials' render results (in material order)."""
-    return payload_from_packed(layout, shard, [pack_material(r) for r in results], records)

@@ -1,7 +1,9 @@
 """Domain errors of the shard store (messages are one line and name the culprit)."""
 
+from shaderball.errors import UserError
 
-class StoreError(ValueError):
+
+class StoreError(UserError, ValueError):
     """A store is missing, malformed, of another schema, or asked for what it lacks."""
 
 
@@ -9,5 +11,5 @@ class ShardCommittedError(StoreError):
     """A write to a shard that is already committed (pass ``overwrite=True`` to replace it)."""
 
 
-class SettingError(ValueError):
+class SettingError(UserError, ValueError):
     """An environment variable holds a value this package cannot use."""

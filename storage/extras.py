@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import importlib.util
 
+from shaderball.errors import UserError
+
 #: module -> the extra that installs it
 EXTRA_OF = {
     "bpy": "render",
@@ -25,7 +27,7 @@ EXTRA_OF = {
 }
 
 
-class MissingExtra(RuntimeError):
+class MissingExtra(UserError, RuntimeError):
     """A part was used without the extra that installs what it needs."""
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import click
 from PIL import Image
 from PIL.PngImagePlugin import PngInfo
 
@@ -70,3 +71,18 @@ def _options(fmt: str, text: dict[str, str] | None) -> dict:
     if fmt in ("JPEG", "WEBP"):
         return {"quality": QUALITY}
     return {}
+
+
+def check_picture_name(path, option: str, animated: bool = False) -> None:
+    """A usage error naming ``option``, before any work, when ``path`` (``None``: none given)
+    names no picture format the CLIs write (:func:`image_format`), or lies in a folder that
+    does not exist (a typo in it would otherwise make folders)."""
+    if path is None:
+        return
+    try:
+        image_format(path, animated)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint=option) from None
+    folder = Path(path).parent
+    if not folder.is_dir():
+        raise click.BadParameter(f"folder {folder} does not exist", param_hint=option)

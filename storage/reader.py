@@ -9,11 +9,11 @@ whole-shard reads (``read_shard``, used by ``shards verify``) go through zarr it
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
+from render_jobs.screen_uv import FILE, ScreenUV, ScreenUVError
 from render_jobs.specs import Sun
 from storage.backend import Backend
 from storage.chunks import ChunkReader
@@ -147,7 +147,6 @@ class Store:
     def screen_uv(self):
         """The store's :class:`render_jobs.screen_uv.ScreenUV` (``None`` when it has none);
         raises :class:`StoreError` when it is unreadable or does not fit the store."""
-        from render_jobs.screen_uv import FILE, ScreenUV, ScreenUVError
 
         raw = self.backend.get(FILE)
         if raw is None:
@@ -276,8 +275,3 @@ class Store:
         rows = self._read_rows(shard, arrays(self.layout))
         materials = [{k: v for k, v in r.items() if k != "index"} for r in rec["materials"]]
         return ShardPayload(materials=materials, **rows)
-
-    def iter_shards(self) -> Iterator[tuple[int, object]]:
-        """(shard, payload) for every committed shard, in order."""
-        for shard in self.committed_shards():
-            yield shard, self.read_shard(shard)

@@ -4,9 +4,9 @@ botocore and s3fs retry a failed request a few times within a second or two. A t
 bucket (503 ``SlowDown``), a flapping connection or a stalled server can outlast that, and
 then the error reaches the farm driver (a month-long job) or a DataLoader worker (which ends a
 training run). :func:`retrying` wraps an operation so that such errors are retried with
-exponential backoff and jitter (tenacity), each retry logged once, for ``MAX_S`` seconds at
-most (``SHADERBALL_STORE_RETRY_S``, 120 by default) and ``ATTEMPTS`` tries, or one try per
-``MAX_WAIT_S`` (the longest wait) where ``MAX_S`` allows more; anything else (403, 404, no
+exponential backoff and jitter (tenacity), each retry logged once, for :func:`max_seconds`
+at most (``SHADERBALL_STORE_RETRY_S``, 120 by default) and ``ATTEMPTS`` tries, or one try per
+``MAX_WAIT_S`` (the longest wait) where that allows more; anything else (403, 404, no
 such bucket, bad credentials, a corrupt chunk) is raised at once. A transient error that
 outlasts the tries is raised as :class:`StoreUnreachable`, an ``OSError`` with a one-line
 message (what failed, how, how long it was tried), from the last error; it is not transient
@@ -19,6 +19,7 @@ which only ever rewrite the same bytes of a shard that is not yet committed.
 from __future__ import annotations
 
 import errno
+import functools
 import logging
 import math
 import os
@@ -39,7 +40,8 @@ log = logging.getLogger("shaderball.storage")
 
 ATTEMPTS = 8
 MAX_WAIT_S = 20.0
-#: the environment variable that sets :data:`MAX_S` (read when this module is imported)
+#: the environment variable that sets :func:`max_seconds` (read when an operation is first
+#: tried, so that a bad value is a command's one-line error, not a failed import)
 MAX_S_ENV = "SHADERBALL_STORE_RETRY_S"
 
 
@@ -56,7 +58,12 @@ def _max_s(value: str | None) -> float:
     return seconds
 
 
-MAX_S = _max_s(os.environ.get(MAX_S_ENV))
+@functools.cache
+def max_seconds() -> float:
+    """Seconds an operation is tried at most, from :data:`MAX_S_ENV` (read once)."""
+    return _max_s(os.environ.get(MAX_S_ENV))
+
+
 #: HTTP statuses worth another try: throttling, timeouts, server-side failures
 TRANSIENT_STATUS = {408, 429, 500, 502, 503, 504}
 TRANSIENT_CODES = {
@@ -135,15 +142,29 @@ def _give_up(state: RetryCallState):
     ) from state.outcome.exception()
 
 
-def retrying(fn=None, *, attempts: int | None = None, max_s: float = MAX_S, base_s: float = 0.5):
-    """Decorate ``fn`` with the policy (see the module docstring)."""
-    if attempts is None:
-        attempts = max(ATTEMPTS, math.ceil(max_s / MAX_WAIT_S) + 1)
-    policy = retry(
-        retry=retry_if_exception(transient),
-        wait=wait_random_exponential(multiplier=base_s, max=MAX_WAIT_S),
-        stop=stop_after_attempt(attempts) | stop_before_delay(max_s),
-        before_sleep=_log_retry,
-        retry_error_callback=_give_up,
-    )
-    return policy if fn is None else policy(fn)
+def retrying(
+    fn=None, *, attempts: int | None = None, max_s: float | None = None, base_s: float = 0.5
+):
+    """Decorate ``fn`` with the policy (see the module docstring); ``max_s`` defaults to
+    :func:`max_seconds`, read at the first call."""
+    if fn is None:
+        return functools.partial(retrying, attempts=attempts, max_s=max_s, base_s=base_s)
+    policy = []
+
+    @functools.wraps(fn)
+    def tried(*args, **kwargs):
+        if not policy:
+            seconds = max_seconds() if max_s is None else max_s
+            tries = attempts or max(ATTEMPTS, math.ceil(seconds / MAX_WAIT_S) + 1)
+            policy.append(
+                retry(
+                    retry=retry_if_exception(transient),
+                    wait=wait_random_exponential(multiplier=base_s, max=MAX_WAIT_S),
+                    stop=stop_after_attempt(tries) | stop_before_delay(seconds),
+                    before_sleep=_log_retry,
+                    retry_error_callback=_give_up,
+                )(fn)
+            )
+        return policy[0](*args, **kwargs)
+
+    return tried

@@ -8,6 +8,7 @@ from collections import Counter
 
 import numpy as np
 
+from render_jobs.screen_uv import FILE
 from storage.errors import StoreError
 from storage.reader import Store
 from storage.schema import PACKED_CHANNELS, PER_SAMPLE
@@ -85,7 +86,6 @@ def store_info(store: Store) -> dict:
 def screen_uv_info(store: Store) -> dict | None:
     """The screen UV layout's settings and size (``None``: the store has none; ``error``:
     it cannot be used)."""
-    from render_jobs.screen_uv import FILE
 
     size = store.backend.size(FILE)
     if size is None:

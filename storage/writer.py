@@ -20,6 +20,7 @@ import numpy as np
 import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
+from render_jobs.screen_uv import FILE, ScreenUVError
 from storage.backend import Backend
 from storage.errors import ShardCommittedError, StoreError
 from storage.reader import Store
@@ -170,7 +171,6 @@ def put_screen_uv(store: Store, screen_uv) -> None:
     """Keep ``screen_uv`` (:class:`render_jobs.screen_uv.ScreenUV`) with ``store``, in one
     atomic put (readers see the old layout or the whole new one); refused when it was made
     for another resolution or tiling."""
-    from render_jobs.screen_uv import FILE, ScreenUVError
 
     try:
         screen_uv.check_fits({**store.settings, "resolution": store.layout.resolution}, store.url)

@@ -42,7 +42,7 @@ def rendered_store(worker, path: str, sources: list[str], suns: int, shard_size:
     from render_jobs.materials import load_maps, specs_from_sources
     from render_jobs.specs import derive_seed
     from render_jobs.sun import sample_suns
-    from storage.convert import payload_from_renders
+    from storage.convert import pack_material, payload_from_packed
     from storage.writer import create_store, put_screen_uv, write_shard
 
     specs = specs_from_sources(sources, dataset_seed=0)
@@ -65,6 +65,7 @@ def rendered_store(worker, path: str, sources: list[str], suns: int, shard_size:
             {"kind": specs[i].kind, "source_id": specs[i].source_id, "spec": specs[i].to_dict()}
             for i in mats
         ]
-        payload = payload_from_renders(layout, shard, [results[i] for i in mats], records)
+        packed = [pack_material(results[i]) for i in mats]
+        payload = payload_from_packed(layout, shard, packed, records)
         write_shard(store, shard, payload)
     return store, results

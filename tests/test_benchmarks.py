@@ -76,7 +76,7 @@ def test_the_profiles_flags_are_keywords_that_fast_network_takes():
     import inspect
 
     from benchmarks.infer_profile import fast_kwargs, parser
-    from trainer.infer import fast_network
+    from trainer.rendering.infer import fast_network
 
     args = parser().parse_args(["--subpixel", "--edge-ring", "--wide-ring", "--conv-relu",
                                 "--light-sums", "--fold-ring", "--gemm-at", "50",
@@ -126,12 +126,13 @@ def test_only_given_again_runs_the_rows_that_contain_any_of_its_texts():
 
 def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes():
     """``benchmarks.infer.graph_rows``: the CUDA rows each flag adds, in order, and keyword
-    arguments that ``trainer.infer.fast_network`` binds (a mistake here would cost a device
-    call: the rows only run on CUDA)."""
+    arguments that ``trainer.rendering.infer.fast_network`` binds (a mistake here would cost a
+    device call: the rows only run on CUDA)."""
     import inspect
 
     from benchmarks.infer import graph_rows, parser
-    from trainer.infer import fast_network
+    from benchmarks.streamnet import streamed_network
+    from trainer.rendering.infer import fast_layers, fast_network
 
     plain = [name for name, _ in graph_rows(parser().parse_args([]))]
     assert plain == ["  + bf16 weights, CUDA graph", "subpixel bf16, CUDA graph"]
@@ -153,8 +154,14 @@ def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes(
         "subpixel from 100², compiled",
     ]
     signature = inspect.signature(fast_network)
-    for _, fast in rows:
-        signature.bind(None, **fast)  # raises TypeError on a keyword it lacks
+    layers = inspect.signature(fast_layers)
+    streamed = inspect.signature(streamed_network)
+    for _, fast in rows:  # each raises TypeError on a keyword it lacks
+        if fast.get("streams"):
+            streamed.bind(None, **{k: v for k, v in fast.items() if k != "streams"})
+        else:
+            signature.bind(None, **fast)
+            layers.bind(None, **{k: v for k, v in fast.items() if k != "compile"})
     zero_relu = dict(rows)["subpixel compiled, zero-padded edge ring, conv+ReLU"]
     assert zero_relu == {"compile": True, "subpixel": True, "align": 8, "edge_ring": True,
                          "wide_ring": True, "conv_relu": True}  # fmt: skip

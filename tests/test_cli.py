@@ -214,8 +214,9 @@ def test_a_bad_retry_setting_is_one_line(tmp_path):
 def test_no_process_but_a_blender_worker_imports_bpy():
     code = (
         "import sys\n"
-        "import farm, farm.cli, storage, storage.cli, trainer, trainer.cli, trainer.train\n"
-        "import trainer.evaluate, trainer.infer, trainer.launch\n"
+        "import farm, farm.cli, storage, storage.cli, trainer, trainer.cli\n"
+        "import trainer.training.train\n"
+        "import trainer.rendering.evaluate, trainer.rendering.infer, trainer.training.launch\n"
         "import render_jobs, render_jobs.materials, render_jobs.preview, render_jobs.process\n"
         "import render_jobs.geometry, render_jobs.sun, render_jobs.exr\n"
         "assert 'bpy' not in sys.modules, 'bpy was imported'\n"

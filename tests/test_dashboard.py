@@ -19,7 +19,7 @@ from PIL import Image
 from prometheus_client.parser import text_string_to_metric_families
 
 from farm.state import JobState, WorkerStats, add_point
-from farm.web import ICON_LINK, ICON_SVG
+from shaderball.web import ICON_LINK, ICON_SVG
 from storage.backend import Backend
 from storage.schema import Layout, commit_key
 from storage.writer import create_store, write_shard
@@ -169,7 +169,7 @@ def test_a_non_loopback_host_needs_a_token(sets):
 
 
 def test_a_taken_port_or_an_unknown_host_is_one_line(tmp_path):
-    """Both servers listen through ``farm.web.serve``: the address is named, nothing runs."""
+    """Both servers listen through ``shaderball.web.serve``: the address is named, nothing runs."""
     dashboard = [str(BIN / "farm"), "dashboard", str(tmp_path)]
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

@@ -31,7 +31,7 @@ from farm.cluster import (
 from farm.faults import FAULTS_ENV
 from farm.lease import LEASE_S, LeaseHeld, acquire, holder_alive
 from farm.plan import JobConfig, layout_for, material_specs, task_for
-from farm.state import LOST_AFTER_S, effective_status
+from farm.state import effective_status
 from render_jobs.specs import derive_seed
 from storage.reader import Store
 from storage.verify import verify
@@ -200,9 +200,12 @@ def test_a_running_state_is_lost_once_its_drivers_lease_is_dead():
     gone.wait()
     dead = {"host": host, "pid": gone.pid, "started": 0.0, "renewed": 100.0}
     assert effective_status(running, dead, 101.0) == "lost"  # killed here: lost at once
-    # no lease record beside the state: its age decides
-    assert effective_status(running, None, 100.0 + LOST_AFTER_S - 1) == "running"
-    assert effective_status(running, None, 100.0 + LOST_AFTER_S + 1) == "lost"
+    # no lease record beside the state: the state's driver and age decide, by the same rule
+    assert effective_status(running, None, 100.0 + LEASE_S - 1) == "running"
+    assert effective_status(running, None, 100.0 + LEASE_S + 1) == "lost"
+    mine = {**running, "driver": f"{host}:{os.getpid()}"}
+    assert effective_status(mine, None, 100.0 + LEASE_S - 1) == "running"
+    assert effective_status({**running, "driver": f"{host}:{gone.pid}"}, None, 101.0) == "lost"
     assert effective_status({"status": "done", "updated": 0.0}, dead, 1e9) == "done"
 
 

@@ -126,9 +126,9 @@ def test_every_container_that_reaches_the_store_gets_the_s3_client_retries(overl
 @pytest.mark.parametrize("overlay", ["dev", "prod"])
 def test_the_training_pods_shared_memory_holds_the_loaders_batches(overlay):
     """A pod's own /dev/shm is 64 MB; the TrainJob mounts a memory emptyDir there, as large
-    as the loaders of every GPU's rank need at the paper's 400² (trainer/shm.py)."""
-    from trainer.config import TrainConfig
-    from trainer.shm import loader_bytes
+    as the loaders of every GPU's rank need at the paper's 400² (trainer/training/shm.py)."""
+    from trainer.training.config import TrainConfig
+    from trainer.training.shm import loader_bytes
 
     job = next(d for d in rendered(overlay) if d["kind"] == "TrainJob")
     pod = job["spec"]["runtimePatches"][0]["trainingRuntimeSpec"]["template"]["spec"]

@@ -1,5 +1,5 @@
 """Screen-space maps without Blender: the store's screen UV layout (written by the farm) and
-``trainer.mapping`` against Cycles' own AOV maps of the same materials, and
+``trainer.rendering.mapping`` against Cycles' own AOV maps of the same materials, and
 ``trainer render --material`` from a checkpoint alone."""
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from click.testing import CliRunner
 from PIL import Image
 
 from render_jobs.materials import load_maps
+from render_jobs.materials.maps import MapBytes
 from render_jobs.materials.procedural import procedural_maps
 from render_jobs.screen_uv import ScreenUV, blackman_harris, filter_image, filter_taps
 from render_jobs.specs import MaterialSpec
@@ -21,7 +22,7 @@ from storage.schema import MAP_CHANNELS
 from tests.test_farm import BIN, farm
 from tests.test_material_libraries import ambientcg, normal_map, write
 from trainer.cli import main as trainer_main
-from trainer.mapping import ScreenMapper, textures_from_maps
+from trainer.rendering.mapping import ScreenMapper, textures_from_bytes
 
 #: the bound on every map of every material (uint8 maps, the store's own encoding)
 MIN_PSNR_DB = 40.0
@@ -38,6 +39,11 @@ def per_map(got: np.ndarray, want: np.ndarray) -> dict[str, float]:
         out[name] = psnr(got[start : start + c], want[start : start + c])
         start += c
     return out
+
+
+def textures_from_maps(maps):
+    """A material's float maps as the 8-bit textures Blender loads."""
+    return textures_from_bytes(MapBytes.of(maps))
 
 
 # ---- the filter, alone --------------------------------------------------------------------
@@ -92,7 +98,7 @@ def test_the_pixel_filter_is_the_separable_filter_of_the_hit_sub_samples(s):
     """:class:`PixelFilter`'s two sparse products against the numpy reference filter of the
     whole sub-sample grid (misses as 0), on a layout whose hits reach the frame's edges and
     leave holes, for several channels at once."""
-    from trainer.mapping import PixelFilter
+    from trainer.rendering.mapping import PixelFilter
 
     rng = np.random.default_rng(s)
     r = 11
@@ -164,7 +170,7 @@ def _ties() -> np.ndarray:
 def test_mapper_rounds_textures_and_maps_as_blender_and_the_store_do_ties_up():
     from render_jobs.materials.maps import MapBytes, MaterialMaps
     from storage.schema import encode_maps
-    from trainer.mapping import _levels
+    from trainer.rendering.mapping import _levels
 
     v = _ties()
     ties = np.float32(v[:256] * np.float32(255.0)) % 1 == 0.5

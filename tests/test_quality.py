@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from benchmarks.quality import SCALES, load_json, save_json
+from benchmarks.quality_plan import SCALES, load_json, save_json
 from benchmarks.quality_report import (
     QualityError,
     check_pairs,

@@ -21,12 +21,13 @@ from render_jobs.screen_geometry import (
 from render_jobs.screen_uv import ScreenUV, filter_taps
 from render_jobs.specs import CAMERA, Sun
 from render_jobs.sun import sun_lamp
-from trainer.config import RECIPES, TrainConfig, parse_inputs, to_argv
+from trainer.cues import CUES, cue_channels
 from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
-from trainer.perceptual import RendererLoss, msssim_window
-from trainer.scene import CUES, SceneInputs, cue_channels, sun_irradiance
-from trainer.schedule import lr_at, resumed_knee
+from trainer.scene import SceneInputs, sun_irradiance
 from trainer.targets import light_vector
+from trainer.training.config import RECIPES, TrainConfig, parse_inputs, to_argv
+from trainer.training.losses import RendererLoss, msssim_window
+from trainer.training.schedule import lr_at, resumed_knee
 
 ALL = tuple(CUES)
 
@@ -263,13 +264,13 @@ def test_the_cli_rebuilds_a_config_from_its_argv():
         return {"steps": 0, "images_per_second": 0, "seconds": 0, "checkpoint": "",
                 "val": None, "best": None}  # fmt: skip
 
-    import trainer.train
+    import trainer.training.train
 
-    original, trainer.train.train = trainer.train.train, fake
+    original, trainer.training.train.train = trainer.training.train.train, fake
     try:
         r = CliRunner().invoke(main, ["train", *to_argv(cfg)])
     finally:
-        trainer.train.train = original
+        trainer.training.train.train = original
     assert r.exit_code == 0, r.output
     assert seen["cfg"] == cfg
 

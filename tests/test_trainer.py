@@ -10,10 +10,10 @@ import torch
 import torch.nn.functional as F
 
 from render_jobs.tonemap import tonemap as numpy_tonemap
-from trainer.data import epoch_order, rank_batches, steps_left, worker_batches
 from trainer.model import ModelConfig, NeuralRenderer, count_parameters, fold_batchnorm
-from trainer.perceptual import MissingWeightsError, RendererLoss, load_vgg, vgg16_relu3_3
 from trainer.targets import Tonemap, light_vector, model_inputs
+from trainer.training.data import epoch_order, rank_batches, steps_left, worker_batches
+from trainer.training.losses import MissingWeightsError, RendererLoss, load_vgg, vgg16_relu3_3
 
 
 def vgg_weights_file(path, seed: int = 0):
@@ -216,7 +216,7 @@ def test_bad_partition_arguments():
 
 @pytest.mark.parametrize("size", [1, 2, 3, 25])
 def test_upconv_is_upsampling_then_convolution(size):
-    from trainer.fastnet import UpConv, ring
+    from trainer.rendering.fastnet import UpConv, ring
 
     z = torch.randn(2, 6, size, size, dtype=torch.float64)
     w = torch.randn(5, 6, 3, 3, dtype=torch.float64)
@@ -265,7 +265,7 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
     """Exact in fp32 whichever decoder levels keep the upsample-and-concatenate form, with
     channel counts padded to multiples of 8 or not; the padded input channels' values do not
     matter, and maps with the model's own channel count are padded inside."""
-    from trainer.fastnet import PlainLevel, SubpixelRenderer
+    from trainer.rendering.fastnet import PlainLevel, SubpixelRenderer
 
     model = NeuralRenderer(cfg).train()
     r, c = cfg.resolution, cfg.in_channels
@@ -314,11 +314,11 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
 @pytest.mark.parametrize("plain_levels", ["none", "the smaller half", "all"])
 @pytest.mark.parametrize("align", [1, 8])
 def test_two_stream_split_gives_the_same_image(plain_levels, align):
-    """trainer.streamnet: the skip halves and the light MLP cut off into their own segments
+    """benchmarks.streamnet: the skip halves and the light MLP cut off into their own segments
     (run in order on CPU) give the image of the network, whichever form each level has; a
     network without skips is refused."""
-    from trainer.fastnet import SubpixelRenderer
-    from trainer.streamnet import StreamedRenderer
+    from benchmarks.streamnet import StreamedRenderer
+    from trainer.rendering.fastnet import SubpixelRenderer
 
     cfg = ModelConfig(resolution=64, width=8)
     model = NeuralRenderer(cfg).train()
@@ -339,8 +339,8 @@ def test_two_stream_segments_each_trace_as_one_graph():
     """Every segment compiles without a graph break (Dynamo's ``eager`` backend, fullgraph),
     at three batch sizes in one process: more graphs of the shared skip segment than Dynamo
     keeps by default."""
-    from trainer.fastnet import SubpixelRenderer
-    from trainer.streamnet import StreamedRenderer
+    from benchmarks.streamnet import StreamedRenderer
+    from trainer.rendering.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()
     model = NeuralRenderer(ModelConfig(resolution=32)).eval()
@@ -354,12 +354,13 @@ def test_two_stream_segments_each_trace_as_one_graph():
 
 
 def test_bf16_fast_networks_stay_close_to_fp32():
-    """The networks the CUDA benchmark rows capture (trainer.infer.fast_network: BatchNorm
+    """The networks the CUDA benchmark rows capture (trainer.rendering.infer.fast_network: BatchNorm
     folded, bf16 weights, channels_last; plain, sub-pixel with its channels aligned or not,
     with GEMMs, with some or all levels plain, with the rings as GEMMs two deep, the fastest
     measured form among them), run here on CPU: bf16 images stay within 0.02 of fp32, the
-    rewrite no further off than the original."""
-    from trainer.infer import FASTEST, fast_network
+    rewrite no further off than the original; and the two-stream form of benchmarks.streamnet."""
+    from benchmarks.streamnet import streamed_network
+    from trainer.rendering.infer import FASTEST, fast_network
 
     torch.manual_seed(0)
     model = NeuralRenderer(ModelConfig(resolution=64)).eval()
@@ -398,12 +399,14 @@ def test_bf16_fast_networks_stay_close_to_fp32():
                 "light_sums": True,
                 "fold_ring": True,
             },
-            "two streams": {"streams": True},
-            "two streams, sub-pixel": {"streams": True, "subpixel": True},
         }
+        streamed = {"two streams": {}, "two streams, sub-pixel": {"subpixel": True}}
         errors = {
             name: (fast_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
             for name, kw in nets.items()
+        } | {
+            name: (streamed_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
+            for name, kw in streamed.items()
         }
     # the fastest form is among those checked here (uncompiled)
     fastest = nets["zero-padded, conv+ReLU, light sums, one-product ring"]
@@ -415,11 +418,11 @@ def test_bf16_fast_networks_stay_close_to_fp32():
 
 
 def test_the_light_mlp_as_sums_gives_its_linear_layers_numbers_in_one_kernel_a_layer():
-    """trainer.fastnet.SummedMLP: the light encoder's Linear + Tanh layers as products and
+    """trainer.rendering.fastnet.SummedMLP: the light encoder's Linear + Tanh layers as products and
     sums, in fp32 for any input dtype; ``light_sums`` switches a rewrite's encoder both ways;
     an MLP of another shape is refused."""
-    from trainer.fastnet import SubpixelRenderer, SummedMLP
     from trainer.model import fold_batchnorm
+    from trainer.rendering.fastnet import SubpixelRenderer, SummedMLP
 
     torch.manual_seed(0)
     model = NeuralRenderer(ModelConfig(resolution=64)).eval()
@@ -444,12 +447,13 @@ def test_the_light_mlp_as_sums_gives_its_linear_layers_numbers_in_one_kernel_a_l
 
 
 def test_conv_relu_is_one_operator_that_compiles_and_gives_convolution_then_relu():
-    """trainer.convrelu.conv_relu (on CUDA one cuDNN call; here conv2d then relu): the same
+    """trainer.rendering.convrelu.conv_relu (on CUDA one cuDNN call; here conv2d then relu): the
+    same
     numbers, its fake implementation's shapes and strides those of the real one
     (``torch.library.opcheck``), traced whole by Dynamo; ``fast_network`` refuses it for the
     original network, which has no such operator."""
-    from trainer.convrelu import conv_relu
-    from trainer.infer import fast_network
+    from trainer.rendering.convrelu import conv_relu
+    from trainer.rendering.infer import fast_network
 
     x = torch.randn(2, 8, 9, 9).contiguous(memory_format=torch.channels_last)
     w, b = torch.randn(4, 8, 3, 3), torch.randn(4)
@@ -471,10 +475,11 @@ def test_conv_relu_is_one_operator_that_compiles_and_gives_convolution_then_relu
 
 
 def test_level_fusion_is_asked_for_edge_rings_on_the_torch_versions_checked():
-    """trainer.infer.compile_options: max-autotune always, over cuDNN and cuBLAS alone unless
+    """trainer.rendering.infer.compile_options: max-autotune always, over cuDNN and cuBLAS alone
+    unless
     the environment names Inductor's backends; Inductor's raised inlining limits only for
     edge rings, and only on a torch whose Inductor compiles that plan (2.11)."""
-    from trainer.infer import LEVEL_FUSION, TUNED_BACKENDS, compile_options
+    from trainer.rendering.infer import LEVEL_FUSION, TUNED_BACKENDS, compile_options
 
     base = {"max_autotune": True, "coordinate_descent_tuning": True} | TUNED_BACKENDS
     assert TUNED_BACKENDS == {"max_autotune_conv_backends": "ATEN",
@@ -508,7 +513,7 @@ def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align, edg
     ``gemm_at``, the rings run as matrix products and two deep too; ``edge``: the rings as
     corrections from the edges (with ``gemm_at``, two deep on zero-padded phases), and the
     ReLUs after convolutions in one operator with them."""
-    from trainer.fastnet import SubpixelRenderer
+    from trainer.rendering.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()
     model = NeuralRenderer(ModelConfig(resolution=32)).eval()
@@ -522,7 +527,7 @@ def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align, edg
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on CPU machines")
 def test_cuda_graph_path_refuses_a_cpu_model():
-    from trainer.infer import GraphedRenderer
+    from trainer.rendering.infer import GraphedRenderer
 
     model = NeuralRenderer(ModelConfig(resolution=64))
     with pytest.raises(RuntimeError, match="CUDA graphs need the model on a CUDA device"):
@@ -534,7 +539,8 @@ def test_cuda_graph_path_refuses_a_cpu_model():
 def test_a_renderer_refuses_a_cuda_graph_it_cannot_capture(tmp_path):
     """``Renderer(graph=True)`` (``trainer viewer --cuda-graph``): the paper's network on a
     CUDA device only, and never an exported model; each refusal names why."""
-    from trainer.infer import Renderer, check_graphable, load_renderer
+    from trainer.rendering.infer import Renderer, check_graphable
+    from trainer.rendering.load import load_renderer
     from trainer.targets import Tonemap
     from trainer.zf import ZsolnaiFeherRenderer
 
@@ -561,8 +567,8 @@ def test_cuda_is_refused_in_one_line_where_torch_sees_none():
 def test_inference_network_on_cpu_is_the_rewrite_from_its_size_up_and_elsewhere_the_original(
     resolution,
 ):
-    from trainer.fastnet import SubpixelRenderer
-    from trainer.infer import CPU_SUBPIXEL_FROM, inference_network
+    from trainer.rendering.fastnet import SubpixelRenderer
+    from trainer.rendering.infer import CPU_SUBPIXEL_FROM, inference_network
 
     torch.manual_seed(0)
     model = NeuralRenderer(ModelConfig(resolution=resolution, width=4)).eval()
@@ -600,7 +606,7 @@ def test_the_best_checkpoint_outlives_the_rotation_and_is_replaced_whole(tmp_pat
 
 
 def test_learning_rate_schedules_are_functions_of_the_step():
-    from trainer.schedule import lr_at, run_steps
+    from trainer.training.schedule import lr_at, run_steps
 
     assert [lr_at(s, 1e-3, "constant", 10) for s in (0, 5, 9)] == [1e-3] * 3
     assert [lr_at(s, 1e-3, "constant", 10, warmup=4) for s in range(5)] == pytest.approx(
@@ -619,7 +625,7 @@ def test_learning_rate_schedules_are_functions_of_the_step():
 
 
 def test_a_cosine_resumed_with_another_length_goes_on_from_its_rate():
-    from trainer.schedule import lr_at, record, resumed_knee
+    from trainer.training.schedule import lr_at, record, resumed_knee
 
     was = record("cosine", 20, (2, 1.0))  # 2 warm-up steps, then a cosine to step 20
     assert resumed_knee(8, was, 20, 2) == (2, 1.0)  # the same length: the same curve
@@ -643,7 +649,7 @@ def test_a_cosine_resumed_with_another_length_goes_on_from_its_rate():
 
 
 def test_the_weight_average_warms_up_then_keeps_its_decay():
-    from trainer.ema import WeightAverage, decay_at
+    from trainer.training.ema import WeightAverage, decay_at
 
     assert [decay_at(n, 0.999) for n in (0, 1, 8)] == pytest.approx([0.1, 2 / 11, 0.5])
     assert decay_at(10**6, 0.999) == 0.999 and decay_at(10**6, 0.5) == 0.5
@@ -749,7 +755,7 @@ def test_a_mean_s_interval_resamples_whole_materials():
 
 
 def test_comparison_labels_name_the_weights_only_where_paths_repeat():
-    from trainer.compare import labels
+    from trainer.rendering.compare import labels
 
     assert labels(["a", "b"], ["average", "trained"]) == ["a", "b"]
     assert labels(["a", "a", "b"], ["average", "trained", "trained"]) == [
@@ -758,7 +764,7 @@ def test_comparison_labels_name_the_weights_only_where_paths_repeat():
 
 
 def test_shared_memory_need_and_the_one_line_when_it_is_short(tmp_path):
-    from trainer.shm import batch_bytes, check, loader_bytes, shortfall
+    from trainer.training.shm import batch_bytes, check, loader_bytes, shortfall
 
     one = batch_bytes(400, 6)
     assert one == 6 * (400 * 400 * 17 + 24)
@@ -781,13 +787,13 @@ def test_shared_memory_need_and_the_one_line_when_it_is_short(tmp_path):
         ("holdout_fraction", 1.0, r"--holdout-fraction must be in \[0, 1\), not 1.0"),
         ("roughness_channels", 2, "--roughness-channels must be one of 1, 3, not 2"),
         ("max_steps", 0, "--max-steps must be at least 1, not 0"),
-        ("loss", "l2", "--loss must be one of l1\\+vgg, l1, not 'l2'"),
+        ("loss", "l2", "--loss must be one of l1\\+vgg, l1, l1\\+msssim, not 'l2'"),
     ],
 )
 def test_a_bad_setting_is_refused_naming_its_flag_and_rule(field, value, says):
     from dataclasses import fields
 
-    from trainer.config import RULES, TrainConfig
+    from trainer.training.config import RULES, TrainConfig
 
     assert set(RULES) <= {f.name for f in fields(TrainConfig)}
     TrainConfig(store=("s.zarr",), max_steps=None)  # the defaults pass every rule
@@ -796,8 +802,9 @@ def test_a_bad_setting_is_refused_naming_its_flag_and_rule(field, value, says):
 
 
 def test_an_eval_summary_gives_each_psnr_its_interval_over_materials():
-    from trainer.evaluate import Scored, Tally
     from trainer.intervals import cluster_mean
+    from trainer.rendering.evaluate import Scored
+    from trainer.scoring import Tally
 
     rng = np.random.default_rng(3)
     tally, materials, kinds = Tally(), [], []
@@ -820,7 +827,7 @@ def test_an_eval_summary_gives_each_psnr_its_interval_over_materials():
 
 
 def test_a_held_out_score_line_counts_its_materials_in_words_and_gives_an_interval_if_any():
-    from trainer.runlog import _score_line
+    from trainer.training.runlog import _score_line
 
     rec = {"step": 6, "psnr": 19.56, "psnr_low": None, "psnr_high": None, "ssim": 0.6554,
            "samples": 5, "seconds": 0.3, "materials": 1}  # fmt: skip

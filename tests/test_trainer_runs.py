@@ -29,16 +29,17 @@ from tests.flaky_proxy import FlakyProxy
 from tests.storage_helpers import synthetic_payload
 from tests.test_trainer import vgg_weights_file
 from trainer import checkpoint
-from trainer import train as train_module
 from trainer.cli import main as trainer_main
-from trainer.config import TrainConfig
-from trainer.data import Catalog, ShardStream, loader, steps_left
-from trainer.evaluate import evaluate
-from trainer.infer import Renderer, load_renderer
 from trainer.model import ModelConfig, NeuralRenderer
+from trainer.rendering.evaluate import evaluate
+from trainer.rendering.infer import Renderer
+from trainer.rendering.load import load_renderer
 from trainer.targets import Tonemap, model_inputs
-from trainer.train import RunError, TrainingDiverged, train
-from trainer.validation import Validator
+from trainer.training import train as train_module
+from trainer.training.config import TrainConfig
+from trainer.training.data import Catalog, ShardStream, loader, steps_left
+from trainer.training.train import RunError, TrainingDiverged, train
+from trainer.training.validation import Validator
 
 pytestmark = pytest.mark.slow
 
@@ -52,7 +53,7 @@ def config(store, out, **kw) -> TrainConfig:
 
 
 def argv(store, out, **kw) -> list[str]:
-    from trainer.config import to_argv
+    from trainer.training.config import to_argv
 
     return to_argv(config(store, out, **kw))
 
@@ -219,7 +220,7 @@ def test_export_onnx_renders_as_the_checkpoint_and_a_failed_check_writes_nothing
     import onnxruntime as ort
 
     from render_jobs.screen_uv import ScreenUV
-    from trainer import export
+    from trainer.rendering import export
 
     out = tmp_path / "m" / "ball.onnx"
     r = CliRunner().invoke(trainer_main, ["export", "--checkpoint", str(trained), "-o", str(out)])
@@ -276,7 +277,7 @@ def test_export_at_an_older_opset_renders_as_the_checkpoint(tiny_store, trained,
     import onnx
     import onnxruntime as ort
 
-    from trainer import export
+    from trainer.rendering import export
 
     out = tmp_path / "ball-15.onnx"
     args = ["export", "--checkpoint", str(trained), "-o", str(out), "--opset", "15"]
@@ -309,9 +310,10 @@ def test_render_takes_an_exported_model_and_draws_what_its_checkpoint_draws(
     stored sample, a new material (mapped with the layout beside the model) and a sweep come
     out as the checkpoint's pictures."""
     from render_jobs.specs import Sun
-    from trainer.export import export
-    from trainer.infer import load_renderer, render_under
-    from trainer.onnx_renderer import OnnxRenderer
+    from trainer.rendering.base import render_under
+    from trainer.rendering.export import export
+    from trainer.rendering.load import load_renderer
+    from trainer.rendering.onnx_renderer import OnnxRenderer
 
     model = tmp_path / "ball.onnx"
     export(Renderer.from_checkpoint(trained, "cpu"), model)
@@ -349,7 +351,7 @@ def test_an_exported_model_that_cannot_be_run_is_named_in_one_line(tiny_store, t
     import onnx
     from onnx import TensorProto, helper
 
-    from trainer.export import export
+    from trainer.rendering.export import export
 
     model = tmp_path / "ball.onnx"
     export(Renderer.from_checkpoint(trained, "cpu"), model)
@@ -388,7 +390,7 @@ def test_eval_scores_an_exported_model_as_its_checkpoint(tiny_store, trained, tm
     in one line, writing nothing, and ``--on`` says it could not check the stores."""
     import onnx
 
-    from trainer.export import export
+    from trainer.rendering.export import export
 
     model = tmp_path / "ball.onnx"
     export(Renderer.from_checkpoint(trained, "cpu"), model)
@@ -581,7 +583,7 @@ def test_killed_run_resumes_with_exactly_the_remaining_order(tiny_store, tmp_pat
 def test_a_cosine_resumed_for_more_epochs_goes_on_from_its_rate(tiny_store, tmp_path, capsys):
     """A run killed mid-cosine and resumed for twice the epochs goes on from the rate it had
     (no jump up) down to 0 at its new end; resumed again after that end, it is refused."""
-    from trainer.schedule import lr_at
+    from trainer.training.schedule import lr_at
 
     run = tmp_path / "r"
     kw = {"lr_schedule": "cosine", "log_every": 1, "checkpoint_every": 2, "keep": 100}
@@ -1235,7 +1237,7 @@ def test_the_zsolnai_feher_baseline_trains_saves_loads_and_evaluates(tiny_store,
     assert json.loads(r.output[r.output.index("{") :])["overall"]["n"] > 0
     import onnxruntime as ort
 
-    from trainer.export import export
+    from trainer.rendering.export import export
 
     for opset in (18, 15):  # exports as well, through both exporters, with every input
         assert export(renderer, tmp_path / f"zf{opset}.onnx", opset).max_difference < 1e-4
@@ -1244,8 +1246,8 @@ def test_the_zsolnai_feher_baseline_trains_saves_loads_and_evaluates(tiny_store,
 
 
 def test_the_shared_memory_check_counts_a_batch_as_the_loader_makes_it(tiny_store):
-    from trainer.data import SampleReader
-    from trainer.shm import batch_bytes
+    from trainer.samples import SampleReader
+    from trainer.training.shm import batch_bytes
 
     split = Catalog.snapshot([tiny_store.url], 0, 0.25, None).split("train")
     batch = SampleReader(split).batch(np.arange(3))

@@ -26,9 +26,9 @@ from render_jobs.materials.procedural import procedural_maps
 from tests.servers import ServerProcess
 from tests.test_dashboard import ARTIFACTS, chromium
 from tests.test_farm import BIN
-from trainer.mapping import textures_from_maps
-from trainer.viewer.engine import Light
-from trainer.viewer.materials import MAX_PIXELS, Edits, Library, direction, sun_angles
+from tests.test_mapping import textures_from_maps
+from trainer.rendering.viewer.engine import Light
+from trainer.rendering.viewer.materials import MAX_PIXELS, Edits, Library, direction, sun_angles
 
 # ---- plain parts ----------------------------------------------------------------------------
 
@@ -72,7 +72,7 @@ def test_edits_change_what_they_name_and_nothing_else():
 def made_up_mapper():
     """A :class:`ScreenMapper` on a made-up 16² layout (3² sub-samples, random UVs)."""
     from render_jobs.screen_uv import ScreenUV
-    from trainer.mapping import ScreenMapper
+    from trainer.rendering.mapping import ScreenMapper
 
     rng = np.random.default_rng(1)
     n = 16 * 3
@@ -95,7 +95,7 @@ def test_an_edit_maps_as_the_edited_material(tmp_path):
 
 
 def test_recent_keeps_the_most_recently_used():
-    from trainer.viewer.recent import Recent
+    from trainer.rendering.viewer.recent import Recent
 
     r = Recent(2)
     r.put("a", 1)
@@ -108,7 +108,7 @@ def test_recent_keeps_the_most_recently_used():
 
 
 def test_recent_with_a_byte_budget_drops_the_oldest_bytes_and_keeps_the_newest():
-    from trainer.viewer.recent import Recent
+    from trainer.rendering.viewer.recent import Recent
 
     r = Recent(8, max_bytes=100)
     r.put("a", np.zeros(40, np.uint8))
@@ -162,14 +162,15 @@ def test_lookups_on_any_thread_count_are_the_same_numbers_and_finish_keeps_them(
 
 
 def test_pictures_are_quantized_where_the_network_ran_to_the_bytes_of_to_uint8():
-    """``trainer.viewer.engine.to_uint8_tensor``: the bytes ``render_jobs.tonemap.to_uint8``
+    """``trainer.rendering.viewer.engine.to_uint8_tensor``: the bytes
+    ``render_jobs.tonemap.to_uint8``
     makes of the same image, the halfway values of the 8-bit rounding and values outside
     [0, 1] among them; and a frame's picture is the network's image so quantized."""
     from render_jobs.tonemap import to_uint8
-    from trainer.infer import Renderer
     from trainer.model import ModelConfig, NeuralRenderer
+    from trainer.rendering.infer import Renderer
+    from trainer.rendering.viewer.engine import Engine, to_uint8_tensor
     from trainer.targets import Tonemap
-    from trainer.viewer.engine import Engine, to_uint8_tensor
 
     gen = torch.Generator().manual_seed(0)
     image = torch.rand(3, 40, 56, generator=gen) * 1.2 - 0.1
@@ -192,10 +193,10 @@ def test_pictures_are_quantized_where_the_network_ran_to_the_bytes_of_to_uint8()
 def test_the_engine_reuses_lookups_for_value_edits_and_maps_as_a_fresh_engine(tmp_path):
     """An edit of values after another maps from the kept lookups, to the same maps a fresh
     engine makes; a new tiling looks the textures up again."""
-    from trainer.infer import Renderer
     from trainer.model import ModelConfig, NeuralRenderer
+    from trainer.rendering.infer import Renderer
+    from trainer.rendering.viewer.engine import Engine
     from trainer.targets import Tonemap
-    from trainer.viewer.engine import Engine
 
     lib = tmp_path / "lib"
     lib.mkdir()
@@ -227,11 +228,11 @@ def test_an_edit_of_one_map_maps_that_map_alone_to_the_bytes_of_mapping_all(tmp_
     """Edits one map at a time (as sliders move) map only that map's channels again, from
     the last maps of the material; each result is, byte for byte, what a fresh engine maps
     with every channel; an edit of two maps at once maps them all."""
-    from trainer.infer import Renderer
-    from trainer.mapping import CHANNEL_GROUPS
     from trainer.model import ModelConfig, NeuralRenderer
+    from trainer.rendering.infer import Renderer
+    from trainer.rendering.mapping import CHANNEL_GROUPS
+    from trainer.rendering.viewer.engine import Engine
     from trainer.targets import Tonemap
-    from trainer.viewer.engine import Engine
 
     lib = tmp_path / "lib"
     lib.mkdir()
@@ -269,10 +270,10 @@ def test_an_edit_of_one_map_maps_that_map_alone_to_the_bytes_of_mapping_all(tmp_
 
 
 def test_an_uploads_textures_are_read_once_and_then_held_by_the_engine_alone(tmp_path):
-    from trainer.infer import Renderer
     from trainer.model import ModelConfig, NeuralRenderer
+    from trainer.rendering.infer import Renderer
+    from trainer.rendering.viewer.engine import Engine
     from trainer.targets import Tonemap
-    from trainer.viewer.engine import Engine
 
     renderer = Renderer(NeuralRenderer(ModelConfig(16, width=4)), Tonemap(), torch.device("cpu"))
     library = Library([], [], tmp_path / "up")
@@ -374,8 +375,8 @@ def test_gallery_pictures_of_file_materials_are_their_colour_maps_and_kept(tmp_p
 
     from render_jobs.materials.maps import linear_to_srgb
     from tests.test_material_libraries import write
-    from trainer.viewer.app import THUMB, THUMB_NICE
-    from trainer.viewer.app import Viewer as App
+    from trainer.rendering.viewer.app import THUMB, THUMB_NICE
+    from trainer.rendering.viewer.app import Viewer as App
 
     lib_dir = tmp_path / "lib"
     strip = np.concatenate([solid(c) for c in [(9, 9, 9), (128, 128, 255), (200, 30, 40),

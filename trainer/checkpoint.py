@@ -2,16 +2,16 @@
 
 A checkpoint is a plain dict loadable with ``torch.load(..., weights_only=True)``:
 ``model`` and ``optimizer`` state dicts, ``step``, ``epoch`` and ``position`` (the loader
-state: the next global position in that epoch's order, see ``trainer.data``), ``config`` (the
-run's :class:`trainer.config.TrainConfig`), ``model_config``, ``tonemap`` and ``catalog`` (the
-stores, shards and held-out materials the run trains on), and ``screen_uv`` when the stores
-have one (the bytes of ``render_jobs.screen_uv.FILE``: the checkpoint alone then maps any
-material to the network's input, ``trainer.mapping``), and ``best`` (``{"step", "psnr"}``:
+state: the next global position in that epoch's order, see ``trainer.training.data``), ``config``
+(the run's :class:`trainer.training.config.TrainConfig`), ``model_config``, ``tonemap`` and
+``catalog`` (the stores, shards and held-out materials the run trains on), and ``screen_uv`` when
+the stores have one (the bytes of ``render_jobs.screen_uv.FILE``: the checkpoint alone then maps any
+material to the network's input, ``trainer.rendering.mapping``), and ``best`` (``{"step", "psnr"}``:
 the best held-out score at a checkpoint so far, or none), and ``ema`` when the run averages
-its weights (:meth:`trainer.ema.WeightAverage.state_dict`: the weights the checkpoint renders
-with, :func:`weights`). Written to a temporary file in the same folder, fsynced, then renamed
-into place; the newest ``keep`` are kept, and ``checkpoints/best.pt`` is a second name of the
-one with the best held-out PSNR (:func:`keep_best`), kept when the rotation drops its step
+its weights (:meth:`trainer.training.ema.WeightAverage.state_dict`: the weights the checkpoint
+renders with, :func:`weights`). Written to a temporary file in the same folder, fsynced, then
+renamed into place; the newest ``keep`` are kept, and ``checkpoints/best.pt`` is a second name of
+the one with the best held-out PSNR (:func:`keep_best`), kept when the rotation drops its step
 file.
 """
 
@@ -22,17 +22,19 @@ import re
 import shutil
 from pathlib import Path
 
-import torch
-
+from shaderball.errors import UserError
 from storage.backend import write_atomic
-from trainer.config import WEIGHTS
+from trainer import runfiles
 
 PATTERN = re.compile(r"^step-(\d{8})\.pt$")
-#: the checkpoint with the best held-out PSNR, beside the step files (``trainer.train``)
-BEST = "best.pt"
+#: the checkpoint with the best held-out PSNR, beside the step files (``trainer.training.train``)
+BEST = runfiles.BEST
+
+#: which of a checkpoint's weights a command runs (:func:`weights`)
+WEIGHTS = ("auto", "average", "trained")
 
 
-class CheckpointError(RuntimeError):
+class CheckpointError(UserError, RuntimeError):
     """A checkpoint is missing, unreadable or not one of ours."""
 
 
@@ -58,7 +60,7 @@ def weights(state: dict, which: str = "auto") -> dict:
 
 
 def folder(run_dir: str | os.PathLike) -> Path:
-    return Path(run_dir) / "checkpoints"
+    return Path(run_dir) / runfiles.CHECKPOINTS
 
 
 def listing(run_dir: str | os.PathLike) -> list[Path]:
@@ -79,6 +81,8 @@ def save(run_dir: str | os.PathLike, state: dict, keep: int = 3) -> Path:
     d = folder(run_dir)
     d.mkdir(parents=True, exist_ok=True)
     path = d / f"step-{int(state['step']):08d}.pt"
+    import torch  # the train extra: this module is imported by every trainer command
+
     write_atomic(path, lambda f: torch.save(state, f))
     for old in listing(run_dir)[:-keep] if keep > 0 else []:
         old.unlink(missing_ok=True)
@@ -122,7 +126,7 @@ def why_unreadable(path: Path, exc: Exception) -> str:
     return lines[0] if lines else type(exc).__name__
 
 
-def load(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> dict:
+def load(path: str | os.PathLike, map_location="cpu") -> dict:
     """A checkpoint (``path``: a file, or a run folder meaning its latest)."""
     p = Path(path)
     if p.is_dir():
@@ -138,6 +142,8 @@ def load(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> d
             "command takes the checkpoint or run it was exported from"
         )
     try:
+        import torch
+
         state = torch.load(p, map_location=map_location, weights_only=True)
     except Exception as exc:  # torch raises several types for a bad file
         raise CheckpointError(

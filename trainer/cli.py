@@ -10,10 +10,21 @@ from pathlib import Path
 import click
 from tabulate import tabulate
 
-from farm.web import server_options
-from storage.cli_group import Commands, check_picture_name
-from trainer import config as train_config
-from trainer.viewer import MAX_UPLOAD_MB
+from render_jobs.materials.sources import load_map_bytes, one_material
+from render_jobs.specs import Sun
+from render_jobs.sun import sun_sweep
+from render_jobs.tonemap import to_uint8
+from shaderball.cli import Commands
+from shaderball.web import serve, server_options, token_for
+from storage.backend import write_atomic
+from storage.extras import require
+from storage.image_files import check_picture_name, save_animation, save_image
+from storage.reader import Store
+from trainer import runfiles
+from trainer.checkpoint import WEIGHTS
+from trainer.intervals import MIN_MATERIALS, bracket
+from trainer.rendering.viewer import MAX_UPLOAD_MB
+from trainer.training import config as train_config
 
 
 def _fail(exc: Exception):
@@ -32,22 +43,6 @@ def _make_config(kwargs: dict):
     try:
         return train_config.TrainConfig(**kwargs)
     except ValueError as exc:
-        _fail(exc)
-
-
-def _train_errors(fn, cfg):
-    """``fn(cfg)``, with the training errors a user can fix turned into one-line errors."""
-    from storage.errors import StoreError
-    from trainer.checkpoint import CheckpointError
-    from trainer.perceptual import MissingWeightsError
-    from trainer.train import LoaderError, RunError, TrainingDiverged
-
-    known = (
-        StoreError, CheckpointError, MissingWeightsError, RunError, TrainingDiverged, LoaderError
-    )  # fmt: skip
-    try:
-        return fn(cfg)
-    except known as exc:
         _fail(exc)
 
 
@@ -70,7 +65,7 @@ weights_option = click.option(
     "--weights",
     default="auto",
     show_default=True,
-    type=click.Choice(train_config.WEIGHTS),
+    type=click.Choice(WEIGHTS),
     help=WEIGHTS_HELP,
 )
 
@@ -84,12 +79,7 @@ def main() -> None:
       trainer eval --checkpoint runs/demo
       trainer render --checkpoint runs/demo --store out/demo.zarr --sample 0 -o out.png
     """
-    from storage.extras import MissingExtra, require
-
-    try:
-        require("trainer", "torch")
-    except MissingExtra as exc:
-        _fail(exc)
+    require("trainer", "torch")
 
 
 @main.command()
@@ -103,12 +93,12 @@ def train(**kwargs) -> None:
       trainer train --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
       trainer train --store out/set.zarr --ema-decay 0.999 --out runs/ema  # averaged weights
     """
-    from trainer.train import train
+    from trainer.training.train import train
 
     cfg = _make_config(kwargs)
     if int(os.environ.get("TORCHELASTIC_RESTART_COUNT", "0")) > 0:
         cfg.resume = True  # torchrun restarted the ranks: continue from the last checkpoint
-    summary = _train_errors(train, cfg)
+    summary = train(cfg)
     if int(os.environ.get("RANK", "0")) == 0:
         val, best = summary["val"], summary["best"]
         held = f"; held-out PSNR {val['psnr']:.2f} dB at step {val['step']}" if val else ""
@@ -117,7 +107,7 @@ def train(**kwargs) -> None:
             f"{summary['seconds']:.1f} s{held}; checkpoint {summary['checkpoint']}"
         )
         if best:
-            path = Path(cfg.out) / "checkpoints" / "best.pt"
+            path = Path(cfg.out) / runfiles.CHECKPOINTS / runfiles.BEST
             click.echo(f"best:  {path} (step {best['step']}, held-out {best['psnr']:.2f} dB)")
         click.echo(f"evaluate: trainer eval --checkpoint {shlex.quote(cfg.out)}")
 
@@ -181,14 +171,13 @@ def launch(
     In a Kubeflow Trainer TrainJob (torch-distributed runtime) the node count, rank and
     rendezvous come from its PET_* variables: give only the training options.
     """
-    from trainer.launch import (
+    from trainer.training.launch import (
         LaunchConfig,
-        RankFailed,
         other_node_commands,
         run_torchrun,
         torchrun_argv,
     )
-    from trainer.train import preflight
+    from trainer.training.train import preflight
 
     cfg = _make_config(kwargs)
     try:
@@ -199,7 +188,7 @@ def launch(
     except ValueError as exc:
         _fail(exc)
     if not dry_run:  # bad input ends here, in one line, before any rank starts
-        _train_errors(lambda c: preflight(c, ranks=lc.procs()), cfg)
+        preflight(cfg, ranks=lc.procs())
     argv = torchrun_argv(lc, cfg)
     click.echo("torchrun: " + shlex.join(argv), err=True)
     others = other_node_commands(lc, cfg) if nodes > 1 else []
@@ -208,10 +197,7 @@ def launch(
         click.echo(f"{where}: {line}", err=True)
     if dry_run:
         return
-    try:
-        run_torchrun(argv)
-    except RankFailed as exc:
-        _fail(exc)
+    run_torchrun(argv)
 
 
 @main.command("eval")
@@ -241,7 +227,7 @@ def launch(
 @click.option(
     "--weights",
     multiple=True,
-    type=click.Choice(train_config.WEIGHTS),
+    type=click.Choice(WEIGHTS),
     help=f"{WEIGHTS_HELP}; once for every --checkpoint, or once per --checkpoint in order  "
     "[default: auto]",
 )
@@ -299,36 +285,20 @@ def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, per_
     _eval_one(ckpts[0], weights[0], *args)
 
 
-def _eval_errors() -> tuple[type, ...]:
-    from storage.errors import StoreError
-    from storage.extras import MissingExtra
-    from trainer.checkpoint import CheckpointError
-    from trainer.devices import NoCuda
-    from trainer.evaluate import EvalError
-
-    return StoreError, CheckpointError, EvalError, MissingExtra, NoCuda
-
-
 def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, per_sample, as_json):
     """One model's scores, kept beside its run when they are what the run renders."""
-    from trainer.evaluate import evaluate
-    from trainer.intervals import MIN_MATERIALS, bracket
+    from trainer.rendering.evaluate import evaluate
 
     run_scores = Path(ckpt).is_dir() and not on and weights == "auto"  # what the run renders
     if grid is None and run_scores:
-        grid = Path(ckpt) / "eval.png"
-    try:
-        result = evaluate(
-            ckpt, list(stores) or None, batch_size, grid, grid_count, device,
-            list(on) or None, weights, per_sample,
-        )  # fmt: skip
-    except _eval_errors() as exc:
-        _fail(exc)
+        grid = Path(ckpt) / runfiles.EVAL_GRID
+    result = evaluate(
+        ckpt, list(stores) or None, batch_size, grid, grid_count, device,
+        list(on) or None, weights, per_sample,
+    )  # fmt: skip
     if run_scores:  # beside the run's log, for the dashboard's runs page
-        from storage.backend import write_atomic
-
         data = json.dumps(result, indent=1, default=str).encode()
-        write_atomic(Path(ckpt) / "eval.json", lambda f: f.write(data))
+        write_atomic(Path(ckpt) / runfiles.EVAL, lambda f: f.write(data))
     _warn_unchecked(ckpt, result)
     if as_json:
         click.echo(json.dumps(result, indent=2))
@@ -375,15 +345,12 @@ def _warn_unchecked(ckpt, result: dict) -> None:
 
 def _compare(ckpts, weights, stores, batch_size, grid, grid_count, on, device, per_sample, as_json):
     """Several models' scores on the same samples, each against the first."""
-    from trainer.compare import compare, report
+    from trainer.rendering.compare import compare, report
 
-    try:
-        result = compare(
-            ckpts, weights, list(stores) or None, batch_size, grid, grid_count, device,
-            list(on) or None, per_sample,
-        )  # fmt: skip
-    except _eval_errors() as exc:
-        _fail(exc)
+    result = compare(
+        ckpts, weights, list(stores) or None, batch_size, grid, grid_count, device,
+        list(on) or None, per_sample,
+    )  # fmt: skip
     for model in result["models"]:
         _warn_unchecked(model["checkpoint"], model)
     if as_json:
@@ -409,7 +376,6 @@ def _light(sun: str | None, turbidity: float | None, default):
     """The :class:`Sun` of the options, each falling back to ``default``'s
     ``(direction, turbidity)``; a sun below the horizon or a turbidity outside [1, 10] is a
     usage error."""
-    from render_jobs.specs import Sun
 
     direction = _floats(sun, 3, "--sun") or default[0]
     t = default[1] if turbidity is None else turbidity
@@ -476,9 +442,6 @@ def render(ckpt, material, store, sample, sun, turbidity, output, sweep, fps, de
     """
     from PIL import Image
 
-    from render_jobs.tonemap import to_uint8
-    from storage.image_files import save_animation, save_image
-
     if (material is None) == (sample is None):
         raise click.UsageError("give --material, or --store with --sample")
     if sample is not None and store is None:
@@ -511,15 +474,9 @@ def render(ckpt, material, store, sample, sun, turbidity, output, sweep, fps, de
 def _render_inputs(ckpt, material, store, sample, sun, turbidity, device):
     """``(renderer, stored maps, Sun)`` of ``trainer render``'s options; bad input ends the
     command in one line."""
-    from render_jobs.errors import MaterialError
-    from render_jobs.materials.sources import load_map_bytes, one_material
-    from render_jobs.screen_uv import ScreenUVError
-    from storage.errors import StoreError
-    from storage.extras import MissingExtra
-    from storage.reader import Store
-    from trainer.checkpoint import CheckpointError
-    from trainer.infer import NoScreenUV, load_renderer, material_mapper
-    from trainer.mapping import textures_from_bytes
+    from trainer.rendering.base import material_mapper
+    from trainer.rendering.load import load_renderer
+    from trainer.rendering.mapping import textures_from_bytes
 
     try:
         if material is not None:
@@ -532,8 +489,7 @@ def _render_inputs(ckpt, material, store, sample, sun, turbidity, device):
             packed = s.packed_maps(s.layout.material_of_sample(sample))
             light = _light(sun, turbidity, s.light(sample))
             r = load_renderer(ckpt, device)
-    except (MaterialError, StoreError, CheckpointError, NoScreenUV, ScreenUVError, MissingExtra,
-            ValueError, IndexError) as exc:  # fmt: skip
+    except (ValueError, IndexError) as exc:  # a sample or maps the network cannot take
         _fail(exc)
     return r, packed, light
 
@@ -544,8 +500,7 @@ def _sweep(renderer, packed, sun, n: int):
 
     from tqdm import tqdm
 
-    from render_jobs.sun import sun_sweep
-    from trainer.infer import render_under
+    from trainer.rendering.base import render_under
 
     frames = render_under(renderer, packed, sun_sweep(sun, n))
     return tqdm(frames, total=n, desc="rendering", unit="frame", file=sys.stderr, disable=None)
@@ -580,25 +535,15 @@ def export(ckpt, output, opset, no_catalog, weights):
       trainer export --checkpoint runs/demo --opset 15 -o ball-15.onnx   # Unity Sentis 1.x
       trainer export --checkpoint runs/demo --no-catalog -o share/ball.onnx
     """
-    from storage.extras import MissingExtra, require
-
-    try:
-        require("trainer export", "onnx", "onnxscript", "onnxruntime")
-    except MissingExtra as exc:
-        _fail(exc)
-    from trainer.checkpoint import CheckpointError
-    from trainer.export import ExportError
-    from trainer.export import export as export_onnx
-    from trainer.infer import Renderer
+    require("trainer export", "onnx", "onnxscript", "onnxruntime")
+    from trainer.rendering.export import export as export_onnx
+    from trainer.rendering.infer import Renderer
 
     if output.suffix != ".onnx":
         raise click.BadParameter(f"{str(output)!r} does not end in .onnx", param_hint="-o")
-    try:
-        renderer = Renderer.from_checkpoint(ckpt, "cpu", weights)
-        click.echo("exporting, then checking the model in ONNX Runtime ...", err=True)
-        done = export_onnx(renderer, output, opset, catalog=not no_catalog)
-    except (CheckpointError, ExportError, OSError) as exc:
-        _fail(exc)
+    renderer = Renderer.from_checkpoint(ckpt, "cpu", weights)
+    click.echo("exporting, then checking the model in ONNX Runtime ...", err=True)
+    done = export_onnx(renderer, output, opset, catalog=not no_catalog)
     click.echo(
         f"wrote {done.model} ({done.bytes / 2**20:.1f} MiB, ONNX opset {done.opset}); ONNX Runtime "
         f"renders it within {done.max_difference:.1e} of the checkpoint"
@@ -641,17 +586,8 @@ def viewer(ckpt, stores, folders, max_upload_mb, cuda_graph, host, port, token, 
       trainer viewer --checkpoint runs/a --host 0.0.0.0   # prints a token, needed by every request
       trainer viewer --checkpoint ball.onnx --store out/demo.zarr   # an exported model
     """
-    from storage.extras import MissingExtra, require
-
-    try:
-        require("trainer viewer", "aiohttp", "jinja2")
-    except MissingExtra as exc:
-        _fail(exc)
-    from farm.web import serve, token_for
-    from render_jobs.errors import MaterialError
-    from storage.errors import StoreError
-    from trainer.checkpoint import CheckpointError
-    from trainer.viewer.app import build, make_app
+    require("trainer viewer", "aiohttp", "jinja2")
+    from trainer.rendering.viewer.app import build, make_app
 
     if cuda_graph:
         _check_cuda_graph(device)
@@ -660,7 +596,7 @@ def viewer(ckpt, stores, folders, max_upload_mb, cuda_graph, host, port, token, 
         view, notes = build(
             ckpt, list(stores), list(folders), device, max_upload_mb << 20, cuda_graph
         )
-    except (CheckpointError, StoreError, MaterialError, ValueError, MissingExtra) as exc:
+    except ValueError as exc:  # a folder, store or upload limit the viewer cannot take
         _fail(exc)
     for line in notes:
         click.echo(line, err=True)
@@ -670,12 +606,9 @@ def viewer(ckpt, stores, folders, max_upload_mb, cuda_graph, host, port, token, 
 
 def _check_cuda_graph(device: str) -> None:
     """``--cuda-graph`` on a device that has no CUDA ends the command in one line."""
-    from trainer.devices import NoCuda, pick_device
+    from trainer.devices import pick_device
 
-    try:
-        where = pick_device(device).type
-    except NoCuda as exc:
-        _fail(exc)
+    where = pick_device(device).type
     if where != "cuda":
         _fail(ValueError(f"--cuda-graph needs a CUDA device, and the network would run on {where}"))
 

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import torch
 
+from shaderball.errors import UserError
 
-class NoCuda(ValueError):
+
+class NoCuda(UserError, ValueError):
     """``--device cuda`` where torch sees no CUDA device."""
 
     def __init__(self):

@@ -40,7 +40,8 @@ from torch import nn
 from render_jobs.screen_geometry import ScreenGeometry
 from render_jobs.tonemap import DEFAULT_EXPOSURE
 from storage.schema import untrainable
-from trainer.scene import NEEDS_GEOMETRY, SceneInputs, check_cues, cue_channels, ordered
+from trainer.cues import NEEDS_GEOMETRY, check_cues, cue_channels, ordered
+from trainer.scene import SceneInputs
 
 LIGHT_CHANNELS = 128
 #: the models: the paper's U-Net, and Zsolnai-Fehér et al. 2018's baseline (trainer.zf)
@@ -103,7 +104,7 @@ class ModelConfig:
     @property
     def plain(self) -> bool:
         """The paper's network: no cues, BatchNorm, no head, no residual (the form the fast
-        inference rewrites of ``trainer.fastnet`` take)."""
+        inference rewrites of ``trainer.rendering.fastnet`` take)."""
         return not self.inputs and self.norm == "batch" and not self.head and not self.residual
 
     @property
@@ -223,16 +224,6 @@ class NeuralRenderer(nn.Module):
             shade = inputs[:, -3:].float().clamp(1e-3, 1 - 1e-3)
             out = out + (torch.log(shade) - torch.log1p(-shade)).to(out.dtype)  # its logit
         return torch.sigmoid(out)
-
-
-def build_model(config: ModelConfig, geometry: ScreenGeometry | None = None) -> nn.Module:
-    """The model ``config.arch`` names (both take ``(maps, light)`` batches), its scene
-    buffers from ``geometry`` when it has cues."""
-    if config.arch == "zf":
-        from trainer.zf import ZsolnaiFeherRenderer
-
-        return ZsolnaiFeherRenderer(config)
-    return NeuralRenderer(config, geometry)
 
 
 def count_parameters(model: nn.Module) -> int:

@@ -40,24 +40,11 @@ from torch import nn
 
 from render_jobs import sun as sunlib
 from render_jobs.screen_geometry import PARTS, ScreenGeometry, camera_rays, half_width
+from trainer.cues import MATERIAL_PARTS, check_cues, cue_channels, ordered
 from trainer.targets import TURBIDITY_SCALE, Tonemap, srgb_decode, srgb_encode
 
-#: each cue and its channels, in the order they are concatenated
-CUES = {
-    "paint": 0,
-    "geometry": 10,
-    "light": 4,
-    "normal": 3,
-    "reflection": 3,
-    "shadow": 1,
-    "shade": 3,
-}
-#: the parts that carry the material's maps
-MATERIAL_PARTS = ("ball", "ring", "core")
-#: the cues that need the scene's geometry buffers
-NEEDS_GEOMETRY = ("paint", "geometry", "normal", "reflection", "shadow", "shade")
-#: horizontal irradiance of the sky alone (W/m², Blender's Hosek-Wilkie at strength 1;
-#: ``render_jobs.sun.SUN_ZENITH_IRRADIANCE``'s comment measures it at 0.24-0.27)
+#: horizontal irradiance of the sky alone, W/m² (Blender's Hosek-Wilkie at strength 1, as
+#: ``render_jobs.sun.SUN_ZENITH_IRRADIANCE``'s comment gives it)
 SKY_IRRADIANCE = 0.25
 #: what the shade cue holds where the camera sees sky (mid-grey: a residual network's
 #: neutral start there)
@@ -66,24 +53,6 @@ SKY_SHADE = 0.5
 MIN_ALPHA = 0.02
 #: how far a shadow ray starts off its surface, metres
 RAY_OFFSET = 2e-3
-
-
-def check_cues(cues: tuple[str, ...]) -> None:
-    """Raise ``ValueError`` naming an unknown or repeated cue."""
-    for i, c in enumerate(cues):
-        if c not in CUES:
-            raise ValueError(f"unknown input cue {c!r}: one of {', '.join(CUES)}")
-        if c in cues[:i]:
-            raise ValueError(f"input cue {c!r} is given twice")
-
-
-def cue_channels(cues: tuple[str, ...]) -> int:
-    return sum(CUES[c] for c in cues)
-
-
-def ordered(cues) -> tuple[str, ...]:
-    """``cues`` in :data:`CUES` order (the order their channels are concatenated)."""
-    return tuple(c for c in CUES if c in set(cues))
 
 
 class SceneInputs(nn.Module):

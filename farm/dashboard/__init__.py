@@ -2,6 +2,6 @@
 runs, Prometheus metrics and a cancel button, from what the farm and trainer persist.
 
 Modules: :mod:`.jobs` and :mod:`.runs` read the data, :mod:`.pages` draws the HTML,
-:mod:`.metrics` the Prometheus collector, :mod:`.app` the routes; :mod:`farm.web` is the
+:mod:`.metrics` the Prometheus collector, :mod:`.app` the routes; :mod:`shaderball.web` is the
 guarded web layer under them.
 """

@@ -23,8 +23,13 @@ from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_l
 from farm.cancel import request_cancel
 from farm.dashboard import jobs, pages, runs
 from farm.dashboard.metrics import Collector
-from farm.web import Refused, application, confine
+from render_jobs.contact_sheet import contact_sheet
+from render_jobs.results import ScreenMaps
+from render_jobs.tonemap import to_uint8, tonemap
+from shaderball.web import Refused, application, confine
+from storage.backend import Backend
 from storage.reader import Store
+from trainer import runfiles
 
 THUMB_CACHE = 256
 
@@ -131,10 +136,6 @@ class Dashboard:
     def picture(self, url: str, sample: int, sheet: bool) -> bytes:
         from PIL import Image
 
-        from render_jobs.contact_sheet import contact_sheet
-        from render_jobs.results import ScreenMaps
-        from render_jobs.tonemap import to_uint8, tonemap
-
         s = Store(url).sample(sample)
         if sheet:
             title = f"sample {s.index}  material {s.material_index} ({s.kind}: {s.source_id})"
@@ -152,7 +153,7 @@ def _blocking(fn, *args):
 
 class Handlers:
     """The dashboard's request handlers, a method each; ``secret`` goes into every page for
-    its POSTs (:func:`farm.web.application`)."""
+    its POSTs (:func:`shaderball.web.application`)."""
 
     def __init__(self, dash: Dashboard, secret: str):
         self.dash, self.secret = dash, secret
@@ -194,8 +195,6 @@ class Handlers:
         return await self._picture(request, sheet=True)
 
     async def cancel(self, request):
-        from storage.backend import Backend
-
         name = request.match_info["name"]
         url = self.dash.store_url(name)
         st = (await _blocking(self.dash.job_row, name)).get("status")
@@ -210,7 +209,7 @@ class Handlers:
 
     async def run_file(self, request):
         name = request.query.get("file")
-        if name not in ("eval.png", "val.png"):
+        if name not in (runfiles.EVAL_GRID, runfiles.VAL_GRID):
             return web.Response(status=404, text="404\n")
         path = self.dash.run_path(request.match_info["name"]) / name
         if not path.is_file():

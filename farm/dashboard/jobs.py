@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from farm.state import load_state, window_rate
-from farm.web import confine, confine_key
+from shaderball.web import confine, confine_key
 from storage.backend import Backend, is_remote
 from storage.reader import Store
 from storage.schema import COMMITS

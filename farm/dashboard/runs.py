@@ -13,6 +13,8 @@ import os
 import shlex
 from pathlib import Path
 
+from trainer import runfiles
+
 #: log lines kept for a curve (evenly thinned): a long run's log has one a few seconds
 CURVE_POINTS = 600
 
@@ -40,7 +42,7 @@ SETTINGS = (
 
 
 def is_run(path: Path) -> bool:
-    return (path / "log.jsonl").exists() or (path / "config.json").exists()
+    return (path / runfiles.LOG).exists() or (path / runfiles.CONFIG).exists()
 
 
 def find_runs(base: Path) -> list[str]:
@@ -51,7 +53,7 @@ def find_runs(base: Path) -> list[str]:
     return [c.name for c in sorted(base.iterdir()) if c.is_dir() and is_run(c)]
 
 
-def read_log(run: Path, name: str = "log.jsonl") -> list[dict]:
+def read_log(run: Path, name: str = runfiles.LOG) -> list[dict]:
     """The run's log lines, or those of its ``name`` (a torn last line, while it is written,
     is skipped)."""
     path = run / name
@@ -69,7 +71,7 @@ def read_log(run: Path, name: str = "log.jsonl") -> list[dict]:
 def read_config(run: Path) -> dict:
     """The run's ``config.json`` (``{}`` when it has none, or one being written)."""
     try:
-        config = json.loads((run / "config.json").read_text())
+        config = json.loads((run / runfiles.CONFIG).read_text())
     except (OSError, json.JSONDecodeError):
         return {}
     return config if isinstance(config, dict) else {}
@@ -97,7 +99,7 @@ def settings(config: dict) -> dict[str, object]:
 def _short_checkpoint(path: str) -> str:
     """A run folder by its name, a checkpoint file as ``RUN/FILE``."""
     p = Path(path)
-    return f"{p.parent.parent.name}/{p.name}" if p.parent.name == "checkpoints" else p.name
+    return f"{p.parent.parent.name}/{p.name}" if p.parent.name == runfiles.CHECKPOINTS else p.name
 
 
 #: the label of a scored run's held-out samples (``heldout_set`` of its last score): runs
@@ -163,12 +165,12 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
     ``label`` its name on the page and in the metrics (``name`` when not given)."""
     log = read_log(run)
     last = log[-1] if log else {}
-    val = read_log(run, "val.jsonl")
-    ckpts = sorted((run / "checkpoints").glob("*.pt")) if (run / "checkpoints").is_dir() else []
+    val = read_log(run, runfiles.VAL)
+    ckpts = sorted((run / runfiles.CHECKPOINTS).glob("*.pt"))
     ev = None
-    if (run / "eval.json").exists():
+    if (run / runfiles.EVAL).exists():
         try:
-            ev = json.loads((run / "eval.json").read_text())
+            ev = json.loads((run / runfiles.EVAL).read_text())
         except json.JSONDecodeError:
             ev = None
     config = read_config(run)
@@ -195,6 +197,6 @@ def run_summary(name: str, run: Path, label: str | None = None) -> dict:
             {"name": c.name, "bytes": c.stat().st_size, "mtime": c.stat().st_mtime} for c in ckpts
         ],
         "eval": ev,
-        "eval_grid": (run / "eval.png").exists(),
-        "val_grid": (run / "val.png").exists(),
+        "eval_grid": (run / runfiles.EVAL_GRID).exists(),
+        "val_grid": (run / runfiles.VAL_GRID).exists(),
     }

@@ -41,9 +41,9 @@ from pathlib import Path
 
 import numpy as np
 
+import render_jobs.materials.images as images
 from render_jobs.cpus import omp_threads, usable_cpus
 from render_jobs.errors import MaterialError
-from render_jobs.materials import images
 from render_jobs.materials.library import FolderPlan, looks_like_material, plan_folder
 from render_jobs.materials.maps import (
     MAP_CHANNELS,
@@ -389,11 +389,6 @@ def _read(path: Path, finish) -> tuple[dict[str, np.ndarray], Reading]:
         raise MaterialError(f"{path}: file not found")
     maps = load_panel_png(path, finish)
     return maps, Reading(str(path), "5-panel", files={"panels": path.name})
-
-
-def load_svbrdf(path: Path) -> MaterialMaps:
-    """A 5-panel image file or a per-map folder."""
-    return read_svbrdf(path)[0]
 
 
 def scan_svbrdf_dir(folder: Path) -> list[Path]:

@@ -1,0 +1,161 @@
+"""The losses: the paper's L1 + the VGG16 relu3_3 feature reconstruction loss (Johnson et al.
+2016), its L1 ablation, and L1 + MS-SSIM (Zhao et al. 2017, OIDN's default), which needs no
+pretrained weights.
+
+VGG16's convolutional trunk up to relu3_3 is defined here, with the layer indices of
+torchvision's ``vgg16().features`` (0..15), so a torchvision-format state dict loads into it
+(``features.N.weight`` / ``features.N.bias``; the classifier is ignored). ImageNet weights are
+never downloaded: they come from ``--vgg-weights FILE`` or the torch hub cache
+(``$TORCH_HOME/hub/checkpoints/vgg16-*.pth``, where ``torchvision.models.vgg16(weights=...)``
+leaves them). Inputs in [0, 1] are normalised with ImageNet mean and std.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torchmetrics.functional.image import (
+    multiscale_structural_similarity_index_measure as multiscale_ssim,
+)
+
+from shaderball.errors import UserError
+
+# torchvision's vgg16 "features" up to relu3_3: conv channels, "M" = max pool
+_TRUNK = [64, 64, "M", 128, 128, "M", 256, 256, 256]
+MEAN = (0.485, 0.456, 0.406)
+STD = (0.229, 0.224, 0.225)
+HUB_PATTERN = "vgg16-*.pth"
+
+
+class MissingWeightsError(UserError, FileNotFoundError):
+    """The perceptual loss was asked for without VGG16 weights."""
+
+
+def vgg16_relu3_3() -> nn.Sequential:
+    """VGG16 ``features[:16]`` (untrained): ``(N, 3, H, W)`` → ``(N, 256, H/4, W/4)``."""
+    layers: list[nn.Module] = []
+    cin = 3
+    for v in _TRUNK:
+        if v == "M":
+            layers.append(nn.MaxPool2d(2, 2))
+        else:
+            layers += [nn.Conv2d(cin, v, 3, padding=1), nn.ReLU(inplace=True)]
+            cin = v
+    return nn.Sequential(*layers)
+
+
+def find_weights(path: str | os.PathLike | None = None) -> Path:
+    """The VGG16 weights file: ``path`` if given, else the newest in the torch hub cache."""
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise MissingWeightsError(f"VGG16 weights file {p} does not exist")
+        return p
+    hub = Path(torch.hub.get_dir()) / "checkpoints"
+    found = sorted(glob.glob(str(hub / HUB_PATTERN)))
+    if not found:
+        raise MissingWeightsError(
+            f"the perceptual loss needs ImageNet VGG16 weights and none are in {hub}: pass "
+            "--vgg-weights FILE (a torchvision vgg16 state dict, e.g. vgg16-397923af.pth), "
+            "copy that file into the hub cache, or train with --loss l1"
+        )
+    return Path(found[-1])
+
+
+def load_vgg(path: str | os.PathLike | None = None) -> nn.Sequential:
+    """The relu3_3 trunk with weights from a torchvision-format state dict (frozen, eval)."""
+    file = find_weights(path)
+    try:
+        state = torch.load(file, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for a bad file
+        raise MissingWeightsError(f"{file}: not a readable torch state dict ({exc})") from None
+    trunk = vgg16_relu3_3()
+    want = {f"features.{k}": v for k, v in trunk.state_dict().items()}
+    missing = [k for k in want if k not in state]
+    if missing:
+        raise MissingWeightsError(f"{file}: not VGG16 weights (no {missing[0]})")
+    for k, v in want.items():
+        if tuple(state[k].shape) != tuple(v.shape):
+            raise MissingWeightsError(
+                f"{file}: {k} has shape {tuple(state[k].shape)}, VGG16 has {tuple(v.shape)}"
+            )
+    trunk.load_state_dict({k.removeprefix("features."): state[k] for k in want})
+    trunk.eval().requires_grad_(False)
+    return trunk
+
+
+#: Zhao et al.'s weight of the MS-SSIM term (L1 gets the rest)
+MSSSIM_WEIGHT = 0.84
+#: MS-SSIM's scale weights (Wang et al. 2003), finest first
+MSSSIM_SCALES = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
+
+
+def msssim_window(side: int) -> tuple[int, tuple[float, ...]]:
+    """MS-SSIM's Gaussian window and scale weights for ``side``-pixel images: the standard
+    11-pixel window over as many of the five scales as fit (the window must fit the
+    coarsest scale, and torchmetrics' own bound must hold), or a 7-pixel one where fewer
+    than three would; the weights of the scales kept are renormalised to sum to 1."""
+
+    def fits(win: int, scales: int) -> bool:
+        coarsest = (win - 1) * 2 ** (scales - 1) < side
+        return coarsest and side // max(1, scales - 1) ** 2 > win - 1 and side >= 2**scales
+
+    for win in (11, 7):
+        scales = max([n for n in range(1, len(MSSSIM_SCALES) + 1) if fits(win, n)], default=1)
+        if scales >= 3 or win == 7:
+            kept = MSSSIM_SCALES[:scales]
+            return win, tuple(w / sum(kept) for w in kept)
+    raise AssertionError("unreachable")
+
+
+class StructuralLoss(nn.Module):
+    """``(N, 3, H, W)`` images in [0, 1] → ``0.84 (1 - MS-SSIM) + 0.16 L1`` (Zhao et al.
+    2017), in fp32, MS-SSIM over the scales that fit the image (:func:`msssim_window`).
+    torchmetrics' MS-SSIM, since pytorch-msssim asserts images over 160 pixels a side at
+    any number of scales and kornia's full-resolution form costs more than the network."""
+
+    def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        pred, target = pred.float(), target.float()
+        win, betas = msssim_window(min(pred.shape[-2:]))
+        ms = multiscale_ssim(pred, target, data_range=1.0, kernel_size=win, betas=betas)
+        return MSSSIM_WEIGHT * (1 - ms) + (1 - MSSSIM_WEIGHT) * F.l1_loss(pred, target)
+
+
+class RendererLoss(nn.Module):
+    """``loss(pred, target)`` for ``(N, 3, H, W)`` images in [0, 1]: L1, plus
+    ``perceptual_weight`` × MSE of relu3_3 features when a VGG trunk is given; or, with
+    ``structural``, :class:`StructuralLoss`."""
+
+    def __init__(
+        self,
+        vgg: nn.Module | None = None,
+        perceptual_weight: float = 1.0,
+        structural: bool = False,
+    ):
+        super().__init__()
+        if vgg is not None and structural:
+            raise ValueError("the loss is L1 + VGG16 or L1 + MS-SSIM, not both")
+        self.vgg = vgg
+        self.perceptual_weight = perceptual_weight
+        self.structural = StructuralLoss() if structural else None
+        self.register_buffer("mean", torch.tensor(MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(STD).view(1, 3, 1, 1), persistent=False)
+
+    def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Scalar fp32 loss. Under autocast the VGG convolutions run in its dtype (bf16 on
+        CUDA); the L1 and the feature MSE are always computed in fp32."""
+        pred, target = pred.float(), target.float()
+        if self.structural is not None:
+            return self.structural(pred, target)
+        loss = F.l1_loss(pred, target)
+        if self.vgg is not None:
+            fp = self.vgg((pred - self.mean) / self.std)
+            with torch.no_grad():  # no backward through the target's half
+                ft = self.vgg((target - self.mean) / self.std)
+            loss = loss + self.perceptual_weight * F.mse_loss(fp.float(), ft.float())
+        return loss
