@@ -114,9 +114,11 @@ def row_config(name: str, store: str, run: Path, budget: int) -> TrainConfig:
 
 
 def train_row(cfg: TrainConfig) -> dict:
-    """Run ``trainer train`` for ``cfg`` (resuming a run it left); its throughput."""
+    """Run ``trainer train`` for ``cfg`` (resuming a run it left); its throughput. A resumed
+    run's CPU time is this call's only, so it has no passes per CPU-second."""
     argv = [str(BIN / "trainer"), "train", *to_argv(cfg)]
-    if (Path(cfg.out) / runfiles.CHECKPOINTS).exists():
+    resumed = (Path(cfg.out) / runfiles.CHECKPOINTS).exists()
+    if resumed:
         argv.append("--resume")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()
@@ -130,7 +132,7 @@ def train_row(cfg: TrainConfig) -> dict:
     return {
         "images": images,
         "passes_per_second": images / loop_seconds if loop_seconds else None,
-        "passes_per_cpu_second": images / cpu if cpu else None,
+        "passes_per_cpu_second": images / cpu if cpu and not resumed else None,
         "wall_seconds": time.perf_counter() - started,
     }
 
@@ -177,7 +179,8 @@ def table(resolution: int, budget: int, results: list[dict]) -> Table:
             r["row"], ROWS[r["row"]][0], round(r["psnr"], 2),
             f"{r['psnr_low']:.2f}-{r['psnr_high']:.2f}" if r.get("psnr_low") else None,
             round(r["ssim"], 4), round(r["flip"], 4),
-            round(r["passes_per_second"], 1), round(r["passes_per_cpu_second"], 1),
+            round(r["passes_per_second"], 1),
+            None if r["passes_per_cpu_second"] is None else round(r["passes_per_cpu_second"], 1),
         ])  # fmt: skip
     return t
 

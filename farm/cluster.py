@@ -6,7 +6,7 @@ A job with an address (``--address`` or ``RAY_ADDRESS``) checks, in order, that:
 1. something accepts a connection there within :data:`REACH_TIMEOUT_S` (Ray itself would
    retry without end, printing only warnings), and it speaks gRPC: a web server there (the
    dashboard's port given for the GCS's, say) is refused at once, where Ray's client would
-   wait some 40 s for it (:func:`not_grpc`);
+   wait out its own long timeout for it (:func:`not_grpc`);
 2. the cluster's GCS accepts this driver's credentials. ``ray start`` (Ray 2.60) turns
    token authentication on when ``RAY_AUTH_MODE`` is not set and a token is at hand
    (``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH`` or ``~/.ray/auth_token``, which any local
@@ -48,7 +48,7 @@ HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0
 #: the cluster joined) say again what the job prints itself
 QUIET = logging.WARNING
 #: how long a job waits for a live node of its cluster on this machine: a head's GCS answers
-#: seconds before its own node has joined (5 s here, more on a busy machine), and Ray waits
+#: seconds before its own node has joined (more on a busy machine), and Ray waits
 #: as long for a local node before it gives up
 NODE_WAIT_S = 60.0
 

@@ -64,8 +64,8 @@ def thread_pool_of(threads: int):
 
     Blender sizes its TBB pool from the process's CPU mask once, when ``bpy`` loads, whatever
     ``render.threads`` says. With ``render.threads`` below the core count, the pool's spare
-    workers spin in ``sched_yield`` through every render: a 1-thread worker on 2 cores used
-    1.97 cores of CPU for the same frame time, so two such workers slowed each other. So the
+    workers spin in ``sched_yield`` through every render: a 1-thread worker uses every core
+    of CPU for the same frame time, so two such workers slow each other. So the
     process may use only ``threads`` CPUs while Blender loads; on leaving, every thread gets
     the full mask back, and the OS still places the worker anywhere. Linux only (elsewhere
     a no-op)."""

@@ -45,8 +45,8 @@ __all__ = [
     "filter_taps",
 ]
 
-#: sub-samples per pixel side unless told otherwise (measured against Cycles' AOVs:
-#: docs/rendering.md, "Screen-space maps without Blender")
+#: sub-samples per pixel side unless told otherwise (``tests/test_mapping.py`` holds the maps
+#: made with it to Cycles' own AOVs)
 DEFAULT_SUPERSAMPLE = 4
 FILE = "screen_uv.npz"
 #: the prefix of the geometry buffers' arrays in :data:`FILE`

@@ -22,7 +22,7 @@ def tonemap(radiance: np.ndarray, exposure: float = DEFAULT_EXPOSURE) -> np.ndar
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
     """``(C, H, W)`` in [0, 1] (C = 1 or 3) → ``(H, W, 3) uint8``, C-contiguous (from a
-    planar image, a copy of the bytes: image encoders read strided pixels 2-3x slower)."""
+    planar image, a copy of the bytes: image encoders read strided pixels slower)."""
     x = np.asarray(image, dtype=np.float32)
     if x.shape[0] == 1:
         x = np.repeat(x, 3, axis=0)

@@ -437,7 +437,7 @@ def render(ckpt, material, store, sample, sun, turbidity, output, sweep, fps, de
           --material 'uniform:diffuse=#b03a2e;specular=0.04;roughness=0.3'
       trainer render --checkpoint runs/demo --store out/demo.zarr --sample 3 -o ball.png
       trainer render --checkpoint runs/demo --material textures/leather.png \\
-          --sun 0.3,-0.5,0.5 --sweep 48 -o leather.webp     # the sun once round, 4 s
+          --sun 0.3,-0.5,0.5 --sweep 48 -o leather.webp     # the sun once round
       trainer render --checkpoint ball.onnx --material textures/leather.png -o l.png
     """
     from PIL import Image
@@ -563,8 +563,8 @@ def export(ckpt, output, opset, no_catalog, weights):
               help="an upload's files together, at most (the page's upload box)")  # fmt: skip
 @click.option("--cuda-graph", is_flag=True,
               help="render each frame through the network compiled in bf16 and replayed as a "
-              "CUDA graph: 0.5 ms a 400² frame on an H100 against 2.0 in fp32, after 20-40 s "
-              "of compiling at start (CUDA, a torch checkpoint)")  # fmt: skip
+              "CUDA graph: the fastest frames, after a compile at start (CUDA, a torch "
+              "checkpoint; docs/benchmarks.md)")  # fmt: skip
 @server_options(port=8267)
 @device_option
 def viewer(ckpt, stores, folders, max_upload_mb, cuda_graph, host, port, token, device):
@@ -591,7 +591,7 @@ def viewer(ckpt, stores, folders, max_upload_mb, cuda_graph, host, port, token, 
 
     if cuda_graph:
         _check_cuda_graph(device)
-        click.echo("compiling the network into a CUDA graph (20-40 s)", err=True)
+        click.echo("compiling the network into a CUDA graph (tens of seconds)", err=True)
     try:
         view, notes = build(
             ckpt, list(stores), list(folders), device, max_upload_mb << 20, cuda_graph

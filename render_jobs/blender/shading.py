@@ -12,7 +12,7 @@ Each texture's value also goes to a shader AOV (``diffuse``, ``specular``, ``rou
 ``normal``), plus ``mask`` = 1; Cycles writes AOVs at the camera ray's first hit, filtered like
 the render, so they are the maps UV-mapped on the ball and rasterised, anti-aliased.
 
-Texture swapping under persistent data (measured on bpy 4.5): Cycles ignores pixel edits to an
+Texture swapping under persistent data (bpy 4.5): Cycles ignores pixel edits to an
 existing image (``pixels.foreach_set`` + ``update``/``update_tag``/``pack``), and replacing
 images by fresh ones is worse: a new image allocated where a removed one lived is served with
 the removed one's pixels (specular rendered with last material's diffuse). So textures are

@@ -3,8 +3,8 @@
 On CUDA it is one cuDNN call, ``torch.cudnn_convolution_relu`` (a fused convolution + bias +
 ReLU graph), so the output is written once, already rectified. Left to Inductor, a
 convolution whose consumer is another convolution (the encoder's, whose outputs feed the
-next level and a skip) is written by cuDNN and then read and written again by a ReLU pass:
-on an H100 about 0.75 ms of a 13 ms batch of 128 at 400² (``docs/benchmarks.md``).
+next level and a skip) is written by cuDNN and then read and written again by a ReLU pass
+(``benchmarks.infer --conv-relu`` times the difference).
 
 Why a custom operator: ``torch.cudnn_convolution_relu`` has no meta kernel, so Dynamo cannot
 trace it; :func:`conv_relu` is registered with ``torch.library.custom_op`` and a fake

@@ -28,16 +28,15 @@ convolves the concatenation of that with the skip. Both steps are linear, so for
   leaves them zero); the output is sliced back to 3 channels inside the sigmoid's kernel.
 
 The output equals the original network's up to rounding (``tests/test_trainer.py`` checks
-fp32 to 1e-5; about 1e-7 in practice) with about the same FLOPs, without the high-resolution
-tensors of the original (upsampled features, concatenations, a 64-channel 400² input to the
-3-channel output convolution). ``trainer.rendering.infer.Renderer`` runs it in fp32 on CPU from 288²
-up, where it is about 1.1x faster than the folded original at batch 1 (slower below:
-``trainer.rendering.infer.CPU_SUBPIXEL_FROM``); compiled in bf16 with aligned channels, its
-rings as edge corrections on zero-padded phases, the encoder's convolutions and ReLUs fused,
-the light encoder as sums and each ring one product (``trainer.rendering.infer.FASTEST``), on an
-H100 it renders 2.2x the frames a second of the compiled original batched (10,921-11,189 at 400²)
-and a frame in 0.74-0.76x its time at batch 1 (0.280-0.291 ms; ``docs/benchmarks.md``).
-BatchNorm must be folded first (:func:`trainer.model.fold_batchnorm`).
+fp32 to 1e-5) with about the same FLOPs, without the high-resolution tensors of the original
+(upsampled features, concatenations, a 64-channel full-resolution input to the 3-channel
+output convolution). ``trainer.rendering.infer.Renderer`` runs it in fp32 on CPU from
+``trainer.rendering.infer.CPU_SUBPIXEL_FROM`` up, where it beats the folded original;
+compiled in bf16 with aligned channels, its rings as edge corrections on zero-padded phases,
+the encoder's convolutions and ReLUs fused, the light encoder as sums and each ring one
+product (``trainer.rendering.infer.FASTEST``), it is the GPU's fastest form, batched and at
+batch 1 (``benchmarks.infer``, docs/benchmarks.md). BatchNorm must be folded first
+(:func:`trainer.model.fold_batchnorm`). It takes the paper's network only (no scene cues).
 """
 
 from __future__ import annotations
@@ -311,9 +310,8 @@ class Conv(nn.Module):
 
     ``gemm = True`` runs it as an explicit channels-last im2col matrix product instead, the
     same numbers, so that Inductor tunes it as a GEMM (its choices include split-K, which a
-    direct convolution on a small image lacks). A knob for ``benchmarks.infer --gemm-at``: on
-    CPU it is no faster, and on an H100 at batch 1 slower than cuDNN's convolutions
-    (``docs/benchmarks.md``)."""
+    direct convolution on a small image lacks). A knob for ``benchmarks.infer --gemm-at``,
+    which compares it with the library's convolutions."""
 
     def __init__(self, weight, bias=None, stride: int = 1, pad: str = "zeros"):
         super().__init__()
@@ -420,9 +418,8 @@ class SubpixelLevel(nn.Module):
 
 class PlainLevel(nn.Module):
     """One decoder level as the trained network computes it: ``z`` upsampled, concatenated
-    with the skip, one convolution. Fewer kernels than :class:`SubpixelLevel` (no ring): on an
-    H200, with the deep levels plain, the compiled rewrite is faster at batch 1 and slower
-    batched, but beats neither pure form at its use (``docs/benchmarks.md``)."""
+    with the skip, one convolution. Fewer kernels than :class:`SubpixelLevel` (no ring), for
+    the mixed forms ``benchmarks.infer --subpixel-from`` compares with the pure ones."""
 
     def __init__(self, weight: torch.Tensor, bias: torch.Tensor):
         super().__init__()

@@ -23,9 +23,7 @@ from trainer.rendering.fastnet import SubpixelRenderer
 from trainer.targets import Tonemap, model_inputs
 
 #: the smallest resolution at which :class:`Renderer` runs the sub-pixel rewrite on CPU; below
-#: it the folded original in channels_last is the faster (on a 2-core CPU, batch 1: the
-#: original 1.16x at 128² and 1.07x at 256², the rewrite 1.18x at 320² and 1.10x at 400²;
-#: ``docs/benchmarks.md``)
+#: it the folded original in channels_last is the faster (``benchmarks.infer`` on the CPU)
 CPU_SUBPIXEL_FROM = 288
 
 
@@ -51,10 +49,8 @@ class Renderer(MapsRenderer):
     It renders in fp32 through :func:`inference_network`: the same images as ``model`` to
     about 1e-7. With ``graph`` (CUDA, the paper's network), a single frame renders through
     :meth:`GraphedRenderer.fastest` instead: bf16, within the bound the tests hold the fast
-    forms to (0.0020-0.0025 of fp32 in display units on the benchmarks' inputs), after a
-    compile of 20-40 s; in the viewer on an H100 a 400² frame's network took 0.51 ms so
-    against 1.96 in fp32 (``docs/benchmarks.md``); batches still run in fp32. That is the
-    viewer's choice (``trainer viewer --cuda-graph``), where one frame follows another; eval
+    forms to, after a compile at start; batches still run in fp32. That is the viewer's
+    choice (``trainer viewer --cuda-graph``), where one frame follows another; eval
     and render keep fp32."""
 
     def __init__(
@@ -207,17 +203,15 @@ LEVEL_FUSION = {
     "realize_opcount_threshold": 100,
     "realize_acc_reads_threshold": 16,
 }
-#: the torch versions whose Inductor was seen to compile :data:`LEVEL_FUSION`'s plan: 2.11,
-#: the lent GPUs'. torch 2.13's fails an assertion (``vr must not be None``) on a replicate
-#: padding fused over a ``pixel_shuffle``, even with its default limits, so elsewhere the
-#: defaults stand
+#: the torch versions whose Inductor compiles :data:`LEVEL_FUSION`'s plan; later ones fail an
+#: assertion (``vr must not be None``) on a replicate padding fused over a ``pixel_shuffle``,
+#: even with the default limits, so there the defaults stand
 LEVEL_FUSION_TORCH = ("2.11.",)
 
 
 #: what Inductor's autotuning weighs for the fast path: cuDNN's convolutions and cuBLAS's
-#: GEMMs alone, as :data:`FASTEST` was measured (``benchmarks/gpu.sh``'s default,
-#: ``docs/benchmarks.md``). With Triton's templates too (Inductor's own default) a first
-#: compile takes minutes: more than a 10-minute device call for the benchmark's rows
+#: GEMMs alone (``benchmarks/gpu.sh``'s default too). With Triton's templates as well
+#: (Inductor's own default) a first compile takes many minutes
 TUNED_BACKENDS = {"max_autotune_conv_backends": "ATEN", "max_autotune_gemm_backends": "ATEN"}
 
 
@@ -246,8 +240,7 @@ def compile_options(
 
 #: the keywords of :func:`fast_network` for the sub-pixel rewrite compiled, its rings as
 #: edge corrections on zero-padded phases, the encoder's convolutions with their ReLU in one
-#: cuDNN call: on an H200 at 400², rows timed in turn, 0.313 ms a frame at batch 1 (0.879x
-#: the compiled original's) and 11,399 frames/s at batch 128 (2.09x); ``docs/benchmarks.md``
+#: cuDNN call
 EDGE_RELU = {
     "compile": True,
     "subpixel": True,
@@ -255,11 +248,8 @@ EDGE_RELU = {
     "wide_ring": True,
     "conv_relu": True,
 }
-#: the fastest form measured: :data:`EDGE_RELU` with the light encoder as sums and each ring
-#: one product. On an H100 at 400², rows timed in turn: 0.280-0.291 ms a frame at batch 1
-#: (0.74-0.76x the compiled original's, 0.87-0.88x :data:`EDGE_RELU`'s) and 10,921-11,189
-#: frames/s at batch 128 (2.2x the original's; :data:`EDGE_RELU` and the light sums alone
-#: within 1 % of it); ``docs/benchmarks.md``
+#: the fastest form of the paper's network, batched and at batch 1: :data:`EDGE_RELU` with the
+#: light encoder as sums and each ring one product (``benchmarks.infer``'s rows compare them)
 FASTEST = EDGE_RELU | {"light_sums": True, "fold_ring": True}
 #: the fast form of a network other than the paper's: BatchNorm folded where there is one,
 #: bf16 (the scene cues stay fp32: ``trainer.scene.SceneInputs``), channels_last, compiled
@@ -272,8 +262,8 @@ class GraphedRenderer:
     The :func:`fast_network` (compiled with ``compile=True``) is captured, so no autocast
     casts run per call. ``__call__(x (N, C, H, W) float, light (N, 4))`` copies into static
     inputs, replays, and returns the static ``(N, 3, H, W) bfloat16`` output (overwritten by
-    the next call); :meth:`replay` renders what the static inputs hold. CUDA only: measured
-    by ``benchmarks.infer`` on an H100 and an H200, not exercised by the CPU test suite.
+    the next call); :meth:`replay` renders what the static inputs hold. CUDA only:
+    ``benchmarks.infer`` runs it on a GPU; the CPU test suite checks the forms it captures.
 
     ``fast`` are :func:`fast_network`'s keywords, or ``net`` a network made otherwise (fed
     bf16 channels_last inputs); :meth:`fastest` captures the fastest form (:data:`FASTEST`)."""

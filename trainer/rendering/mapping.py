@@ -247,9 +247,9 @@ class ScreenMapper:
 
 
 _LUT_STEPS = 4096
-#: hits looked up at once on CPU: the gathered bytes and their floats (2.6 MB for one
-#: material) stay in cache between the steps and are reused (33-36 ms at 400² for a 4K
-#: material, against 39-44 ms in one pass that allocates them: docs/benchmarks.md)
+#: hits looked up at once on CPU: the gathered bytes and their floats stay in cache between
+#: the steps and are reused, where one pass over every hit allocates them afresh
+#: (``benchmarks.viewer`` times a 4K material)
 _CHUNK = 16384
 
 
@@ -268,7 +268,7 @@ class PixelFilter:
     reach, in its own sub-sample row (a row of it for each (sub-sample row, pixel column)
     that any hit reaches), then ``along_y`` takes those rows into the ``R²`` pixels, 3 x S
     entries a pixel at most. That is 3 entries a hit and a few a pixel, where one product
-    has 9 a hit: 1.5-2.4x faster on CPU (``docs/benchmarks.md``, "The material viewer").
+    has 9 a hit (``benchmarks.viewer`` times both).
     ``filter @ x`` filters ``x (hits, n)`` into ``(R², n)``."""
 
     def __init__(self, along_x: torch.Tensor, along_y: torch.Tensor):
@@ -312,7 +312,7 @@ def _spread(q: torch.Tensor, s: int, r: int, taps: torch.Tensor):
 
 def _csr(rows: torch.Tensor, cols: torch.Tensor, values: torch.Tensor, shape) -> torch.Tensor:
     """A CSR matrix of the entries, with 32-bit indices: the CPU product otherwise converts
-    64-bit ones on every call (1.4x slower)."""
+    64-bit ones on every call."""
     coo = torch.sparse_coo_tensor(torch.stack([rows, cols]), values, shape, check_invariants=False)
     with warnings.catch_warnings():  # "sparse CSR support is in beta"
         warnings.simplefilter("ignore", UserWarning)

@@ -18,11 +18,10 @@ The order of an epoch and who reads what are pure functions of integers:
 
 One iteration of a :class:`ShardStream` runs from a position to the end of the last epoch,
 so the workers read the next epoch's first batches while this epoch's last ones train.
-Restarting the iteration every epoch stalls each epoch start until every worker has read a
-batch (``benchmarks.train`` times both ways; the likely cause of the 23.6 % data wait once
-measured on an H100 with 63 steps an epoch). Ranks may end an epoch with one batch fewer;
-the training loop handles that with DDP's ``join``. The loader state in a checkpoint is
-``{"epoch", "position"}``.
+Restarting the iteration every epoch would stall each epoch's start until every worker has
+read a batch, a wait that grows as epochs shorten (``benchmarks.train`` times both ways). Ranks may
+end an epoch with one batch fewer; the training loop handles that with DDP's ``join``. The loader
+state in a checkpoint is ``{"epoch", "position"}``.
 """
 
 from __future__ import annotations

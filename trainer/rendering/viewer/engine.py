@@ -183,7 +183,7 @@ class Engine:
         """``(R, R, 3) uint8``: :meth:`network`'s image as ``to_uint8`` makes it. On CUDA it
         is quantized on the device (:func:`to_uint8_tensor`): a quarter of the bytes come
         back, and the CPU is spared a float pass over the image. On the CPU numpy's pass
-        stays: at 400² on a 2-core CPU it took 1.9 ms, the tensor form 1.9-2.3."""
+        stays: the tensor form gains nothing there (``benchmarks.viewer``)."""
         image = self._rendered(packed, light)
         if image.device.type == "cpu":
             return to_uint8(image.numpy())
