@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 from pathlib import Path
@@ -10,10 +11,10 @@ import click
 from tqdm import tqdm
 
 from farm.cancel import request_cancel
-from farm.driver import FarmError
 from farm.driver import submit as run
 from farm.materials import dry_run, format_dry_run
-from farm.plan import JobConfig
+from farm.plan import RENDER_OPTIONS, JobConfig
+from farm.plan import options as job_options
 from farm.state import load_state
 from farm.status import WORKER_ROWS, format_status
 from render_jobs.preview import prepare, render_preview
@@ -26,7 +27,6 @@ from shaderball.web import serve, server_options, token_for
 from storage.backend import Backend
 from storage.extras import require
 from storage.reader import Store
-from storage.schema import untrainable
 from storage.writer import put_screen_uv
 
 
@@ -48,41 +48,8 @@ def _fixed_sun(text: str | None, turbidity: float):
     return (x, y, z, turbidity)
 
 
-def render_options(command):
-    """--suns, --resolution, --samples, --seed: shared by the commands that render."""
-    options = [
-        click.option(
-            "--suns",
-            default=5,
-            show_default=True,
-            type=click.IntRange(1, 64),
-            help="Random suns (direction + turbidity) per material.",
-        ),
-        click.option(
-            "--resolution",
-            default=400,
-            show_default=True,
-            type=click.IntRange(16, 8192),
-            help="Image side in pixels (farm submit: a multiple of 16, which the trainer needs).",
-        ),
-        click.option(
-            "--samples",
-            default=150,
-            show_default=True,
-            type=click.IntRange(1),
-            help="Cycles samples per pixel.",
-        ),
-        click.option(
-            "--seed",
-            default=0,
-            show_default=True,
-            type=click.IntRange(0),
-            help="Seed: materials, suns and Cycles seeds follow from it.",
-        ),
-    ]
-    for option in reversed(options):
-        command = option(command)
-    return command
+#: --suns, --resolution, --samples, --seed: the options of every command that renders
+render_options = functools.partial(job_options, names=RENDER_OPTIONS)
 
 
 @click.group(cls=Commands, context_settings={"help_option_names": ["-h", "--help"]})
@@ -169,94 +136,7 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
 
 
 @main.command()
-@click.option(
-    "--materials",
-    "-m",
-    "sources",
-    multiple=True,
-    required=True,
-    metavar="uniform:N|procedural:N|svbrdf:DIR",
-    help="Material source (repeatable): N random uniform or procedural materials, or "
-    "every SVBRDF in DIR.",
-)
-@click.option("--out", "-o", required=True, help="Store to write (folder or s3:// URL).")
-@render_options
-@click.option(
-    "--shard-size",
-    default=None,
-    type=click.IntRange(1),
-    help="Samples per shard, a multiple of --suns [default: 5 materials, 5 x --suns].",
-)
-@click.option(
-    "--workers",
-    type=click.IntRange(1),
-    default=None,
-    help="Blender workers, no more than the materials left; those Ray cannot place wait for "
-    "room, and an autoscaling cluster adds nodes for them [default: what the cluster's free "
-    "resources hold (CPUs / --cpus-per-worker, GPUs / --gpus-per-worker), growing as nodes "
-    "join].",
-)
-@click.option(
-    "--cpus-per-worker",
-    default=1,
-    show_default=True,
-    type=click.IntRange(1),
-    help="CPUs (and Cycles threads) per worker.",
-)
-@click.option(
-    "--gpus-per-worker",
-    default=0,
-    show_default=True,
-    type=click.IntRange(0, 1),
-    help="1: each worker gets one GPU and renders with OptiX.",
-)
-@click.option(
-    "--address",
-    default=None,
-    help="Ray cluster to join (else RAY_ADDRESS, else an embedded local Ray).",
-)
-@click.option(
-    "--ray-dashboard/--no-ray-dashboard",
-    default=True,
-    show_default=True,
-    help="Start the embedded Ray's dashboard (off saves CPU on small machines).",
-)
-@click.option(
-    "--max-attempts",
-    default=3,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Tries per material before it is recorded as failed.",
-)
-@click.option(
-    "--task-timeout",
-    default=600.0,
-    show_default=True,
-    type=click.FloatRange(1),
-    help="Seconds allowed per sun before the render counts as failed.",
-)
-@click.option(
-    "--placement-timeout",
-    default=300.0,
-    show_default=True,
-    type=click.FloatRange(1),
-    help="Seconds the job waits with no live worker (none placed yet, or every one gone) "
-    "before it stops; raise it for an autoscaler that starts GPU nodes from zero.",
-)
-@click.option(
-    "--recycle-after",
-    default=500,
-    show_default=True,
-    type=click.IntRange(1),
-    help="Restart a worker's Blender after this many renders.",
-)
-@click.option(
-    "--rss-limit-mb",
-    default=4096,
-    show_default=True,
-    type=click.IntRange(64),
-    help="Restart a worker's Blender above this resident memory.",
-)
+@job_options
 @click.option(
     "--fixed-sun",
     default=None,
@@ -271,13 +151,7 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
     type=click.FloatRange(1, 10),
     help="The sky turbidity with --fixed-sun.",
 )
-@click.option(
-    "--denoise",
-    is_flag=True,
-    help="Denoise each render with Cycles' OpenImageDenoise (albedo + normal): a baseline "
-    "store; with the same sources and --seed its samples pair with the ground truth's.",
-)
-def submit(out, **options):
+def submit(out, fixed_sun, fixed_turbidity, **settings):
     """Render a dataset on Ray workers into a shard store; resumes an interrupted job.
 
     Plans every material x --suns suns (seeded by --seed), validates every material first,
@@ -294,34 +168,14 @@ def submit(out, **options):
     require("farm submit", "ray")
 
     try:
-        summary = run(_submit_config(out, **options), echo=click.echo)
+        cfg = _job_config(JobConfig, out=out, fixed_sun=_fixed_sun(fixed_sun, fixed_turbidity),
+                          **settings)  # fmt: skip
+        summary = run(cfg, echo=click.echo)
     except KeyboardInterrupt:
         exit_stopped(
             f"every committed shard is kept (farm status {out}), and the same command resumes"
         )
     _echo_summary(summary)
-
-
-def _submit_config(
-    out, sources, task_timeout, placement_timeout, fixed_sun, fixed_turbidity, **options
-):
-    """``farm submit``'s options → its ``JobConfig``; a refused setting ends in one line."""
-    cfg = _job_config(
-        JobConfig,
-        sources=tuple(sources),
-        out=out,
-        task_timeout_s=task_timeout,
-        placement_timeout_s=placement_timeout,
-        fixed_sun=_fixed_sun(fixed_sun, fixed_turbidity),
-        **options,
-    )
-    if cfg.shard_size % cfg.suns:
-        raise FarmError(
-            f"--shard-size {options['shard_size']} must be a multiple of --suns {cfg.suns}"
-        )
-    if why := untrainable(cfg.resolution):
-        raise FarmError(f"--{why}")
-    return cfg
 
 
 def _echo_summary(summary) -> None:
