@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage gpu-wheels clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores clean
 
 # torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
 # torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
@@ -98,14 +98,31 @@ bench-materials: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.materials
 
 # For a GPU machine with CUDA torch but no package registry (benchmarks/gpu.sh says how):
-# the packages of the store and the viewer benchmark as wheels for its Python (GPU_PYTHON, the
-# device's is 3.12) in .whl/.
+# the packages the store and the trainer need that its image lacks, as wheels for its Python
+# (GPU_PYTHON, the device's is 3.12) in .whl/ (torch, torchmetrics, tensorboard, pillow,
+# click, fsspec and tqdm are in the device's image).
 GPU_PYTHON ?= 3.12
 gpu-wheels: $(BIN)/.installed
 	$(BIN)/pip download --quiet --only-binary=:all: --no-deps --python-version $(GPU_PYTHON) \
 		--platform manylinux2014_x86_64 --platform manylinux_2_28_x86_64 \
 		--platform manylinux1_x86_64 -d .whl 'zarr>=3.1,<3.2' 'numcodecs>=0.14' donfig crc32c \
-		'zstandard>=0.22' 'google-crc32c>=1.5' pillow click tenacity fsspec tqdm
+		'zstandard>=0.22' 'google-crc32c>=1.5' tenacity flip-evaluator
+
+# The stores the GPU benchmarks read, made here by the farm (once): out/bench-400.zarr (train,
+# infer) and out/gpu-learn-64.zarr (learn: 500 materials x 5 suns at 64², 32 spp, about 50 MB,
+# so that it and .whl/ fit one device call's 64 MiB)
+gpu-stores: bench-store
+	test -f out/gpu-learn-64.zarr/zarr.json || $(BIN)/farm submit -m uniform:250 \
+		-m procedural:250 --resolution 64 --samples 32 --shard-size 25 --no-ray-dashboard \
+		-o out/gpu-learn-64.zarr
+
+# How much each recipe learns per image pass (hours on 2 cores; resumes row by row)
+bench-learning: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.learning
+
+# docs/benchmarks.md from every table in benchmarks/results/
+bench-report: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.report
 
 # MDS (mosaicml-streaming) needs torchvision, so the storage benchmark has its own environment:
 # torch 2.14.1 + torchvision 0.29.1 (about 6 GB), kept apart from the project's.

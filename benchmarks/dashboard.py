@@ -29,6 +29,7 @@ from pathlib import Path
 import psutil
 from tabulate import tabulate
 
+from benchmarks.results import Table, save
 from farm.state import JobState, WorkerStats, add_point
 from storage.backend import Backend
 from storage.schema import Layout
@@ -189,6 +190,13 @@ def main() -> None:
                    disable_numparse=True))  # fmt: skip
     print(f"dashboard CPU while a tab follows the running {args.shards}-shard job: "
           f"{100 * cpu / args.watch_s:.1f} % of one core over {args.watch_s:.0f} s")  # fmt: skip
+    save("dashboard", Table(
+        title="The farm dashboard (`make bench-dashboard`)",
+        columns=["request", "client ms (server + loopback)", "Chromium load ms"],
+        rows=[list(r) for r in table],
+        notes=[f"its CPU while a tab follows the running {args.shards}-shard job: "
+               f"{100 * cpu / args.watch_s:.1f} % of one core over {args.watch_s:.0f} s"],
+    ))  # fmt: skip
 
 
 if __name__ == "__main__":

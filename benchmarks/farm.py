@@ -26,6 +26,7 @@ import tempfile
 import threading
 import time
 
+from benchmarks.results import Table, save
 from farm.driver import submit
 from farm.plan import JobConfig, material_specs, task_for
 from render_jobs.materials import load_maps
@@ -130,6 +131,14 @@ def main() -> None:
     )
     print(head)
     print("-" * len(head))
+    table = Table(
+        title="The farm against a standalone render loop (`make bench-farm`)",
+        columns=["run", "workers", "frames", "frames/s", "start-up s", "wind-down s",
+                 "efficiency", "range"],
+        notes=[f"{args.materials} procedural materials x 5 suns, {args.resolution}² / "
+               f"{args.samples} spp, 1 CPU a worker; medians of {args.rounds} round(s); "
+               "target: efficiency at least 0.97 with 2 workers"],
+    )  # fmt: skip
     for k, (name, w, *_) in enumerate(rounds[0]):
         runs = [r[k] for r in rounds]
         fps, start, frames = (statistics.median(r[i] for r in runs) for i in (2, 3, 4))
@@ -139,7 +148,10 @@ def main() -> None:
         spread = f"{min(effs):.3f}-{max(effs):.3f}" if effs and args.rounds > 1 else ""
         line = f"{name:<40}{w:>8}{frames:>8.0f}{fps:>10.3f}{start:>12.2f}{d:>13}{e:>12}"
         print(line + (f"{spread or '-':>14}" if args.rounds > 1 else ""))
+        table.rows.append([name, w, round(frames), round(fps, 3), round(start, 2), d, e,
+                           spread or None])  # fmt: skip
     print("target: efficiency >= 0.97 with 2 workers")
+    save("farm", table)
 
 
 if __name__ == "__main__":

@@ -36,6 +36,7 @@ import time
 import psutil
 from tabulate import tabulate
 
+from benchmarks.results import Table, save
 from benchmarks.trainstore import DEFAULT, ensure_store
 from farm.actor import Revocable
 from farm.assembly import ShardAssembly
@@ -224,6 +225,11 @@ def main() -> None:
             "MB stored / frame"]  # fmt: skip
     print(tabulate(rows, head, disable_numparse=True))
     print(f"driver RSS at the end of the simulated run: {sim['rss_mb']:.0f} MB")
+    save("farm-scale", Table(
+        title="How far one farm driver scales (`make bench-farm-scale`)",
+        columns=head, rows=[list(r) for r in rows],
+        notes=[f"driver resident memory at the end of the simulated run: {sim['rss_mb']:.0f} MB"],
+    ))  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -5,8 +5,8 @@
 
 The quality table (``benchmarks.quality``, ``docs/quality.md``) times each method on the
 day of its run. This re-times them all side by side, so their ratios come from one run on one
-machine: the networks of the table (the U-Net, the U-Net without skips, Zsolnai-Fehér) with
-fresh weights (a network's time does not depend on its weights) through
+machine: the networks of the table (the default recipe's, the paper's U-Net with and without
+skips, Zsolnai-Fehér) with fresh weights (a network's time does not depend on its weights) through
 ``trainer.rendering.infer.Renderer`` at batch 1 on CPU, all threads; Cycles at each ``--spp``, raw
 and with OpenImageDenoise, and at ``--truth`` spp, as one kept-loaded ``RenderProcess`` a
 setting, over ``--frames`` materials of the full run's test set (uniform and procedural in
@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from benchmarks.quality_plan import SCALES
+from benchmarks.results import Table, save
 from farm.plan import JobConfig, material_specs, task_for
 from render_jobs.materials import load_maps
 from render_jobs.process import RenderProcess
@@ -33,6 +34,8 @@ from trainer.model import ModelConfig
 from trainer.networks import build_model
 from trainer.rendering.infer import Renderer
 from trainer.targets import Tonemap
+from trainer.training.config import TrainConfig
+from trainer.training.train import network_config
 
 
 def network_ms(renderer: Renderer, maps: torch.Tensor, iters: int = 20) -> float:
@@ -76,14 +79,20 @@ def sample_frames(count: int, resolution: int) -> list:
     return frames
 
 
+def recipe_network(recipe: str, resolution: int) -> ModelConfig:
+    """The network a ``--recipe`` trains at ``resolution``."""
+    return network_config(TrainConfig(store=("-",), recipe=recipe), resolution)
+
+
 def measure(args: argparse.Namespace) -> list[tuple[str, float]]:
     """``(method, ms)`` for every row, networks first."""
     r = args.resolution
     maps = torch.from_numpy(np.random.default_rng(0).integers(0, 256, (1, 11, r, r), np.uint8))
     rows = []
     for label, cfg in (
-        ("ours (U-Net)", ModelConfig(r)),
-        ("ours without skips", ModelConfig(r, skips=False)),
+        ("ours (the default recipe)", recipe_network("shaderball", r)),
+        ("the paper's U-Net", recipe_network("paper", r)),
+        ("the paper's U-Net without skips", ModelConfig(r, skips=False)),
         ("Zsolnai-Fehér", ModelConfig(r, arch="zf")),
     ):
         renderer = Renderer(build_model(cfg), Tonemap(), torch.device("cpu"))
@@ -127,6 +136,16 @@ def main() -> None:
     print("| method | ms / frame | x ours |\n|---|---|---|")
     for label, ms in rows:
         print(f"| {label} | {ms:.1f} | {ms / ours:.2f} |")
+    table = Table(
+        title=f"The quality table's methods timed side by side (`make bench-frames`), "
+        f"{args.resolution}², batch 1",
+        columns=["method", "ms / frame", "x ours"],
+        rows=[[label, round(ms, 1), round(ms / ours, 2)] for label, ms in rows],
+        notes=["networks with fresh weights through trainer.rendering.infer.Renderer on the "
+               "CPU (all threads); Cycles: whole render calls, the first frame of each "
+               "Blender not counted"],
+    )  # fmt: skip
+    save("frames", table)
 
 
 if __name__ == "__main__":

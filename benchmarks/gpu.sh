@@ -1,15 +1,24 @@
 #!/usr/bin/env bash
-# The CUDA benchmarks (issue targets: training and inference at 400² on one H100), run on a GPU
-# machine that has Python with CUDA torch but no package registry, such as the lent device.
+# The CUDA benchmarks, run on a GPU machine that has Python with CUDA torch but no package
+# registry, such as the lent device.
 #
-# On the CPU machine, once: `make bench-store` (renders out/bench-400.zarr) and `make gpu-wheels`
-# (the store's own packages as wheels in .whl/). Carry out/bench-400.zarr and .whl/ with the
-# checkout, then there:
+# On the CPU machine, once: `make gpu-stores` (renders out/bench-400.zarr and
+# out/gpu-learn-64.zarr) and `make gpu-wheels` (the packages the device lacks, as wheels in
+# .whl/). Carry the store a part reads and .whl/ with the checkout (64 MiB a call at most),
+# then there:
 #
+#     bash benchmarks/gpu.sh learn          # the default recipe and the paper's, each for the
+#                                           # paper's 1.47 M image passes on out/gpu-learn-64.zarr
 #     bash benchmarks/gpu.sh infer [ARGS]   # benchmarks.infer at batch 1 and 128, compiled rows
 #     bash benchmarks/gpu.sh train          # benchmarks.train, L1 (2,000 samples), then L1 + VGG16
 #     bash benchmarks/gpu.sh viewer [ARGS]  # benchmarks.viewer --device cuda (carry benchmarks/.cache
 #                                           # too: the screen UV layouts `make bench-viewer` renders)
+#
+# learn: benchmarks.learning's rows shaderball and paper, at batch BATCH (128: the paper's 6
+# would take hours of steps) for PASSES image passes (1470000, the paper's 30 epochs of 49,000
+# images), the split held in the GPU's memory (trainer train --preload), each row scored on its
+# held-out materials; the table (learning-gpu.json), the side-by-side grid and each run's
+# result and grid are written under $OUT (a row finished is kept if a later one is cut off).
 #
 # ARGS go to benchmarks.infer after its defaults (e.g. --only "subpixel compiled", --gemm-at 50),
 # or to benchmarks.viewer (e.g. --runtimes torch,graph: fp32, then the CUDA graph).
@@ -31,18 +40,18 @@ cd "$(dirname "$0")/.."
 py=${PYTHON:-python3}
 store=out/bench-400.zarr
 part=${1:-}
-[[ $part == infer || $part == train || $part == viewer ]] || { echo "usage: bash benchmarks/gpu.sh infer|train|viewer [ARGS]" >&2; exit 2; }
+[[ $part == learn || $part == infer || $part == train || $part == viewer ]] || { echo "usage: bash benchmarks/gpu.sh learn|infer|train|viewer [ARGS]" >&2; exit 2; }
+[[ $part == learn ]] && store=${LEARN_STORE:-out/gpu-learn-64.zarr}
 shift
-[[ $part != train || $# -eq 0 ]] || { echo "gpu.sh: train takes no arguments" >&2; exit 2; }
+[[ ($part != train && $part != learn) || $# -eq 0 ]] || { echo "gpu.sh: $part takes no arguments" >&2; exit 2; }
 if [[ $part == viewer ]]; then
     compgen -G "benchmarks/.cache/screen_uv-*.npz" >/dev/null || { echo "gpu.sh: benchmarks/.cache has no screen UV layouts (make bench-viewer, then carry benchmarks/.cache)" >&2; exit 2; }
 else
     [[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make bench-store, then carry it)" >&2; exit 2; }
 fi
-if ! "$py" -c "import zarr, numcodecs, zstandard, google_crc32c, PIL, click, tenacity, fsspec, tqdm" 2>/dev/null; then
-    [[ -d .whl ]] || { echo "gpu.sh: zarr or the viewer's packages are not installed and .whl/ is missing (make gpu-wheels)" >&2; exit 2; }
-    "$py" -m pip install --quiet --no-index --find-links .whl zarr numcodecs donfig crc32c \
-        zstandard google-crc32c pillow click tenacity fsspec tqdm
+if ! "$py" -c "import zarr, numcodecs, zstandard, google_crc32c, PIL, click, tenacity, fsspec, tqdm, flip_evaluator, torchmetrics" 2>/dev/null; then
+    [[ -d .whl ]] || { echo "gpu.sh: zarr or the trainer's packages are not installed and .whl/ is missing (make gpu-wheels)" >&2; exit 2; }
+    "$py" -m pip install --quiet --no-index --no-deps --find-links .whl .whl/*.whl
 fi
 out=${OUT:-out}
 log=$out/gpu-bench.txt
@@ -66,6 +75,9 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
                "$py" "${train[@]}" --replicate 200 --loss l1+vgg --steps 120 --warmup 20 \
                    --sim-epochs 0 ;;
         viewer) "$py" -m benchmarks.viewer --device cuda "$@" ;;
+        learn) "$py" -m benchmarks.learning --store "$store" --device cuda --preload \
+                   --budget "${PASSES:-1470000}" --batch "${BATCH:-128}" --rows shaderball,paper \
+                   --work "$out/learning" --results "$out" --name learning-gpu ;;
     esac
 } 2>&1 | tee -a "$log"
 [[ $part == infer ]] || exit 0

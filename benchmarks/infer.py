@@ -67,6 +67,7 @@ import time
 import torch
 import torch.nn.functional as F
 
+from benchmarks.results import Table, save
 from benchmarks.streamnet import streamed_network
 from benchmarks.train import device_name
 from benchmarks.trainstore import DEFAULT, ensure_store
@@ -322,6 +323,11 @@ class Bench:
     def header(self) -> None:
         r, batch = self.args.resolution, self.args.batch
         print(f"device: {device_name(self.args.device)}; {r}², batch {batch} for frames/s")
+        self.table = Table(
+            title=f"Inference (`make bench-infer`): {r}², batch {batch} for frames/s",
+            columns=["mode", "ms/frame (b=1)", "frames/s", "in place", "max |diff|", "build s"],
+            machine=device_name(self.args.device),
+        )
         head = f"{'mode':<32}{'ms/frame (b=1)':>16}{'frames/s':>12}{'in place':>10}"
         print(head + f"{'max |diff|':>12}{'build s':>9}", flush=True)
 
@@ -334,6 +340,9 @@ class Bench:
         alone = "-" if replay is None else f"{batch / replay:.1f}"
         row = f"{name:<32}{one * 1e3:>16.3f}{batch / many:>12.1f}{alone:>10}"
         print(row + f"{err:>12.4f}{built_s:>9}", flush=True)
+        self.table.rows.append(
+            [name, round(one * 1e3, 3), round(batch / many, 1), alone, round(err, 4), built_s]
+        )
 
     def measure(self, name, one, many) -> tuple[float, float]:
         """Seconds of ``one()`` and ``many()``; with ``--rounds``, the row is kept (and with it
@@ -419,6 +428,14 @@ class Bench:
         many = interleaved([(n, f) for n, _, f in self.measured], rounds, self.timed)
         print(f"\nthe rows again, {rounds} rounds in turn (medians):")
         print(rounds_table(one, many, self.args.batch), flush=True)
+        self.table.notes.append(
+            f"timed again, {rounds} rounds in turn (medians, ms/frame at batch 1 and frames/s): "
+            + "; ".join(
+                f"{n} {statistics.median(one[n]) * 1e3:.3f} ms, "
+                f"{self.args.batch / statistics.median(many[n]):.1f}/s"
+                for n in one
+            )
+        )
 
 
 def main() -> None:
@@ -445,6 +462,7 @@ def main() -> None:
         for name, fast in graph_rows(args):
             bench.graph_row(name, **fast)
     bench.rounds()
+    save("infer-cuda" if bench.cuda else "infer-cpu", bench.table)
 
 
 if __name__ == "__main__":

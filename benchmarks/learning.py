@@ -40,6 +40,7 @@ from pathlib import Path
 from benchmarks.results import Table, save
 from farm.driver import submit
 from farm.plan import JobConfig
+from storage.reader import Store
 from trainer import runfiles
 from trainer.training.config import TrainConfig, to_argv
 
@@ -102,21 +103,23 @@ def ensure_store(resolution: int, cache: Path = CACHE) -> str:
     return str(path)
 
 
-def row_config(name: str, store: str, run: Path, budget: int) -> TrainConfig:
-    """The training run of row ``name`` for ``budget`` image passes."""
-    settings = ROWS[name][1]
+def row_config(name: str, store: str, run: Path, budget: int, **run_as) -> TrainConfig:
+    """The training run of row ``name`` for ``budget`` image passes; ``run_as``: settings of
+    how it runs (``device``, ``preload``, ``workers``, ``batch_size`` for every row, ...)."""
+    settings = ROWS[name][1] | run_as
     probe = TrainConfig(store=(store,), **settings)
+    defaults = {"workers": 1, "log_every": 50}
     return TrainConfig(
         store=(store,), out=str(run), max_steps=max(1, budget // probe.batch_size),
-        epochs=100_000, holdout_fraction=HOLDOUT, val_samples=0, workers=1,
-        checkpoint_every=1_000_000, keep=1, log_every=50, **settings,
+        epochs=100_000, holdout_fraction=HOLDOUT, val_samples=0, checkpoint_every=1_000_000,
+        keep=1, **(defaults | settings),
     )  # fmt: skip
 
 
 def train_row(cfg: TrainConfig) -> dict:
     """Run ``trainer train`` for ``cfg`` (resuming a run it left); its throughput. A resumed
     run's CPU time is this call's only, so it has no passes per CPU-second."""
-    argv = [str(BIN / "trainer"), "train", *to_argv(cfg)]
+    argv = [sys.executable, "-m", "trainer.cli", "train", *to_argv(cfg)]  # no installed script
     resumed = (Path(cfg.out) / runfiles.CHECKPOINTS).exists()
     if resumed:
         argv.append("--resume")
@@ -137,13 +140,13 @@ def train_row(cfg: TrainConfig) -> dict:
     }
 
 
-def score_run(run: Path, grid: Path | None = None) -> dict:
-    """The run's network on its held-out split: the summary of ``trainer.rendering.evaluate``."""
+def score_run(run: Path, grid: Path | None = None, device: str = "cpu") -> dict:
+    """The run's network on its held-out split, as ``trainer eval`` scores it."""
     from trainer.rendering.evaluate import score, test_split
     from trainer.rendering.load import load_renderer
     from trainer.scoring import write_grid
 
-    renderer = load_renderer(run, "cpu")
+    renderer = load_renderer(run, device)
     split = test_split(renderer, None, None)
     scored = score([renderer], split, 16, GRID_COUNT)
     if grid is not None:
@@ -151,32 +154,32 @@ def score_run(run: Path, grid: Path | None = None) -> dict:
     return scored.summary()["overall"]
 
 
-def run_row(name: str, store: str, work: Path, budget: int) -> dict:
+def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
     """Row ``name`` at ``budget`` passes: trained and scored once, then read from its file."""
     run = work / str(budget) / name
     done = run / "result.json"
     if done.exists():
         return json.loads(done.read_text())
-    cfg = row_config(name, store, run, budget)
-    print(f"{name} ({budget:,} passes, {cfg.max_steps} steps)", flush=True)
+    cfg = row_config(name, store, run, budget, **run_as)
+    print(f"{name} ({budget:,} passes, {cfg.max_steps} steps of {cfg.batch_size})", flush=True)
     speed = train_row(cfg)
-    result = {"row": name, "budget": budget, **speed, **score_run(run, run / "grid.png")}
+    scores = score_run(run, run / "grid.png", run_as.get("device", "cpu"))
+    result = {"row": name, "budget": budget, "batch": cfg.batch_size, **speed, **scores}
     done.write_text(json.dumps(result, indent=1))
     print(f"  {result['psnr']:.2f} dB, {result['passes_per_second']:.1f} passes/s", flush=True)
     return result
 
 
-def table(resolution: int, budget: int, results: list[dict]) -> Table:
+def table(resolution: int, budget: int, results: list[dict], about: str) -> Table:
     t = Table(
         title=f"Learning per image pass: {resolution}², {budget:,} passes, held-out materials",
-        columns=["row", "what changes", "PSNR dB", "95 % interval", "SSIM", "FLIP",
+        columns=["row", "what changes", "batch", "PSNR dB", "95 % interval", "SSIM", "FLIP",
                  "passes / s", "passes / CPU-s"],
-        notes=[f"{sum(MATERIALS)} materials x {SUNS} suns at {SPP} spp, {HOLDOUT:.0%} of the "
-               "materials held out; every row trains one CPU process with one loader worker"],
+        notes=[about],
     )  # fmt: skip
     for r in results:
         t.rows.append([
-            r["row"], ROWS[r["row"]][0], round(r["psnr"], 2),
+            r["row"], ROWS[r["row"]][0], r.get("batch"), round(r["psnr"], 2),
             f"{r['psnr_low']:.2f}-{r['psnr_high']:.2f}" if r.get("psnr_low") else None,
             round(r["ssim"], 4), round(r["flip"], 4),
             round(r["passes_per_second"], 1),
@@ -185,13 +188,13 @@ def table(resolution: int, budget: int, results: list[dict]) -> Table:
     return t
 
 
-def side_by_side(work: Path, budget: int, names: list[str], path: Path) -> None:
+def side_by_side(work: Path, budget: int, names: list[str], path: Path, device: str) -> None:
     """One grid of the rows ``names`` on the same held-out samples."""
     from trainer.rendering.evaluate import score, test_split
     from trainer.rendering.load import load_renderer
     from trainer.scoring import write_grid
 
-    renderers = [load_renderer(work / str(budget) / n, "cpu") for n in names]
+    renderers = [load_renderer(work / str(budget) / n, device) for n in names]
     scored = score(renderers, test_split(renderers[0], None, None), 16, GRID_COUNT)
     write_grid(path, scored.shown, labels=tuple(names))
 
@@ -204,23 +207,41 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--grid-rows", default="paper,shaderball")
     p.add_argument("--work", type=Path, default=CACHE / "learning")
     p.add_argument("--results", type=Path, default=None, help="folder of the result tables")
+    p.add_argument("--store", default=None,
+                   help="train on this store (one made as ensure_store makes it, carried to a "
+                   "GPU machine, say) instead of the cached one")  # fmt: skip
+    p.add_argument("--name", default=None, help="the table's name (default learning-R-Bk)")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--batch", type=int, default=None, help="every row's batch size")
+    p.add_argument("--preload", action="store_true", help="trainer train --preload")
     args = p.parse_args(argv)
     names = args.rows.split(",") if args.rows else list(ROWS)
     if unknown := [n for n in names if n not in ROWS]:
         p.error(f"unknown row {unknown[0]!r}: one of {', '.join(ROWS)}")
-    store = ensure_store(args.resolution)
-    work = args.work / str(args.resolution)
+    store = args.store or ensure_store(args.resolution)
+    layout = Store(store).layout
+    work = args.work / str(layout.resolution)
+    run_as = {"device": args.device, "preload": args.preload}
+    if args.batch is not None:
+        run_as["batch_size"] = args.batch
+    about = (
+        f"{layout.num_materials} materials (half uniform, half procedural) x "
+        f"{layout.suns_per_material} suns, {HOLDOUT:.0%} of the materials held out; every row "
+        + ("trains one CPU process with one loader worker" if args.device == "cpu" else
+           "trains on one GPU" + (", the split in its memory" if args.preload else ""))
+        + ("" if args.batch is None else f", batch {args.batch} for every row")
+    )  # fmt: skip
     os.environ.setdefault("OMP_NUM_THREADS", str(len(os.sched_getaffinity(0))))
     for budget in args.budget or BUDGETS:
-        results = [run_row(n, store, work, budget) for n in names]
-        t = table(args.resolution, budget, results)
+        results = [run_row(n, store, work, budget, **run_as) for n in names]
+        t = table(layout.resolution, budget, results, about)
         print(t.markdown(), flush=True)
-        name = f"learning-{args.resolution}-{budget // 1000}k"
+        name = args.name or f"learning-{layout.resolution}-{budget // 1000}k"
         save(name, t, *([args.results] if args.results else []))
         shown = [n for n in args.grid_rows.split(",") if n in names]
         if shown:
             grid = (args.results or DOC_IMG) / f"{name}.png"
-            side_by_side(work, budget, shown, grid)
+            side_by_side(work, budget, shown, grid, args.device)
             print(f"grid: {grid}", flush=True)
 
 

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from benchmarks.results import Table, save
 from render_jobs.materials.files import read_svbrdf, read_svbrdf_bytes
 from render_jobs.materials.procedural import procedural_maps
 from render_jobs.process import RenderProcess
@@ -187,11 +188,21 @@ def print_tables(rows: dict, texture: int, repeat: int, render: bool) -> None:
         "| maps MB, floats / bytes |"
     )
     print("|---|---|---|---|---|")
+    table = Table(
+        title=f"Reading one {texture}² library material (`make bench-materials`)",
+        columns=["layout", "read s, floats / bytes", "resident MB before",
+                 "peak MB, floats / bytes", "maps MB, floats / bytes"],
+        notes=[f"best of {repeat} reads, each in a fresh process; floats: read_svbrdf, "
+               "bytes: read_svbrdf_bytes (farm workers, the viewer)"],
+    )  # fmt: skip
     for name, r in rows.items():
         f, b = r["floats"], r["bytes"]
-        print(f"| {name} | {f['seconds']:.2f} / {b['seconds']:.2f} | {b['before_mb']:,.0f} | "
-              f"{f['peak_mb']:,.0f} / {b['peak_mb']:,.0f} | "
-              f"{f['maps_mb']:,.0f} / {b['maps_mb']:,.0f} |")  # fmt: skip
+        cells = [name, f"{f['seconds']:.2f} / {b['seconds']:.2f}", f"{b['before_mb']:,.0f}",
+                 f"{f['peak_mb']:,.0f} / {b['peak_mb']:,.0f}",
+                 f"{f['maps_mb']:,.0f} / {b['maps_mb']:,.0f}"]  # fmt: skip
+        print("| " + " | ".join(cells) + " |")
+        table.rows.append(cells)
+    save("materials", table)
     if render:
         print("\nthe bytes read into a fresh render worker, rendered once at 32², 1 sample")
         print("| layout | texture swap s | worker peak MB | Blender process peak MB |")

@@ -18,7 +18,11 @@ from pathlib import Path
 
 from storage.backend import write_atomic
 
-FOLDER = Path(__file__).resolve().parent / "results"
+#: where tables are written: ``benchmarks/results``, or ``$SHADERBALL_BENCH_RESULTS`` (the
+#: tests point it at a temporary folder, so that they leave the repository's tables alone)
+FOLDER = Path(
+    os.environ.get("SHADERBALL_BENCH_RESULTS") or Path(__file__).resolve().parent / "results"
+)
 
 
 def cpu_name() -> str:
@@ -74,8 +78,8 @@ class Table:
 def _cell(value) -> str:
     if value is None:
         return "—"
-    if isinstance(value, float):
-        return f"{value:.4g}" if abs(value) < 1 else f"{value:,.2f}"
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return f"{value:,}"
     return str(value)
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import zstandard
 
+from benchmarks.results import Table, save
 from render_jobs.materials.procedural import procedural_maps
 from render_jobs.process import RenderProcess
 from render_jobs.specs import RenderSettings
@@ -314,6 +315,22 @@ def print_report(n: int, rows: list[tuple]) -> None:
                 f"shuffled 1p = {z['shuf1'] / r['shuf1']:.2f}x (target >= 1 vs MDS)"
             )
     print("WebDataset 'shuffled' is a 64-sample buffer shuffle over sequential tar reads.")
+    table = Table(
+        title=f"Storage (`make bench-storage`): {n} samples at {RES}²",
+        columns=["format", "MB/sample", "vs naive", "write MB/s", "seq 1p", "shuf 1p",
+                 "seq 2p", "shuf 2p"],
+        notes=["reads in samples/s, one process (1p) or two (2p), sequential or shuffled; "
+               f"naive: float32 maps and render a sample, {naive_bytes() / 2**20:.2f} MB; "
+               f"zarr sequential against the raw decode bound {z['seq1'] / b:.0%} (target at "
+               "least 80 %)"],
+    )  # fmt: skip
+    for name, per, w, r in rows:
+        table.rows.append(
+            [name, per and round(per / 2**20, 3),
+             f"1/{naive_bytes() / per:.1f}" if per else None, w and round(w),
+             *(r.get(k) and round(r[k], 1) for k in ("seq1", "shuf1", "seq2", "shuf2"))]
+        )  # fmt: skip
+    save("storage", table)
 
 
 def main() -> None:

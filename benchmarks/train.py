@@ -28,6 +28,7 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
+from benchmarks.results import Table, save
 from benchmarks.trainstore import DEFAULT, ensure_store, replicate
 from trainer import runfiles
 from trainer.training.config import TrainConfig
@@ -126,23 +127,27 @@ def trainer_log(args: argparse.Namespace, store: str, tmp: str) -> list[dict]:
     return [json.loads(x) for x in (Path(run) / runfiles.LOG).read_text().splitlines()]
 
 
-def print_table(args, load: float, step_ms: float, ends: dict, log: list[dict]) -> None:
-    """The loader's rate, the epoch-end rows and the trainer's rate and data wait after
-    ``--warmup`` steps."""
+def print_table(args, load: float, step_ms: float, ends: dict, log: list[dict]) -> Table:
+    """Print the loader's rate, the epoch-end rows and the trainer's rate and data wait after
+    ``--warmup`` steps; the same as a :class:`Table`."""
     timed = [r for r in log if r["step"] - r["steps"] >= args.warmup]
     seconds = sum(r["images"] / r["images_per_second"] for r in timed)
     wait = sum(r["data_wait"] * r["images"] / r["images_per_second"] for r in timed) / seconds
     print(f"{'row':<50}{'images/s':>10}{'data wait':>11}{'longest wait':>14}")
     print(f"{'loader only':<50}{load:>10.1f}{'-':>11}{'-':>14}")
+    rows = [["loader only", round(load, 1), None, None]]
     for across, label in ((False, "an iteration an epoch"), (True, "one iteration (trainer)")):
         if across not in ends:
             continue
         row = f"loader + {step_ms:.0f} ms steps, {label}"
         rate, share, longest = ends[across]
         print(f"{row:<50}{rate:>10.1f}{share:>11.1%}{longest * 1000:>11.0f} ms")
+        rows.append([row, round(rate, 1), f"{share:.1%}", f"{longest * 1000:.0f} ms"])
     row = f"train (steps {args.warmup + 1}-{args.steps})"
     rate = sum(r["images"] for r in timed) / seconds
     print(f"{row:<50}{rate:>10.2f}{wait:>11.1%}{'-':>14}")
+    rows.append([row, round(rate, 2), f"{wait:.1%}", None])
+    return Table(title="", columns=["row", "images/s", "data wait", "longest wait"], rows=rows)
 
 
 def main() -> None:
@@ -165,11 +170,15 @@ def main() -> None:
             for across in ((False, True) if args.sim_epochs > 0 else ())
         }
         log = trainer_log(args, store, tmp)
-    print(
-        f"\ndevice: {device_name(args.device)}; {catalog.resolution}², batch {args.batch}, "
-        f"{args.workers} workers, loss {args.loss}, {len(split)} samples an epoch"
+    about = (
+        f"{catalog.resolution}², batch {args.batch}, {args.workers} workers, loss {args.loss}, "
+        f"{len(split)} samples an epoch"
     )
-    print_table(args, load, step_ms, ends, log)
+    print(f"\ndevice: {device_name(args.device)}; {about}")
+    table = print_table(args, load, step_ms, ends, log)
+    table.title = f"Training throughput (`make bench-train`): {about}"
+    table.machine = device_name(args.device)
+    save("train-cuda" if "CPU" not in table.machine else "train-cpu", table)
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ from pathlib import Path
 import torch
 
 from benchmarks.materials import panel_png, peak_mb, resident_mb, write_apart
+from benchmarks.results import Table, save
 from benchmarks.train import device_name
 from render_jobs.process import RenderProcess
 from render_jobs.screen_uv import ScreenUV, default_supersample
@@ -234,6 +235,13 @@ def main() -> None:
         "| drag frame ms |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
+    table = Table(
+        title=f"The viewer: an edit's time (`make bench-viewer`), texture {args.texture}², "
+        f"medians of {args.frames} frames",
+        columns=["resolution", "runtime", "sub-samples", "mapping ms", "network ms",
+                 "encoding ms", "edit frame ms", "outside the network", "drag frame ms"],
+        machine=device_name(device),
+    )  # fmt: skip
     by_kind = []
     with tempfile.TemporaryDirectory() as tmp:
         for r, runtime in ((int(v), t) for v in args.resolutions.split(",") for t in runtimes):
@@ -249,10 +257,17 @@ def main() -> None:
                 f"{100 * m['tiling_outside']:.1f} % | {m['drag']:.1f} |",
                 flush=True,
             )
+            table.rows.append([
+                f"{r}²", runtime, f"{m['supersample']}²", round(m["mapping"], 1),
+                round(m["network"], 2), round(m["encoding"], 2), round(m["frame"], 1),
+                f"{100 * m['outside']:.1f} %", round(m["drag"], 1),
+            ])  # fmt: skip
     for r, _, m in by_kind:
         if m["graph_diff"] is not None:
             print(f"{r}², CUDA graph: max |diff| from fp32 {m['graph_diff']:.4f}")
+            table.notes.append(f"{r}², CUDA graph: max |diff| from fp32 {m['graph_diff']:.4f}")
     print_kinds(by_kind)
+    save(f"viewer-{device.type}", table)
 
 
 def print_kinds(rows) -> None:

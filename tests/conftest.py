@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -17,6 +19,8 @@ from render_jobs.process import RenderProcess
 from render_jobs.specs import RenderSettings, UniformValues
 
 TINY = RenderSettings(resolution=64, samples=8, threads=2)
+# the benchmarks the tests run write their tables here, not into benchmarks/results
+os.environ.setdefault("SHADERBALL_BENCH_RESULTS", tempfile.mkdtemp(prefix="bench-results-"))
 BIN = Path(sys.executable).parent
 
 

@@ -140,8 +140,9 @@ def test_the_training_pods_shared_memory_holds_the_loaders_batches(overlay):
     assert size.endswith("Gi")
     command = job["spec"]["trainer"]["command"]
     option = dict(zip(command, command[1:], strict=False))  # each flag and what follows
-    batch = int(option.get("--batch-size", TrainConfig.batch_size))
-    workers = int(option.get("--workers", TrainConfig.workers))
+    defaults = TrainConfig(store=("s",))  # the default recipe's settings
+    batch = int(option.get("--batch-size", defaults.batch_size))
+    workers = int(option.get("--workers", defaults.workers))
     gpus = int(job["spec"]["trainer"]["resourcesPerNode"]["limits"].get("nvidia.com/gpu", 1))
     assert loader_bytes(400, batch, workers, gpus) <= int(size[:-2]) * 2**30
 

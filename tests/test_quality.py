@@ -210,10 +210,11 @@ def test_frame_times_rows_every_method_from_one_run_and_refuses_bad_settings():
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     rows = dict(re.findall(r"^\| ([^|]+?) \| (\d+\.\d) \| \d+\.\d\d \|$", r.stdout, re.M))
-    assert list(rows) == ["ours (U-Net)", "ours without skips", "Zsolnai-Fehér", "Cycles 1 spp",
+    assert list(rows) == ["ours (the default recipe)", "the paper's U-Net",
+                          "the paper's U-Net without skips", "Zsolnai-Fehér", "Cycles 1 spp",
                           "Cycles 1 spp + OIDN", "Cycles 2 spp (the ground truth)"]  # fmt: skip
     assert all(float(ms) > 0 for ms in rows.values())
-    assert "| ours (U-Net) | " in r.stdout and " | 1.00 |" in r.stdout
+    assert "| ours (the default recipe) | " in r.stdout and " | 1.00 |" in r.stdout
     for bad, says in ((["--spp", "1,x"], "--spp '1,x' is not"), (["--resolution", "40"], "16")):
         r = subprocess.run([*cmd[:3], *bad], capture_output=True, text=True, timeout=60)
         assert r.returncode == 2 and says in r.stderr.strip().splitlines()[-1], r.stderr

@@ -43,9 +43,10 @@ from trainer.training.validation import Validator
 
 pytestmark = pytest.mark.slow
 
-# width 16: the U-Net's layout at a sixteenth of the paper's cost (width 64 in test_trainer)
-BASE = {"loss": "l1", "width": 16, "batch_size": 2, "holdout_fraction": 0.25, "workers": 0,
-        "log_every": 2}  # fmt: skip
+# the paper's recipe (these tests are of the run's mechanics; the default recipe's own are at
+# the end), width 16: the U-Net's layout at a sixteenth of the paper's cost
+BASE = {"recipe": "paper", "loss": "l1", "width": 16, "batch_size": 2, "holdout_fraction": 0.25,
+        "workers": 0, "log_every": 2}  # fmt: skip
 
 
 def config(store, out, **kw) -> TrainConfig:
@@ -1253,3 +1254,95 @@ def test_the_shared_memory_check_counts_a_batch_as_the_loader_makes_it(tiny_stor
     batch = SampleReader(split).batch(np.arange(3))
     sent = sum(t.numel() * t.element_size() for t in batch.values())
     assert sent == batch_bytes(tiny_store.layout.resolution, 3)
+
+
+# ---- the default recipe ----------------------------------------------------------------------
+
+#: the default recipe at a small width (GroupNorm's 8 groups need a multiple of 8)
+DEFAULT = {"width": 8, "batch_size": 2, "holdout_fraction": 0.25, "workers": 0, "log_every": 2,
+           "max_steps": 6, "epochs": 2}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def trained_default(tiny_store, tmp_path_factory):
+    """A short run of the default recipe (scene cues, GroupNorm, a head, MS-SSIM, one-cycle, a
+    weight average) on the tiny store: its folder."""
+    out = tmp_path_factory.mktemp("default") / "run"
+    train(TrainConfig(store=(tiny_store.url,), out=str(out), **DEFAULT))
+    return out
+
+
+def test_the_default_recipe_keeps_its_network_and_scene_in_its_checkpoints(
+    tiny_store, trained_default, tmp_path
+):
+    state = checkpoint.load(trained_default)
+    assert state["config"]["recipe"] == "shaderball"
+    cfg = ModelConfig(**state["model_config"])
+    assert cfg.inputs == TrainConfig(store=("s",)).inputs and cfg.norm == "group" and cfg.head
+    assert state["schedule"]["schedule"] == "onecycle" and state.get("ema") is not None
+    r = Renderer.from_checkpoint(trained_default)  # built without the store: from the weights
+    buffers = r.model.scene.position
+    assert buffers.abs().sum() > 0
+    layout = tiny_store.screen_uv().geometry
+    np.testing.assert_array_equal(buffers.numpy(), layout.position)
+    maps = tiny_store.packed_maps(0)
+    sun, turbidity = tiny_store.light(0)
+    image = r.render(maps, sun, turbidity)
+    assert image.shape == (3, 64, 64) and image.min() >= 0 and image.max() <= 1
+    out = tmp_path / "r.png"
+    args = ["render", "--checkpoint", str(trained_default), "--material", "procedural:seed=3",
+            "--sun", "0.3,-0.5,0.8", "-o", str(out)]  # fmt: skip
+    assert CliRunner().invoke(trainer_main, args).exit_code == 0 and out.exists()
+    result = evaluate(trained_default)
+    assert result["overall"]["n"] > 0 and result["overall"]["psnr"] > 5
+
+
+@pytest.mark.parametrize("opset", [18, 11])
+def test_the_default_recipes_network_exports_to_onnx_with_its_scene(
+    tiny_store, trained_default, tmp_path, opset
+):
+    """The scene cues are part of the exported graph: the model takes stored maps and the
+    sun as the paper's does, and ONNX Runtime renders what the checkpoint renders (export
+    checks it before it keeps the file)."""
+    onnx = tmp_path / "ball.onnx"
+    r = CliRunner().invoke(trainer_main, ["export", "--checkpoint", str(trained_default), "-o",
+                                          str(onnx), "--opset", str(opset)])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    model = load_renderer(onnx)
+    maps = tiny_store.packed_maps(1)
+    sun, turbidity = tiny_store.light(2)
+    want = Renderer.from_checkpoint(trained_default).render(maps, sun, turbidity)
+    np.testing.assert_allclose(model.render(maps, sun, turbidity), want, atol=1e-4)
+
+
+def test_preloaded_batches_train_the_same_weights_as_the_loaders(tiny_store, tmp_path):
+    """``--preload`` takes the same batches in the same order from memory."""
+    weights = []
+    for i, preload in enumerate((False, True)):
+        out = tmp_path / f"run{i}"
+        train(TrainConfig(store=(tiny_store.url,), out=str(out), preload=preload,
+                          **(DEFAULT | {"max_steps": 4, "ema_decay": 0.0})))  # fmt: skip
+        weights.append(checkpoint.load(out)["model"])
+    for name, w in weights[0].items():
+        torch.testing.assert_close(weights[1][name], w, atol=0, rtol=0, msg=name)
+
+
+def test_a_store_without_scene_buffers_is_refused_by_the_default_recipe_in_one_line(
+    tiny_store, tmp_path
+):
+    """A store made before the buffers: the default recipe stops in one line naming the
+    command that adds them, and writes nothing; the paper's recipe trains on it."""
+    import shutil
+
+    from render_jobs.screen_uv import FILE
+
+    old = tmp_path / "old.zarr"
+    shutil.copytree(tiny_store.url, old)
+    layout = dataclasses.replace(tiny_store.screen_uv(), geometry=None)
+    (old / FILE).write_bytes(layout.to_bytes())
+    r = run_group([sys.executable, "-m", "trainer.cli", "train", "--store", str(old), "--out",
+                   str(tmp_path / "run"), "--max-steps", "1", "--width", "8"])  # fmt: skip
+    assert r.returncode == 1 and "farm screen-uv" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "run").exists()
+    train(TrainConfig(store=(str(old),), out=str(tmp_path / "paper"), recipe="paper",
+                      loss="l1", **(DEFAULT | {"max_steps": 1})))  # fmt: skip

@@ -145,7 +145,7 @@ class SceneInputs(nn.Module):
         vis = self.visibility(light[:, :3]) if {"shadow", "shade"} & set(self.cues) else None
         for cue in self.cues:
             if cue == "geometry":
-                out.append(self.geometry_planes().expand(len(maps), -1, -1, -1))
+                out.append(self.geometry_planes().expand(maps.shape[0], -1, -1, -1))
             elif cue == "light":
                 planes = torch.cat([sun, light[:, 3:]], 1)[:, :, None, None]
                 out.append(planes.expand(-1, -1, *maps.shape[-2:]))
@@ -213,7 +213,7 @@ class SceneInputs(nn.Module):
         p = _mix(self.camera_to_world, p_cam) + self.camera_location[:, None, None]
         origin = (p + RAY_OFFSET * n_world)[None]  # (1, 3, H, W)
         d = F.normalize(sun_world, dim=1)[:, :, None, None]  # (N, 3, 1, 1)
-        blocked = torch.zeros(len(d), 1, *p.shape[-2:], dtype=torch.bool, device=p.device)
+        blocked = torch.zeros((d.shape[0], 1, *p.shape[-2:]), dtype=torch.bool, device=p.device)
         for s in self.spheres:
             blocked = blocked | _sphere_blocks(origin, d, s)
         for f in self.frustums:
@@ -309,8 +309,8 @@ def sun_irradiance(light: torch.Tensor) -> torch.Tensor:
     """``(N, 3)`` linear RGB irradiance of the sun lamp for light vectors ``(N, 4)``: the
     torch form of :func:`render_jobs.sun.sun_lamp` (strength x colour)."""
     z = F.normalize(light[:, :3], dim=1)[:, 2].clamp(-1, 1)
-    zenith = 90.0 - torch.rad2deg(torch.asin(z))
-    cosz = torch.cos(torch.deg2rad(zenith))
+    zenith = 90.0 - torch.asin(z) * (180.0 / math.pi)  # degrees
+    cosz = torch.cos(zenith * (math.pi / 180.0))
     mass = 1.0 / (cosz + 0.50572 * (96.07995 - zenith).clamp_min(1e-3) ** -1.6364)
     lam = torch.tensor([0.680, 0.550, 0.440], device=light.device)
     tau_r = 0.008569 * lam**-4 * (1 + 0.0113 * lam**-2 + 0.00013 * lam**-4)

@@ -146,6 +146,28 @@ class ShardStream(IterableDataset):
             made += len(mine)
 
 
+class Preloaded:
+    """The batches of a :class:`ShardStream`, in its order, from the whole split read once into
+    ``device``'s memory (``trainer train --preload``): for a store that fits there, a GPU's
+    steps wait for no loader. Iterating it yields what the DataLoader would, on ``device``;
+    the split is read ``chunk`` samples at a time when it is made."""
+
+    def __init__(self, stream: ShardStream, device: torch.device, chunk: int = 256):
+        self.stream = stream
+        reader, n = stream.reader, len(stream.reader.split)
+        parts = [reader.batch(np.arange(lo, min(lo + chunk, n))) for lo in range(0, n, chunk)]
+        self.data = {k: torch.cat([p[k] for p in parts]).to(device) for k in parts[0] if k != "id"}
+
+    def __iter__(self):
+        stream = self.stream
+        first, position = stream.epoch, stream.position
+        for epoch in range(first, first + 1 if stream.epochs is None else stream.epochs):
+            for ids in stream.batches(epoch, position if epoch == first else 0):
+                index = torch.as_tensor(ids, device=self.data["maps"].device)
+                batch = {k: v[index] for k, v in self.data.items()}
+                yield {**batch, "id": torch.as_tensor(ids), "epoch": epoch}
+
+
 #: how DataLoader workers start: spawned, like the farm's validation pool, because a fork
 #: copies the parent's threads' locks mid-use (zarr's I/O loop, tqdm's monitor, a viewer or
 #: torch thread pool) and a worker can then wait forever on a lock no thread will release.

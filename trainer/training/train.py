@@ -48,7 +48,7 @@ from trainer.networks import build_model
 from trainer.targets import Tonemap, model_inputs
 from trainer.training import faults, finetune, shm
 from trainer.training.config import TrainConfig, absolute_store
-from trainer.training.data import Catalog, ShardStream, loader, steps_left
+from trainer.training.data import Catalog, Preloaded, ShardStream, loader, steps_left
 from trainer.training.ema import WeightAverage
 from trainer.training.losses import RendererLoss, load_vgg
 from trainer.training.runlog import RunLog
@@ -148,6 +148,8 @@ def _check_device(cfg: TrainConfig) -> None:
 
 
 def _check_shared_memory(cfg: TrainConfig, catalog: Catalog, ranks: int) -> None:
+    if cfg.preload:  # no loader workers
+        return
     if why := shm.check(catalog.resolution, cfg.batch_size, cfg.workers, ranks):
         raise RunError(why)
 
@@ -172,7 +174,10 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         split, batch=cfg.batch_size, seed=cfg.seed, buffer=cfg.shuffle_buffer, world=rk.world,
         rank=rk.rank, epochs=cfg.epochs,
     )  # fmt: skip
-    reader = loader(stream, cfg.workers, pin_memory=rk.cuda)
+    if cfg.preload:
+        reader = Preloaded(stream, rk.device)
+    else:
+        reader = loader(stream, cfg.workers, pin_memory=rk.cuda)
     notes = _start_notes(cfg, t, catalog, init, found, was)
     log = _start_log(cfg, rk, out, t, catalog, len(split), notes)
     started = time.perf_counter()
