@@ -22,7 +22,12 @@ CURVE_POINTS = 600
 SETTINGS = (
     ("store", "stores"),
     ("init", "fine-tuned from"),
+    ("recipe", "recipe"),
     ("model", "model"),
+    ("inputs", "scene cues"),
+    ("norm", "normalisation"),
+    ("head", "full-resolution head"),
+    ("residual", "residual"),
     ("width", "width"),
     ("skips", "skips"),
     ("roughness_channels", "roughness channels"),
@@ -90,6 +95,8 @@ def settings(config: dict) -> dict[str, object]:
             value = ", ".join(str(s).rstrip("/").rsplit("/", 1)[-1] for s in value)
         elif key == "ema_decay":
             value = value or None
+        elif key == "inputs":
+            value = ", ".join(value) or "none"
         elif key == "init" and value:
             value = _short_checkpoint(value)
         out[label] = value
