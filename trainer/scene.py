@@ -107,14 +107,16 @@ class SceneInputs(nn.Module):
             for s in g.occluders["spheres"]
         ]
         frustums = [[f["z0"], f["z1"], f["r0"], f["r1"]] for f in g.occluders["frustums"]]
-        self.spheres = torch.tensor(spheres, dtype=torch.float32).view(-1, 9)
-        self.frustums = torch.tensor(frustums, dtype=torch.float32).view(-1, 4)
+        device = self.position.device
+        self.spheres = torch.tensor(spheres, dtype=torch.float32, device=device).view(-1, 9)
+        self.frustums = torch.tensor(frustums, dtype=torch.float32, device=device).view(-1, 4)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         for name in ("spheres", "frustums"):  # their count is the checkpoint's
             key = prefix + name
             if key in state_dict:
-                setattr(self, name, torch.empty_like(state_dict[key]))
+                here = getattr(self, name).device
+                setattr(self, name, torch.empty(state_dict[key].shape, device=here))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
@@ -141,7 +143,7 @@ class SceneInputs(nn.Module):
         out = [painted if "paint" in self.cues else maps]
         sun = light[:, :3] @ self.camera_to_world  # camera space, (N, 3)
         shaded = {"normal", "reflection", "shade"} & set(self.cues)
-        normal = self.shading_normal(painted, cov) if shaded else None
+        normal = self.shading_normal(maps, cov) if shaded else None
         vis = self.visibility(light[:, :3]) if {"shadow", "shade"} & set(self.cues) else None
         for cue in self.cues:
             if cue == "geometry":
@@ -188,12 +190,13 @@ class SceneInputs(nn.Module):
         inverse = torch.where(depth > 1e-3, 3.0 / depth.clamp_min(1e-3), torch.zeros_like(depth))
         return torch.cat([self.normal, inverse, self.parts])[None]
 
-    def shading_normal(self, painted: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-        """``(N, 3, H, W)`` unit camera-space normals: the material's normal map in its
-        tangent frame where the material is, the surface normal elsewhere."""
+    def shading_normal(self, maps: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+        """``(N, 3, H, W)`` unit camera-space normals: the material's normal map (``maps``
+        unpainted) in its tangent frame where the material is, the surface normal elsewhere,
+        mixed by the material's coverage ``cov``."""
         k = 6 + self.r
         # the maps are the material's values weighted by its coverage: undo that first
-        nmap = painted[:, k : k + 3] / cov.clamp_min(0.05) * 2 - 1
+        nmap = maps[:, k : k + 3] / cov.clamp_min(0.05) * 2 - 1
         tb = (self.tangent, self.bitangent, self.normal)
         mapped = sum(nmap[:, i : i + 1] * v[None] for i, v in enumerate(tb))
         n = cov * mapped + (1 - cov) * self.normal[None]
