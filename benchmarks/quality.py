@@ -72,7 +72,7 @@ def train_all(plan: Plan) -> None:
         if last is not None and checkpoint.load(last)["epoch"] >= epochs:
             continue
         cmd = [str(BIN / "trainer"), "train", "--store", plan.store(store), "--out", str(run),
-               "--loss", "l1", "--holdout-fraction", "0", "--batch-size", str(s.batch),
+               "--holdout-fraction", "0", "--val-samples", "0",
                "--workers", str(s.loader_workers), "--checkpoint-every", "200",
                "--log-every", "20", *extra,
                *(["--resume"] if last is not None else [])]  # fmt: skip

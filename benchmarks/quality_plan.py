@@ -27,13 +27,15 @@ class Scale:
     baselines: tuple[int, ...]  # Cycles spp, each raw and with OIDN
     reference_spp: int
     reference_count: int
-    epochs: int
+    epochs: int  # the default recipe's run on the training set
+    paper_epochs: int  # the paper's U-Net's runs (with and without skips)
     fixed_epochs: int
-    batch: int
+    batch: int  # the paper's runs' batch
     timing_count: int  # renders timed per Cycles setting
     workers: int = 0  # Blender workers a render job (0: the farm's default, one a CPU)
     loader_workers: int = 1  # DataLoader processes a training run (0: read in the trainer)
-    width: int = 64  # the U-Nets' first level (the paper's 64; the tiny scale tests the steps)
+    width: int = 64  # the paper's U-Nets' first level (the tiny scale tests the steps)
+    recipe_width: int | None = None  # the default recipe's (None: the recipe's own)
 
 
 SCALES = {
@@ -47,7 +49,8 @@ SCALES = {
         baselines=(1, 2, 4, 16),
         reference_spp=2048,
         reference_count=6,
-        epochs=3,  # what one 3-hour session fits on 2 cores; raise it and rerun to resume
+        epochs=12,  # what one session fits on 2 cores; raise it and rerun to resume
+        paper_epochs=3,
         fixed_epochs=10,
         batch=8,
         timing_count=3,
@@ -63,12 +66,14 @@ SCALES = {
         reference_spp=16,
         reference_count=2,
         epochs=1,
+        paper_epochs=1,
         fixed_epochs=1,
         batch=2,
         timing_count=1,
         workers=1,  # a few frames a job: one Blender load, not one a CPU
         loader_workers=0,  # 8 samples a run: a spawned loader's own torch import outweighs them
         width=16,  # a sixteenth of the paper's cost: the tiny scale checks every step, not scores
+        recipe_width=8,
     ),
 }
 
@@ -115,16 +120,23 @@ class Plan:
         return [(name, [*args, *common, "-o", self.store(name)]) for name, args in out]
 
     def trainings(self) -> list[tuple[str, str, list[str]]]:
-        """``(run name, training store, extra trainer arguments)``."""
+        """``(run name, training store, extra trainer arguments)``: ``unet`` the default
+        recipe, ``paper`` and ``unet-noskips`` the paper's U-Net with and without skips (L1:
+        no VGG16 weights here), on the fixed-sun set the default recipe and Zsolnai-Fehér."""
         s = self.scale
-        ep, fep = ["--epochs", str(s.epochs)], ["--epochs", str(s.fixed_epochs)]
-        width = ["--width", str(s.width)]
+        ours = ["--recipe", "shaderball"]
+        ours += ["--width", str(s.recipe_width)] if s.recipe_width else []
+        paper = ["--recipe", "paper", "--loss", "l1", "--batch-size", str(s.batch)]
+        runs = {"ours": s.epochs, "paper": s.paper_epochs, "fixed": s.fixed_epochs}
+        epochs = {k: ["--epochs", str(v)] for k, v in runs.items()}
         return [
-            ("unet", "train", [*ep, *width]),
-            ("unet-noskips", "train", [*ep, *width, "--no-skips"]),
-            ("unet-fixed", "train-fixed", [*fep, *width]),
-            ("zf-fixed", "train-fixed", [*fep, "--model", "zf"]),
-        ]
+            ("unet", "train", [*ours, *epochs["ours"]]),
+            ("paper", "train", [*paper, "--width", str(s.width), *epochs["paper"]]),
+            ("unet-noskips", "train",
+             [*paper, "--width", str(s.width), "--no-skips", *epochs["paper"]]),
+            ("unet-fixed", "train-fixed", [*ours, *epochs["fixed"]]),
+            ("zf-fixed", "train-fixed", [*paper, "--model", "zf", *epochs["fixed"]]),
+        ]  # fmt: skip
 
 
 def load_json(path: Path) -> dict:

@@ -241,6 +241,7 @@ def measure(plan) -> dict:
         return {**result, "per_sample": read_sample_table(table), "ms": ms, "parameters": params}
 
     rows["unet"] = net("unet", "test")
+    rows["paper"] = net("paper", "test")
     rows["unet-noskips"] = net("unet-noskips", "test")
     for spp in s.baselines:
         for oidn in (False, True):
@@ -373,13 +374,17 @@ def _data_section(plan, rows: dict, cpu: str) -> list[str]:
         f"{test.layout.num_samples} renders, same settings, seed 1;",
         f"- fixed-sun sets (Zsolnai-Fehér has no light input): {s.fixed[0]} / {s.fixed[1]} "
         "uniform materials under one sun (direction (-0.4, -0.6, 0.7), turbidity 3);",
-        f"- training: L1 loss, Adam lr 1e-3, batch {s.batch}, one CPU process "
-        f"({cpu}); U-Nets {s.width} channels wide at their first level"
-        f"{'' if s.width == 64 else ' (the paper: 64)'}, U-Net runs {s.epochs} epochs, "
-        f"fixed-sun runs {s.fixed_epochs}. Steps and wall time: "
+        f"- training, one CPU process ({cpu}): ours is the default recipe (`trainer "
+        "launch`'s defaults: scene cues, GroupNorm, a full-resolution head, L1 + MS-SSIM, "
+        "one-cycle, a weight average; docs/training.md), "
+        f"{s.epochs} epochs on the training set and {s.fixed_epochs} on the fixed-sun set; "
+        f"the paper's U-Net (`--recipe paper` with its L1 loss: Adam lr 1e-3, batch {s.batch}, "
+        f"U-Nets {s.width} channels wide at their first level"
+        f"{'' if s.width == 64 else ' (the paper: 64)'}) {s.paper_epochs} epochs, and "
+        f"Zsolnai-Fehér {s.fixed_epochs}. Steps and wall time: "
         + ", ".join(
             f"{n} {steps.get(n, '?')} steps / {seconds.get(n, 0) / 60:.0f} min"
-            for n in ("unet", "unet-noskips", "unet-fixed", "zf-fixed")
+            for n in ("unet", "paper", "unet-noskips", "unet-fixed", "zf-fixed")
         )
         + ".",  # fmt: skip
         "- these are short runs, what one session on 2 CPU cores fits, far from the paper's "
@@ -392,7 +397,11 @@ def _data_section(plan, rows: dict, cpu: str) -> list[str]:
 
 def _random_suns_section(s, rows: dict, cpu: str) -> list[str]:
     """The main table, the findings, the scores per material kind and the differences."""
-    named = [("ours (U-Net, L1)", "unet"), ("ours without skips (L1)", "unet-noskips")]
+    named = [
+        ("ours (the default recipe)", "unet"),
+        ("the paper's U-Net (L1)", "paper"),
+        ("the paper's U-Net without skips (L1)", "unet-noskips"),
+    ]
     named += [(label, key) for key, label in cycles_baselines(s.baselines).items()]
     out = [
         "## Held-out materials, random suns",

@@ -168,7 +168,8 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
         cluster.shutdown()
     text = doc.read_text()
     scale = SCALES["tiny"]
-    labels = ["ours (U-Net, L1)", "ours without skips (L1)", "Zsolnai-Fehér",
+    labels = ["ours (the default recipe)", "the paper's U-Net (L1)",
+              "the paper's U-Net without skips (L1)", "Zsolnai-Fehér",
               "ours, trained on the same fixed-sun data", "Cycles 2 spp + OIDN",
               f"ground truth vs {scale.reference_spp} spp, all"]  # fmt: skip
     labels += [f"Cycles {spp} spp" for spp in scale.baselines]
@@ -179,20 +180,27 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
         assert numbers and all(np.isfinite(numbers)), row
     assert "VGG16" in text and "held-out materials only" in text
     assert "U-Nets 16 channels wide at their first level (the paper: 64)" in text
-    for run in ("unet", "unet-noskips", "unet-fixed"):  # the tiny scale's width, as it says
-        assert json.loads((work / "runs" / run / "config.json").read_text())["width"] == 16
+    for run, width in (("unet", 8), ("paper", 16), ("unet-noskips", 16), ("unet-fixed", 8)):
+        config = json.loads((work / "runs" / run / "config.json").read_text())
+        assert config["width"] == width  # the tiny scale's widths, as the text says
+        assert config["recipe"] == ("paper" if run in ("paper", "unet-noskips") else "shaderball")
     # 5 test materials: each mean PSNR of the main table has an interval around it, and each
     # comparison with ours its paired difference with an interval; 2 fixed-sun test
     # materials: differences without intervals
     main, fixed = text.split("## Fixed sun")
-    for label in ["ours (U-Net, L1)", *(f"Cycles {spp} spp" for spp in scale.baselines)]:
+    for label in ["ours (the default recipe)", *(f"Cycles {spp} spp" for spp in scale.baselines)]:
         row = next(line for line in main.splitlines() if line.startswith(f"| {label} |"))
         psnr, ci = row.split(" | ")[1:3]
         low, high = map(float, re.fullmatch(r"\[(-?\d+\.\d\d), (-?\d+\.\d\d)\]", ci).groups())
         assert low <= float(psnr) <= high, row
-    assert "| ours (U-Net, L1) less | PSNR dB | SSIM | FLIP | ours higher PSNR on |" in main
+    assert (
+        "| ours (the default recipe) less | PSNR dB | SSIM | FLIP | ours higher PSNR on |" in main
+    )
     number, ci = r"[+-]\d+\.\d+", r"[+-]\d+\.\d+ \[[+-]\d+\.\d+, [+-]\d+\.\d+\]"
-    for label in ["ours without skips \\(L1\\)", *(f"Cycles {spp} spp" for spp in scale.baselines)]:
+    for label in [
+        "the paper's U-Net without skips \\(L1\\)",
+        *(f"Cycles {spp} spp" for spp in scale.baselines),
+    ]:
         assert re.search(rf"^\| {label} \| {ci} \| {ci} \| {ci} \| \d+% \|$", main, re.M), label
     assert "bootstrap that resamples whole materials" in main
     assert re.search(rf"^\| Zsolnai-Fehér [^|]*\| {number} \| {number} \| {number} \| \d+% \|$",
