@@ -116,16 +116,27 @@ def row_config(name: str, store: str, run: Path, budget: int, **run_as) -> Train
     )  # fmt: skip
 
 
+class Diverged(RuntimeError):
+    """A row's training stopped on NaN or infinite values (its one-line error)."""
+
+
 def train_row(cfg: TrainConfig) -> dict:
     """Run ``trainer train`` for ``cfg`` (resuming a run it left); its throughput. A resumed
-    run's CPU time is this call's only, so it has no passes per CPU-second."""
+    run's CPU time is this call's only, so it has no passes per CPU-second. Raises
+    :class:`Diverged` for a run that diverged, ``CalledProcessError`` for any other end."""
     argv = [sys.executable, "-m", "trainer.cli", "train", *to_argv(cfg)]  # no installed script
     resumed = (Path(cfg.out) / runfiles.CHECKPOINTS).exists()
     if resumed:
         argv.append("--resume")
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.perf_counter()
-    subprocess.run(argv, check=True, stdout=subprocess.DEVNULL)
+    r = subprocess.run(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    if r.returncode:
+        last = (r.stderr.strip().splitlines() or [""])[-1]
+        if "NaN/Inf" in last:
+            raise Diverged(last.removeprefix("Error: "))
+        sys.stderr.write(r.stderr[-3000:])
+        r.check_returncode()
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     lines = [json.loads(x) for x in (Path(cfg.out) / runfiles.LOG).read_text().splitlines()]
@@ -162,9 +173,16 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
         return json.loads(done.read_text())
     cfg = row_config(name, store, run, budget, **run_as)
     print(f"{name} ({budget:,} passes, {cfg.max_steps} steps of {cfg.batch_size})", flush=True)
-    speed = train_row(cfg)
+    result = {"row": name, "budget": budget, "batch": cfg.batch_size}
+    try:
+        speed = train_row(cfg)
+    except Diverged as exc:  # a row's result too: this setting does not train
+        result["diverged"] = str(exc)
+        done.write_text(json.dumps(result, indent=1))
+        print(f"  diverged: {exc}", flush=True)
+        return result
     scores = score_run(run, run / "grid.png", run_as.get("device", "cpu"))
-    result = {"row": name, "budget": budget, "batch": cfg.batch_size, **speed, **scores}
+    result |= {**speed, **scores}
     done.write_text(json.dumps(result, indent=1))
     print(f"  {result['psnr']:.2f} dB, {result['passes_per_second']:.1f} passes/s", flush=True)
     return result
@@ -178,6 +196,9 @@ def table(resolution: int, budget: int, results: list[dict], about: str) -> Tabl
         notes=[about],
     )  # fmt: skip
     for r in results:
+        if "diverged" in r:
+            t.rows.append([r["row"], ROWS[r["row"]][0], r.get("batch"), "diverged", *[None] * 5])
+            continue
         t.rows.append([
             r["row"], ROWS[r["row"]][0], r.get("batch"), round(r["psnr"], 2),
             f"{r['psnr_low']:.2f}-{r['psnr_high']:.2f}" if r.get("psnr_low") else None,
@@ -238,7 +259,8 @@ def main(argv: list[str] | None = None) -> None:
         print(t.markdown(), flush=True)
         name = args.name or f"learning-{layout.resolution}-{budget // 1000}k"
         save(name, t, *([args.results] if args.results else []))
-        shown = [n for n in args.grid_rows.split(",") if n in names]
+        trained = {r["row"] for r in results if "diverged" not in r}
+        shown = [n for n in args.grid_rows.split(",") if n in trained]
         if shown:
             grid = (args.results or DOC_IMG) / f"{name}.png"
             side_by_side(work, budget, shown, grid, args.device)

@@ -305,3 +305,29 @@ def test_worker_start_times_blender_in_a_ray_actor_both_ways_and_refuses_bad_cou
     assert all(float(row[1]) > 0 and int(row[2]) > 0 for row in rows)
     bad = subprocess.run([*cmd[:3], "--starts", "0"], capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and "--starts 0: must be at least 1" in bad.stderr
+
+
+@pytest.mark.slow
+def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_store, tmp_path):
+    """``benchmarks.learning`` on the tiny real store: each row trained for the budget and
+    scored on its held-out materials, the table written with the row's settings and the
+    side-by-side grid drawn; run again, every row is read from its result, not trained."""
+    import json
+
+    from benchmarks.results import load
+
+    cmd = [sys.executable, "-m", "benchmarks.learning", "--store", tiny_store.url,
+           "--budget", "8", "--rows", "paper,shaderball", "--work", str(tmp_path / "work"),
+           "--results", str(tmp_path), "--name", "t"]  # fmt: skip
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    table = load(tmp_path / "t.json")
+    assert [row[0] for row in table.rows] == ["paper", "shaderball"]
+    assert [row[2] for row in table.rows] == [6, 8]  # the recipes' batches
+    assert all(5 < row[3] < 60 for row in table.rows)  # held-out PSNR dB
+    assert table.command.startswith("python -m benchmarks.learning --store")
+    assert (tmp_path / "t.png").stat().st_size > 0
+    result = json.loads((tmp_path / "work" / "64" / "8" / "shaderball" / "result.json").read_text())
+    assert result["images"] == 8 and result["passes_per_cpu_second"] > 0
+    again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and " steps of " not in again.stdout  # nothing trained again
