@@ -75,7 +75,7 @@ def main() -> None:
     """Train and run the neural material renderer on shard stores made by `farm submit`.
 
     \b
-      trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
+      trainer launch --store out/demo.zarr --epochs 1 --out runs/demo
       trainer eval --checkpoint runs/demo
       trainer render --checkpoint runs/demo --store out/demo.zarr --sample 0 -o out.png
     """
@@ -90,7 +90,7 @@ def train(**kwargs) -> None:
     Run it directly for a single CPU/GPU process. Examples:
 
     \b
-      trainer train --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
+      trainer train --store out/demo.zarr --epochs 1 --out runs/demo
       trainer train --store out/set.zarr --ema-decay 0.999 --out runs/ema  # averaged weights
     """
     from trainer.training.train import train
@@ -153,7 +153,7 @@ def launch(
     smallest run:
 
     \b
-      trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo
+      trainer launch --store out/demo.zarr --epochs 1 --out runs/demo
 
     Two nodes with 8 GPUs each (the same command on both; it prints it):
 

@@ -9,8 +9,8 @@ is a plain function of what it needs; nothing the loop changes hides in a closur
 One process trains on CPU or one GPU. Under torchrun (``trainer launch``) every rank runs this
 same loop as one DDP job: NCCL on GPUs, gloo on CPU. Examples::
 
-    trainer train --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo      # one process
-    trainer launch --store out/demo.zarr --epochs 1 --loss l1 --out runs/demo     # torchrun
+    trainer train --store out/demo.zarr --epochs 1 --out runs/demo                # one process
+    trainer launch --store out/demo.zarr --epochs 1 --out runs/demo               # torchrun
     trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint head:29400 ...    # 2 nodes x 8
 
 On CUDA: bf16 autocast and channels_last (the U-Net and VGG16), cudnn.benchmark. Each rank
