@@ -192,18 +192,17 @@ def table(resolution: int, budget: int, results: list[dict], about: str) -> Tabl
     t = Table(
         title=f"Learning per image pass: {resolution}², {budget:,} passes, held-out materials",
         columns=["row", "what changes", "batch", "PSNR dB", "95 % interval", "SSIM", "FLIP",
-                 "passes / s", "passes / CPU-s"],
+                 "passes / CPU-s"],
         notes=[about],
     )  # fmt: skip
     for r in results:
         if "diverged" in r:
-            t.rows.append([r["row"], ROWS[r["row"]][0], r.get("batch"), "diverged", *[None] * 5])
+            t.rows.append([r["row"], ROWS[r["row"]][0], r.get("batch"), "diverged", *[None] * 4])
             continue
         t.rows.append([
             r["row"], ROWS[r["row"]][0], r.get("batch"), round(r["psnr"], 2),
             f"{r['psnr_low']:.2f}-{r['psnr_high']:.2f}" if r.get("psnr_low") else None,
             round(r["ssim"], 4), round(r["flip"], 4),
-            round(r["passes_per_second"], 1),
             None if r["passes_per_cpu_second"] is None else round(r["passes_per_cpu_second"], 1),
         ])  # fmt: skip
     return t
