@@ -4,8 +4,8 @@
 
 ``trainer.rendering.infer.GraphedRenderer`` copies each fp32 NCHW batch of maps into its bf16
 channels_last input (the first 10 of 16 channels) before the replay: at batch 128 and 400²
-it reads 0.82 GB and writes 0.41 GB, 5.6-6.2 % of the batched frames' time on an H100
-(``docs/benchmarks.md``). This times that copy as the renderer does it (``Tensor.copy_``)
+it reads 0.82 GB and writes 0.41 GB, a share of the batched frames' time worth measuring.
+This times that copy as the renderer does it (``Tensor.copy_``)
 and the same copy compiled by Inductor (one tiled kernel that transposes as it converts),
 checks that both write the same values, and prints ms and GB/s of each. On CPU it runs too
 (smaller sizes make it quick), but the question is the GPU's.
