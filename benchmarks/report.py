@@ -22,7 +22,7 @@ PAGE = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 SECTIONS = (
     ("What the network learns per image pass", ("learning-64-16k", "learning-64-64k",
                                                   "learning-128-16k", "learning-gpu")),
-    ("Training", ("train-cpu", "train-cuda")),
+    ("Training", ("cpu-train-64", "cpu-train-128", "train-cpu", "train-cuda")),
     ("Inference", ("infer-cpu", "infer-cuda", "frames")),
     ("The viewer", ("viewer-cpu", "viewer-cuda")),
     ("Rendering and the farm", ("render", "farm", "farm-scale", "materials")),

@@ -1,0 +1,111 @@
+"""Training steps on the CPU in each form the trainer could run them: memory format, Inductor,
+torch's threads.
+
+    python -m benchmarks.cpu_train [--resolution 128] [--batch 8] [--rounds 5]
+
+For the default recipe's network and the paper's at ``--resolution``, one training step
+(forward, the recipe's loss, backward, Adam) on a fixed synthetic batch, in each form:
+contiguous (NCHW, the trainer's CPU default), channels_last, ``torch.compile`` (Inductor's
+C++ backend), and with one torch thread instead of all. Every form is timed in turn, round
+after round (``--rounds``), so a drift of the machine falls on all alike; the table has the
+median images a second and each form's ratio to the contiguous one. The scene buffers are
+zeros (a step's time does not depend on them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from benchmarks.results import Table, save
+from trainer.model import ModelConfig
+from trainer.networks import build_model
+from trainer.training.config import TrainConfig
+from trainer.training.losses import RendererLoss
+from trainer.training.train import network_config
+
+
+def step_fn(cfg: ModelConfig, loss: str, batch: int, fmt, compiled: bool):
+    """One training step of a fresh network of ``cfg`` on a fixed batch, as a function."""
+    torch.manual_seed(0)
+    model = build_model(cfg).to(memory_format=fmt)
+    opt = torch.optim.Adam(model.parameters(), 1e-4)
+    crit = RendererLoss(structural=loss == "l1+msssim")
+    r = cfg.resolution
+    x = torch.rand(batch, cfg.in_channels, r, r).contiguous(memory_format=fmt)
+    light, target = torch.rand(batch, 4), torch.rand(batch, 3, r, r)
+    net = torch.compile(model) if compiled else model
+
+    def step():
+        crit(net(x, light), target).backward()
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+
+    return step
+
+
+FORMS = {
+    "contiguous": (torch.contiguous_format, False, None),
+    "channels_last": (torch.channels_last, False, None),
+    "torch.compile": (torch.contiguous_format, True, None),
+    "one thread": (torch.contiguous_format, False, 1),
+}
+
+
+def timed(step, threads: int | None, repeat: int = 2) -> float:
+    """Seconds a step, the mean of ``repeat``, with ``threads`` torch threads (None: all)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads or before)
+    try:
+        t0 = time.perf_counter()
+        for _ in range(repeat):
+            step()
+        return (time.perf_counter() - t0) / repeat
+    finally:
+        torch.set_num_threads(before)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--resolution", type=int, default=128)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--rounds", type=int, default=5)
+    args = ap.parse_args(argv)
+    if args.rounds < 1 or args.batch < 1:
+        ap.error("--rounds and --batch must be at least 1")
+    table = Table(
+        title=f"Training steps on the CPU (`python -m benchmarks.cpu_train`): "
+        f"{args.resolution}², batch {args.batch}",
+        columns=["recipe", "form", "images/s", "x contiguous"],
+        notes=[f"medians of {args.rounds} rounds, every form timed in turn; a synthetic batch, "
+               f"torch's {torch.get_num_threads()} threads unless one"],
+    )  # fmt: skip
+    for recipe in ("shaderball", "paper"):
+        train = TrainConfig(store=("-",), recipe=recipe)
+        cfg = network_config(train, args.resolution)
+        loss = "l1" if train.loss == "l1+vgg" else train.loss  # no VGG16 weights here
+        steps = {}
+        for name, (fmt, compiled, threads) in FORMS.items():
+            steps[name] = (step_fn(cfg, loss, args.batch, fmt, compiled), threads)
+            for _ in range(2):  # warm-up (and the compile)
+                timed(*steps[name], repeat=1)
+        times = {name: [] for name in steps}
+        for _ in range(args.rounds):
+            for name, (step, threads) in steps.items():
+                times[name].append(timed(step, threads))
+        base = statistics.median(times["contiguous"])
+        for name, ts in times.items():
+            t = statistics.median(ts)
+            table.rows.append([recipe, name, round(args.batch / t, 1), round(base / t, 2)])
+            print(
+                f"{recipe:<12}{name:<16}{args.batch / t:8.1f} images/s  {base / t:5.2f}x",
+                flush=True,
+            )
+    save(f"cpu-train-{args.resolution}", table)
+
+
+if __name__ == "__main__":
+    main()
