@@ -65,6 +65,8 @@ ROWS = {
     "paper-lr1e-2": ("the paper's recipe with its printed rate, 1e-2",
                      {"recipe": "paper", "loss": "l1", "lr": 1e-2}),
     "w32": ("the paper's recipe at width 32: the rows below change one thing from it", W32),
+    "w32-seed1": ("the w32 row with another seed: how far a row moves by chance",
+                  W32 | {"seed": 1}),
     "onecycle": ("one-cycle schedule to 2e-3", W32 | {"lr_schedule": "onecycle", "lr": 2e-3}),
     "cosine": ("cosine schedule from 1e-3", W32 | {"lr_schedule": "cosine"}),
     "msssim": ("loss L1 + MS-SSIM", W32 | {"loss": "l1+msssim"}),
