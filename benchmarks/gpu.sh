@@ -19,6 +19,8 @@
 # images), the split held in the GPU's memory (trainer train --preload), each row scored on its
 # held-out materials; the table (learning-gpu.json), the side-by-side grid and each run's
 # result and grid are written under $OUT (a row finished is kept if a later one is cut off).
+# Tried here first, on the CPU with a few steps: DEVICE=cpu PASSES=64 BATCH=8 PYTHON=.venv/bin/python
+# LEARN_STORE=benchmarks/.cache/learning-64.zarr OUT=/tmp/learn bash benchmarks/gpu.sh learn
 #
 # ARGS go to benchmarks.infer after its defaults (e.g. --only "subpixel compiled", --gemm-at 50),
 # or to benchmarks.viewer (e.g. --runtimes torch,graph: fp32, then the CUDA graph).
@@ -75,7 +77,7 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
                "$py" "${train[@]}" --replicate 200 --loss l1+vgg --steps 120 --warmup 20 \
                    --sim-epochs 0 ;;
         viewer) "$py" -m benchmarks.viewer --device cuda "$@" ;;
-        learn) "$py" -m benchmarks.learning --store "$store" --device cuda --preload \
+        learn) "$py" -m benchmarks.learning --store "$store" --device "${DEVICE:-cuda}" --preload \
                    --budget "${PASSES:-1470000}" --batch "${BATCH:-128}" --rows shaderball,paper \
                    --work "$out/learning" --results "$out" --name learning-gpu ;;
     esac

@@ -249,8 +249,9 @@ def main(argv: list[str] | None = None) -> None:
     about = (
         f"{layout.num_materials} materials (half uniform, half procedural) x "
         f"{layout.suns_per_material} suns, {HOLDOUT:.0%} of the materials held out; every row "
-        + ("trains one CPU process with one loader worker" if args.device == "cpu" else
-           "trains on one GPU" + (", the split in its memory" if args.preload else ""))
+        + ("trains one CPU process" if args.device == "cpu" else "trains on one GPU")
+        + (", the split in its memory" if args.preload else
+           ", one loader worker" if args.device == "cpu" else "")
         + ("" if args.batch is None else f", batch {args.batch} for every row")
     )  # fmt: skip
     os.environ.setdefault("OMP_NUM_THREADS", str(len(os.sched_getaffinity(0))))

@@ -122,7 +122,8 @@ class StructuralLoss(nn.Module):
     def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         pred, target = pred.float(), target.float()
         win, betas = msssim_window(min(pred.shape[-2:]))
-        ms = multiscale_ssim(pred, target, data_range=1.0, kernel_size=win, betas=betas)
+        with torch.autocast(pred.device.type, enabled=False):  # its variances need fp32
+            ms = multiscale_ssim(pred, target, data_range=1.0, kernel_size=win, betas=betas)
         return MSSSIM_WEIGHT * (1 - ms) + (1 - MSSSIM_WEIGHT) * F.l1_loss(pred, target)
 
 
