@@ -1,7 +1,7 @@
 """Training steps on the CPU in each form the trainer could run them: memory format, Inductor,
 torch's threads.
 
-    python -m benchmarks.cpu_train [--resolution 128] [--batch 8] [--rounds 5]
+    python -m benchmarks.cpu_train [--resolution 128] [--batch 8] [--rounds 5] [--forms ...]
 
 For the default recipe's network and the paper's at ``--resolution``, one training step
 (forward, the recipe's loss, backward, Adam) on a fixed synthetic batch, in each form:
@@ -73,9 +73,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--resolution", type=int, default=128)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument(
+        "--forms",
+        default=",".join(FORMS),
+        help="comma-separated forms to time (contiguous always runs: the ratios' base)",
+    )
     args = ap.parse_args(argv)
     if args.rounds < 1 or args.batch < 1:
         ap.error("--rounds and --batch must be at least 1")
+    forms = ["contiguous"] + [f for f in args.forms.split(",") if f and f != "contiguous"]
+    unknown = [f for f in forms if f not in FORMS]
+    if unknown:
+        ap.error(f"unknown form {unknown[0]!r} (forms: {', '.join(FORMS)})")
     table = Table(
         title=f"Training steps on the CPU (`python -m benchmarks.cpu_train`): "
         f"{args.resolution}², batch {args.batch}",
@@ -88,7 +97,8 @@ def main(argv: list[str] | None = None) -> None:
         cfg = network_config(train, args.resolution)
         loss = "l1" if train.loss == "l1+vgg" else train.loss  # no VGG16 weights here
         steps = {}
-        for name, (fmt, compiled, threads) in FORMS.items():
+        for name in forms:
+            fmt, compiled, threads = FORMS[name]
             steps[name] = (step_fn(cfg, loss, args.batch, fmt, compiled), threads)
             for _ in range(2):  # warm-up (and the compile)
                 timed(*steps[name], repeat=1)
