@@ -100,7 +100,7 @@ bench-materials: $(BIN)/.installed
 
 # For a GPU machine with CUDA torch but no package registry (benchmarks/gpu.sh says how):
 # the packages the store and the trainer need that its image lacks, as wheels for its Python
-# (GPU_PYTHON, the device's is 3.12) in .whl/ (torch, torchmetrics, tensorboard, pillow,
+# (GPU_PYTHON, the device's is 3.12) in .whl/ (torch, tensorboard, pillow,
 # click, fsspec and tqdm are in the device's image).
 GPU_PYTHON ?= 3.12
 gpu-wheels: $(BIN)/.installed

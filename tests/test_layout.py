@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGES = ("shaderball", "farm", "render_jobs", "storage", "trainer", "benchmarks")
 #: the third-party packages that an install extra brings (pyproject.toml)
 EXTRAS = {
-    "torch": "train", "torchmetrics": "train", "tensorboard": "train", "flip_evaluator": "train",
+    "torch": "train", "tensorboard": "train", "flip_evaluator": "train",
     "ray": "farm", "bpy": "render", "aiohttp": "dashboard", "jinja2": "dashboard",
     "prometheus_client": "dashboard", "onnx": "export", "onnxruntime": "export",
     "onnxscript": "export",

@@ -19,11 +19,9 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from torch import nn
-from torchmetrics.functional.image import (
-    multiscale_structural_similarity_index_measure as multiscale_ssim,
-)
 
 from shaderball.errors import UserError
+from trainer.training.msssim import ms_ssim
 
 # torchvision's vgg16 "features" up to relu3_3: conv channels, "M" = max pool
 _TRUNK = [64, 64, "M", 128, 128, "M", 256, 256, 256]
@@ -91,39 +89,15 @@ def load_vgg(path: str | os.PathLike | None = None) -> nn.Sequential:
 
 #: Zhao et al.'s weight of the MS-SSIM term (L1 gets the rest)
 MSSSIM_WEIGHT = 0.84
-#: MS-SSIM's scale weights (Wang et al. 2003), finest first
-MSSSIM_SCALES = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
-
-
-def msssim_window(side: int) -> tuple[int, tuple[float, ...]]:
-    """MS-SSIM's Gaussian window and scale weights for ``side``-pixel images: the standard
-    11-pixel window over as many of the five scales as fit (the window must fit the
-    coarsest scale, and torchmetrics' own bound must hold), or a 7-pixel one where fewer
-    than three would; the weights of the scales kept are renormalised to sum to 1."""
-
-    def fits(win: int, scales: int) -> bool:
-        coarsest = (win - 1) * 2 ** (scales - 1) < side
-        return coarsest and side // max(1, scales - 1) ** 2 > win - 1 and side >= 2**scales
-
-    for win in (11, 7):
-        scales = max([n for n in range(1, len(MSSSIM_SCALES) + 1) if fits(win, n)], default=1)
-        if scales >= 3 or win == 7:
-            kept = MSSSIM_SCALES[:scales]
-            return win, tuple(w / sum(kept) for w in kept)
-    raise AssertionError("unreachable")
 
 
 class StructuralLoss(nn.Module):
     """``(N, 3, H, W)`` images in [0, 1] → ``0.84 (1 - MS-SSIM) + 0.16 L1`` (Zhao et al.
-    2017), in fp32, MS-SSIM over the scales that fit the image (:func:`msssim_window`).
-    torchmetrics' MS-SSIM, since pytorch-msssim asserts images over 160 pixels a side at
-    any number of scales and kornia's full-resolution form costs more than the network."""
+    2017) in fp32, MS-SSIM over the scales that fit the image (:mod:`trainer.training.msssim`)."""
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         pred, target = pred.float(), target.float()
-        win, betas = msssim_window(min(pred.shape[-2:]))
-        with torch.autocast(pred.device.type, enabled=False):  # its variances need fp32
-            ms = multiscale_ssim(pred, target, data_range=1.0, kernel_size=win, betas=betas)
+        ms = ms_ssim(pred, target)
         return MSSSIM_WEIGHT * (1 - ms) + (1 - MSSSIM_WEIGHT) * F.l1_loss(pred, target)
 
 
