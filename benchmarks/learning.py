@@ -83,6 +83,7 @@ ROWS = {
                  W32 | {"inputs": "shade", "residual": True}),
     "head": ("a full-resolution head", W32 | {"head": True}),
     "shaderball": ("the default recipe (trainer.training.config.RECIPES)", {}),
+    "sb-no-head": ("the default recipe without its full-resolution head", {"head": False}),
 }  # fmt: skip
 
 
