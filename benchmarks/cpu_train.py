@@ -8,8 +8,8 @@ For the default recipe's network and the paper's at ``--resolution``, one traini
 contiguous (NCHW, the trainer's CPU default), channels_last, ``torch.compile`` (Inductor's
 C++ backend), and with one torch thread instead of all. Every form is timed in turn, round
 after round (``--rounds``), so a drift of the machine falls on all alike; the table has the
-median images a second and each form's ratio to the contiguous one. The scene buffers are
-zeros (a step's time does not depend on them).
+median images a second, each form's ratio to its recipe's contiguous one and to the paper's
+recipe's. The scene buffers are zeros (a step's time does not depend on them).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import torch
 from benchmarks.results import Table, save
 from trainer.model import ModelConfig
 from trainer.networks import build_model
-from trainer.training.config import TrainConfig
+from trainer.training.config import RECIPES, TrainConfig
 from trainer.training.losses import RendererLoss
 from trainer.training.train import network_config
 
@@ -88,32 +88,31 @@ def main(argv: list[str] | None = None) -> None:
     table = Table(
         title=f"Training steps on the CPU (`python -m benchmarks.cpu_train`): "
         f"{args.resolution}², batch {args.batch}",
-        columns=["recipe", "form", "images/s", "x contiguous"],
-        notes=[f"medians of {args.rounds} rounds, every form timed in turn; a synthetic batch, "
-               f"torch's {torch.get_num_threads()} threads unless one"],
+        columns=["recipe", "form", "images/s", "x contiguous", "x paper"],
+        notes=[f"medians of {args.rounds} rounds, every recipe and form timed in turn; a "
+               f"synthetic batch, torch's {torch.get_num_threads()} threads unless one; x paper: "
+               "against the paper's recipe, contiguous"],
     )  # fmt: skip
-    for recipe in ("shaderball", "paper"):
+    steps = {}
+    for recipe in RECIPES:
         train = TrainConfig(store=("-",), recipe=recipe)
         cfg = network_config(train, args.resolution)
         loss = "l1" if train.loss == "l1+vgg" else train.loss  # no VGG16 weights here
-        steps = {}
         for name in forms:
             fmt, compiled, threads = FORMS[name]
-            steps[name] = (step_fn(cfg, loss, args.batch, fmt, compiled), threads)
+            steps[recipe, name] = (step_fn(cfg, loss, args.batch, fmt, compiled), threads)
             for _ in range(2):  # warm-up (and the compile)
-                timed(*steps[name], repeat=1)
-        times = {name: [] for name in steps}
-        for _ in range(args.rounds):
-            for name, (step, threads) in steps.items():
-                times[name].append(timed(step, threads))
-        base = statistics.median(times["contiguous"])
-        for name, ts in times.items():
-            t = statistics.median(ts)
-            table.rows.append([recipe, name, round(args.batch / t, 1), round(base / t, 2)])
-            print(
-                f"{recipe:<12}{name:<16}{args.batch / t:8.1f} images/s  {base / t:5.2f}x",
-                flush=True,
-            )
+                timed(*steps[recipe, name], repeat=1)
+    times = {key: [] for key in steps}
+    for _ in range(args.rounds):
+        for key, (step, threads) in steps.items():
+            times[key].append(timed(step, threads))
+    median = {key: statistics.median(ts) for key, ts in times.items()}
+    for (recipe, name), t in median.items():
+        base, paper = median[recipe, "contiguous"], median["paper", "contiguous"]
+        row = [recipe, name, round(args.batch / t, 1), round(base / t, 2), round(paper / t, 2)]
+        table.rows.append(row)
+        print(f"{recipe:<12}{name:<16}{row[2]:8.1f} images/s  {row[3]:5.2f}x  {row[4]:5.2f}x paper")
     save(f"cpu-train-{args.resolution}", table)
 
 

@@ -335,7 +335,7 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
 
 def test_the_cpu_training_forms_are_timed_in_turn_and_tabled(tmp_path):
     """``benchmarks.cpu_train`` at a tiny size: a row for each recipe and form asked for,
-    positive rates, contiguous the unit. Inductor's form is left out: compiling two networks'
+    positive rates, contiguous the unit of a recipe, the paper's contiguous step of all. Inductor's form is left out: compiling two networks'
     training steps takes minutes on 2 cores (the renderer's tests compile the network's
     operators)."""
     from benchmarks.results import load
@@ -351,3 +351,4 @@ def test_the_cpu_training_forms_are_timed_in_turn_and_tabled(tmp_path):
         (recipe, form) for recipe in ("shaderball", "paper") for form in forms
     ]
     assert all(row[2] > 0 for row in table.rows) and table.rows[0][3] == 1.0
+    assert table.rows[3][4] == 1.0  # the paper's contiguous step: the unit across recipes

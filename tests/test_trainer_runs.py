@@ -1265,8 +1265,8 @@ DEFAULT = {"width": 8, "batch_size": 2, "holdout_fraction": 0.25, "workers": 0, 
 
 @pytest.fixture(scope="module")
 def trained_default(tiny_store, tmp_path_factory):
-    """A short run of the default recipe (scene cues, GroupNorm, a head, MS-SSIM, one-cycle, a
-    weight average) on the tiny store: its folder."""
+    """A short run of the default recipe (scene cues, GroupNorm, MS-SSIM, one-cycle, a weight
+    average) on the tiny store: its folder."""
     out = tmp_path_factory.mktemp("default") / "run"
     train(TrainConfig(store=(tiny_store.url,), out=str(out), **DEFAULT))
     return out
@@ -1278,7 +1278,7 @@ def test_the_default_recipe_keeps_its_network_and_scene_in_its_checkpoints(
     state = checkpoint.load(trained_default)
     assert state["config"]["recipe"] == "shaderball"
     cfg = ModelConfig(**state["model_config"])
-    assert cfg.inputs == TrainConfig(store=("s",)).inputs and cfg.norm == "group" and cfg.head
+    assert cfg.inputs == TrainConfig(store=("s",)).inputs and cfg.norm == "group" and not cfg.head
     assert state["schedule"]["schedule"] == "onecycle" and state.get("ema") is not None
     r = Renderer.from_checkpoint(trained_default)  # built without the store: from the weights
     buffers = r.model.scene.position

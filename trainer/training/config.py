@@ -43,7 +43,7 @@ RECIPES = {
         "width": 32,
         "inputs": ("paint", "geometry", "light", "normal", "reflection", "shadow", "shade"),
         "norm": "group",
-        "head": True,
+        "head": False,
         "residual": False,
         "ema_decay": 0.999,
     },
