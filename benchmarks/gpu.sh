@@ -22,13 +22,13 @@
 # Tried here first, on the CPU with a few steps: DEVICE=cpu PASSES=64 BATCH=8 PYTHON=.venv/bin/python
 # LEARN_STORE=benchmarks/.cache/learning-64.zarr OUT=/tmp/learn bash benchmarks/gpu.sh learn
 #
-# ARGS go to benchmarks.infer after its defaults (e.g. --only "subpixel compiled", --gemm-at 50),
+# ARGS go to benchmarks.infer after its defaults (e.g. --only "subpixel compiled", --fold-ring),
 # or to benchmarks.viewer (e.g. --runtimes torch,graph: fp32, then the CUDA graph).
 # Output is printed and appended to ${OUT:-out}/gpu-bench.txt. The compiled rows leave the
 # convolutions to cuDNN and the GEMMs to cuBLAS, as the fast path does by default
-# (trainer.rendering.infer.TUNED_BACKENDS): with Triton's templates autotuned too (CONV_BACKENDS=ATEN,TRITON,
-# or GEMM_BACKENDS=ATEN,TRITON with --ring-gemm) the infer part outlasts the device's 10-minute
-# call.
+# (trainer.rendering.infer.TUNED_BACKENDS): with Triton's templates autotuned too
+# (CONV_BACKENDS=ATEN,TRITON or GEMM_BACKENDS=ATEN,TRITON) the infer part outlasts the device's
+# 10-minute call.
 #
 # Autotuning across calls: Inductor's and Triton's caches live in .gpucache/ (ignored by git).
 # Inductor writes each operation's autotuning timings there as soon as they are measured, so a

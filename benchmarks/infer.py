@@ -1,9 +1,8 @@
 """Inference benchmark at 400² (or ``--resolution``): ms per frame at batch 1, frames/s batched.
 
     .venv/bin/python -m benchmarks.infer [--batch 8] [--iters 20] [--device auto] [--compile]
-        [--gemm-at N] [--subpixel-from N] [--align N] [--ring-gemm] [--wide-ring] [--edge-ring]
-        [--zero-edge-ring] [--conv-relu] [--light-sums] [--fold-ring]
-        [--streams] [--resolution 400] [--only TEXT]... [--rounds K]
+        [--align N] [--zero-edge-ring] [--conv-relu] [--light-sums] [--fold-ring]
+        [--resolution 400] [--only TEXT]... [--rounds K]
 
 Rows: eager fp32, the same with BatchNorm folded in channels_last, and the exact fp32
 rewrite (``trainer.rendering.fastnet``: BatchNorm folded, sub-pixel convolutions, channels_last) on
@@ -14,29 +13,18 @@ channels_last eager (cudnn.benchmark), the same with BatchNorm folded, that with
 cast to bf16 once and replayed as a CUDA graph (``trainer.rendering.infer.GraphedRenderer``), the
 rewrite so replayed, and with ``--compile`` both after torch.compile (Inductor
 ``max-autotune-no-cudagraphs``: fused pointwise work around the tuned convolutions, then
-captured); ``--gemm-at N`` and ``--subpixel-from N`` add the compiled rewrite with GEMM
-convolutions on inputs at most N wide, or with the decoder levels on inputs narrower than N
-in the original upsample-and-concatenate form (both given: the GEMM row is of that form;
-``--subpixel-from`` at the resolution makes every level plain: the original network with
-its light plane as one channel, so ``--gemm-at`` then applies to the original's layers).
-Every rewrite row pads its channel counts to multiples of ``--align`` (8, the fast path's
-default: ``trainer.rendering.infer.fast_network``) with zero-weight channels; ``--align 1`` keeps
-the model's own counts. ``--ring-gemm`` and ``--wide-ring`` add the compiled rewrite with each
-ring's grouped convolution as a batched matrix product (``trainer.rendering.fastnet.strip_gemm``),
-and with the sub-pixel convolutions on zero-padded inputs and the ring two deep
-(``trainer.rendering.fastnet.UpConv``). ``--edge-ring`` adds the compiled rewrite whose rings are
-corrections from the edges of each level's input (``trainer.rendering.fastnet.edges``);
-``--zero-edge-ring`` the same with the sub-pixel convolutions on zero-padded inputs and the
-corrections two deep (``trainer.rendering.fastnet.zero_edges``). ``--conv-relu`` adds the compiled
-rewrite (with the zero-padded edge ring when that is asked for) whose encoder convolutions
-run with their ReLU in one cuDNN call (``trainer.rendering.convrelu``). ``--light-sums`` adds the
-zero-padded edge ring with conv + ReLU (``trainer.rendering.infer.EDGE_RELU``) with the light
-encoder's layers as sums (``trainer.rendering.fastnet.SummedMLP``); ``--fold-ring`` that form (with
-``--light-sums``, with its sums) with each ring's correction as one product
-(``trainer.rendering.fastnet.zero_edges_folded``). ``--streams``
-adds the network compiled segment by segment on two CUDA streams, the skip convolutions and
-the light MLP beside the critical path, every level plain (``benchmarks.streamnet``; for
-batch 1).
+captured). Every rewrite row pads its channel counts to multiples of ``--align`` (8, the fast
+path's default: ``trainer.rendering.infer.fast_network``) with zero-weight channels;
+``--align 1`` keeps the model's own counts. ``--zero-edge-ring`` adds the compiled rewrite
+with the sub-pixel convolutions on zero-padded inputs and the rings as corrections two deep
+from the edges of each level's input (``trainer.rendering.fastnet.zero_edges``).
+``--conv-relu`` adds the compiled rewrite (with the zero-padded edge ring when that is asked
+for) whose encoder convolutions run with their ReLU in one cuDNN call
+(``trainer.rendering.convrelu``). ``--light-sums`` adds the zero-padded edge ring with conv +
+ReLU (``trainer.rendering.infer.EDGE_RELU``) with the light encoder's layers as sums
+(``trainer.rendering.fastnet.SummedMLP``); ``--fold-ring`` that form (with ``--light-sums``,
+with its sums) with each ring's correction as one product
+(``trainer.rendering.fastnet.zero_edges_folded``: ``trainer.rendering.infer.FASTEST``).
 ``benchmarks.infer_profile`` shows where the time goes, kernel by kernel.
 The network is the paper's (width 64, skips) with fresh weights (speed does not depend on
 them); inputs are real maps and suns from the benchmark store (``benchmarks.trainstore``).
@@ -50,8 +38,7 @@ NCHW batch into a graph row's bf16 channels_last input; ``in place`` is the same
 replay alone (``GraphedRenderer.replay``), for a producer that writes its frames there.
 ``--rounds K`` then times every row again, K rounds of every row in turn, and prints each
 row's medians and its batch-1 time over the first row's: rows built and timed minutes apart
-meet different machine states, and on the lent GPUs the same row has moved by 5 % between
-two runs on one machine (``docs/benchmarks.md``).
+meet different machine states.
 """
 
 from __future__ import annotations
@@ -68,7 +55,6 @@ import torch
 import torch.nn.functional as F
 
 from benchmarks.results import Table, save
-from benchmarks.streamnet import streamed_network
 from benchmarks.train import device_name
 from benchmarks.trainstore import DEFAULT, ensure_store
 from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
@@ -109,10 +95,7 @@ def interleaved(rows, rounds: int, clock) -> dict[str, list[float]]:
 
 def graphed(model, batch: int, fast: dict) -> GraphedRenderer:
     """A row's CUDA graph: ``fast`` are :func:`trainer.rendering.infer.fast_network`'s
-    keywords, or, with ``streams``, :func:`benchmarks.streamnet.streamed_network`'s."""
-    if fast.get("streams"):
-        keywords = {k: v for k, v in fast.items() if k != "streams"}
-        return GraphedRenderer(model, batch, net=streamed_network(model, **keywords))
+    keywords."""
     return GraphedRenderer(model, batch, **fast)
 
 
@@ -161,45 +144,12 @@ def parser() -> argparse.ArgumentParser:
         help="add a torch.compile + CUDA graph row (CUDA; minutes of autotuning)",
     )
     ap.add_argument(
-        "--gemm-at",
-        type=int,
-        default=0,
-        metavar="N",
-        help="add a compiled subpixel row with the convolutions on inputs at most N wide as "
-        "GEMMs (trainer.rendering.fastnet.Conv; CUDA)",
-    )
-    ap.add_argument(
-        "--subpixel-from",
-        type=int,
-        default=0,
-        metavar="N",
-        help="add a compiled subpixel row whose decoder levels on inputs narrower than N keep "
-        "the upsample-and-concatenate form (trainer.rendering.fastnet.PlainLevel; CUDA)",
-    )
-    ap.add_argument(
         "--align",
         type=int,
         default=8,
         metavar="N",
         help="pad the subpixel rows' channel counts to multiples of N (default 8, for tensor "
         "cores; 1: the model's own)",
-    )
-    ap.add_argument(
-        "--ring-gemm",
-        action="store_true",
-        help="add a compiled subpixel row with the rings' convolutions as matrix products (CUDA)",
-    )
-    ap.add_argument(
-        "--wide-ring",
-        action="store_true",
-        help="add (with --ring-gemm: make that) a compiled subpixel row whose sub-pixel "
-        "convolutions read zero-padded inputs, with rings two deep (CUDA)",
-    )
-    ap.add_argument(
-        "--edge-ring",
-        action="store_true",
-        help="add a compiled subpixel row whose rings are corrections computed from the "
-        "edges of each level's input (trainer.rendering.fastnet.edges; CUDA)",
     )
     ap.add_argument(
         "--zero-edge-ring",
@@ -227,12 +177,6 @@ def parser() -> argparse.ArgumentParser:
         help="add the zero-padded edge ring with conv + ReLU (with --light-sums: with its "
         "light sums) with each ring's correction as one batched product "
         "(trainer.rendering.fastnet.zero_edges_folded; CUDA)",
-    )
-    ap.add_argument(
-        "--streams",
-        action="store_true",
-        help="add a compiled row on two CUDA streams: skip convolutions and the light MLP "
-        "beside the critical path (benchmarks.streamnet; CUDA)",
     )
     ap.add_argument(
         "--only",
@@ -263,21 +207,12 @@ def graph_rows(args: argparse.Namespace) -> list[tuple[str, dict]]:
             ("torch.compile + CUDA graph", {"compile": True}),
             rewrite("subpixel compiled + graph"),
         ]
-    if args.ring_gemm or args.wide_ring:
-        kinds = ", ring GEMMs" * args.ring_gemm + ", wide ring" * args.wide_ring
-        rows.append(
-            rewrite(f"subpixel compiled{kinds}", ring_gemm=args.ring_gemm, wide_ring=args.wide_ring)
-        )
-    if args.edge_ring:
-        rows.append(rewrite("subpixel compiled, edge ring", edge_ring=True))
     if args.zero_edge_ring:
-        rows.append(
-            rewrite("subpixel compiled, zero-padded edge ring", edge_ring=True, wide_ring=True)
-        )
+        rows.append(rewrite("subpixel compiled, zero-padded edge ring", edge_ring=True))
     if args.conv_relu:
         zero = args.zero_edge_ring
         name = f"subpixel compiled{', zero-padded edge ring' * zero}, conv+ReLU"
-        rows.append(rewrite(name, edge_ring=zero, wide_ring=zero, conv_relu=True))
+        rows.append(rewrite(name, edge_ring=zero, conv_relu=True))
     edge_relu = (
         "subpixel compiled, zero-padded edge ring, conv+ReLU"  # trainer.rendering.infer.EDGE_RELU
     )
@@ -287,16 +222,6 @@ def graph_rows(args: argparse.Namespace) -> list[tuple[str, dict]]:
         sums = args.light_sums
         name = f"{edge_relu}{', light sums' * sums}, ring in one product"
         rows.append(rewrite(name, **(EDGE_RELU | {"light_sums": sums, "fold_ring": True})))
-    if args.streams:
-        fast = {"compile": True, "streams": True, "align": args.align}
-        rows.append((f"two streams, compiled + graph{x1}", fast))
-    if args.gemm_at:  # with --subpixel-from, of that mixed form
-        start = f", from {args.subpixel_from}²" if args.subpixel_from else ""
-        name = f"  + GEMMs at <= {args.gemm_at}²{start}"
-        rows.append(rewrite(name, gemm_at=args.gemm_at, subpixel_from=args.subpixel_from))
-    if args.subpixel_from:
-        name = f"subpixel from {args.subpixel_from}², compiled"
-        rows.append(rewrite(name, subpixel_from=args.subpixel_from))
     return rows
 
 

@@ -46,17 +46,7 @@ def conv_flops(net: torch.nn.Module, x: torch.Tensor, light: torch.Tensor) -> di
 
 
 #: the ``--subpixel`` flags, each a keyword of :func:`trainer.rendering.infer.fast_network`
-FAST_FLAGS = (
-    "gemm_at",
-    "subpixel_from",
-    "align",
-    "ring_gemm",
-    "wide_ring",
-    "edge_ring",
-    "conv_relu",
-    "light_sums",
-    "fold_ring",
-)
+FAST_FLAGS = ("align", "edge_ring", "conv_relu", "light_sums", "fold_ring")
 
 
 def parser() -> argparse.ArgumentParser:
@@ -65,20 +55,11 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--compile", action="store_true", help="profile torch.compile instead")
     ap.add_argument("--rows", type=int, default=25)
     ap.add_argument("--subpixel", action="store_true", help="the trainer.rendering.fastnet rewrite")
-    ap.add_argument("--gemm-at", type=int, default=0, help="with --subpixel: GEMM convs this wide")
-    ap.add_argument(
-        "--subpixel-from", type=int, default=0, help="with --subpixel: plain levels narrower"
-    )
     ap.add_argument("--align", type=int, default=8, help="with --subpixel: channels padded to x N")
-    ap.add_argument("--ring-gemm", action="store_true", help="with --subpixel: rings as GEMMs")
     ap.add_argument(
-        "--wide-ring",
+        "--edge-ring",
         action="store_true",
-        help="with --subpixel: rings two deep "
-        "(with --edge-ring: edge corrections two deep on zero-padded phases)",
-    )
-    ap.add_argument(
-        "--edge-ring", action="store_true", help="with --subpixel: rings as edge corrections"
+        help="with --subpixel: phases on zero-padded inputs, rings as edge corrections two deep",
     )
     ap.add_argument(
         "--conv-relu", action="store_true", help="with --subpixel: conv + ReLU in one cuDNN call"
@@ -89,7 +70,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument(
         "--fold-ring",
         action="store_true",
-        help="with --edge-ring --wide-ring: each ring's correction as one product",
+        help="with --edge-ring: each ring's correction as one product",
     )
     return ap
 

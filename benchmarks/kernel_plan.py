@@ -1,8 +1,7 @@
 """The kernels Inductor plans for the compiled fast network, worked out on a CPU machine.
 
-    .venv/bin/python -m benchmarks.kernel_plan [--subpixel] [--edge-ring [--wide-ring]]
-        [--conv-relu] [--light-sums] [--fold-ring] [--batch 8] [--resolution 400] [--width 64]
-        [--subpixel-from N] [--align 8]
+    .venv/bin/python -m benchmarks.kernel_plan [--subpixel] [--edge-ring [--fold-ring]]
+        [--conv-relu] [--light-sums] [--batch 8] [--resolution 400] [--width 64] [--align 8]
 
 Compiles ``trainer.rendering.infer.fast_network`` (bf16, channels_last) with Inductor's Triton
 backend on the CPU and prints, in launch order, what the generated program calls: each
@@ -100,9 +99,10 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=64)
     ap.add_argument("--batch", type=int, default=8)
     ap.add_argument("--subpixel", action="store_true", help="the trainer.rendering.fastnet rewrite")
-    ap.add_argument("--edge-ring", action="store_true", help="with --subpixel: edge rings")
     ap.add_argument(
-        "--wide-ring", action="store_true", help="with --edge-ring: two deep, zero-padded phases"
+        "--edge-ring",
+        action="store_true",
+        help="with --subpixel: zero-padded phases, rings as edge corrections two deep",
     )
     ap.add_argument(
         "--conv-relu", action="store_true", help="with --subpixel: conv + ReLU as one operator"
@@ -111,17 +111,14 @@ def main() -> None:
         "--light-sums", action="store_true", help="with --subpixel: the light MLP as sums"
     )
     ap.add_argument(
-        "--fold-ring", action="store_true", help="with --wide-ring: each ring as one product"
+        "--fold-ring", action="store_true", help="with --edge-ring: each ring as one product"
     )
-    ap.add_argument("--subpixel-from", type=int, default=0, metavar="N")
     ap.add_argument("--align", type=int, default=8, metavar="N")
     args = ap.parse_args()
     if args.edge_ring and not args.subpixel:
         ap.error("--edge-ring is a form of the --subpixel rewrite")
-    if args.wide_ring and not args.edge_ring:
-        ap.error("--wide-ring here is a form of --edge-ring")
-    if args.fold_ring and not args.wide_ring:
-        ap.error("--fold-ring is a form of --wide-ring")
+    if args.fold_ring and not args.edge_ring:
+        ap.error("--fold-ring is a form of --edge-ring")
     for flag, asked in (("--conv-relu", args.conv_relu), ("--light-sums", args.light_sums)):
         if asked and not args.subpixel:
             ap.error(f"{flag} is a form of the --subpixel rewrite")
@@ -129,10 +126,8 @@ def main() -> None:
     net = fast_network(
         model,
         subpixel=args.subpixel,
-        subpixel_from=args.subpixel_from,
         align=args.align,
         edge_ring=args.edge_ring,
-        wide_ring=args.wide_ring,
         conv_relu=args.conv_relu,
         light_sums=args.light_sums,
         fold_ring=args.fold_ring,
@@ -142,7 +137,7 @@ def main() -> None:
     x = torch.rand(args.batch, channels, r, r, dtype=torch.bfloat16)
     light = torch.rand(args.batch, 4, dtype=torch.bfloat16)
     # fast_network's options but the autotuning: the GPU chooses its algorithms itself
-    options = compile_options(args.edge_ring, wide_ring=args.wide_ring)
+    options = compile_options()
     tuning = ("max_autotune", "coordinate_descent_tuning")
     options = {k: v for k, v in options.items() if k not in tuning}
     x = x.contiguous(memory_format=torch.channels_last)

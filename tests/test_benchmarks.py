@@ -78,14 +78,12 @@ def test_the_profiles_flags_are_keywords_that_fast_network_takes():
     from benchmarks.infer_profile import fast_kwargs, parser
     from trainer.rendering.infer import fast_network
 
-    args = parser().parse_args(["--subpixel", "--edge-ring", "--wide-ring", "--conv-relu",
-                                "--light-sums", "--fold-ring", "--gemm-at", "50",
-                                "--align", "16"])  # fmt: skip
+    args = parser().parse_args(["--subpixel", "--edge-ring", "--conv-relu", "--light-sums",
+                                "--fold-ring", "--align", "16"])  # fmt: skip
     fast = fast_kwargs(args)
     inspect.signature(fast_network).bind(None, compile=True, **fast)
-    assert fast == {"subpixel": True, "gemm_at": 50, "subpixel_from": 0, "align": 16,
-                    "ring_gemm": False, "wide_ring": True, "edge_ring": True,
-                    "conv_relu": True, "light_sums": True, "fold_ring": True}  # fmt: skip
+    assert fast == {"subpixel": True, "align": 16, "edge_ring": True, "conv_relu": True,
+                    "light_sums": True, "fold_ring": True}  # fmt: skip
 
 
 def test_the_device_is_named_from_an_option_or_a_torch_device(monkeypatch):
@@ -121,7 +119,7 @@ def test_only_given_again_runs_the_rows_that_contain_any_of_its_texts():
         "torch.compile + CUDA graph",
         "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums",
     ]
-    assert wanted("--only", "streams") == []
+    assert wanted("--only", "no such row") == []
 
 
 def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes():
@@ -131,43 +129,31 @@ def test_the_flags_ask_for_their_graph_rows_each_a_form_that_fast_network_takes(
     import inspect
 
     from benchmarks.infer import graph_rows, parser
-    from benchmarks.streamnet import streamed_network
-    from trainer.rendering.infer import fast_layers, fast_network
+    from trainer.rendering.infer import FASTEST, fast_layers, fast_network
 
     plain = [name for name, _ in graph_rows(parser().parse_args([]))]
     assert plain == ["  + bf16 weights, CUDA graph", "subpixel bf16, CUDA graph"]
-    every = ["--compile", "--ring-gemm", "--wide-ring", "--edge-ring", "--zero-edge-ring",
-             "--conv-relu", "--light-sums", "--fold-ring", "--streams", "--gemm-at", "50",
-             "--subpixel-from", "100"]  # fmt: skip
+    every = ["--compile", "--zero-edge-ring", "--conv-relu", "--light-sums", "--fold-ring"]
     rows = graph_rows(parser().parse_args(every))
     assert [name for name, _ in rows][2:] == [
         "torch.compile + CUDA graph",
         "subpixel compiled + graph",
-        "subpixel compiled, ring GEMMs, wide ring",
-        "subpixel compiled, edge ring",
         "subpixel compiled, zero-padded edge ring",
         "subpixel compiled, zero-padded edge ring, conv+ReLU",
         "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums",
         "subpixel compiled, zero-padded edge ring, conv+ReLU, light sums, ring in one product",
-        "two streams, compiled + graph",
-        "  + GEMMs at <= 50², from 100²",
-        "subpixel from 100², compiled",
     ]
     signature = inspect.signature(fast_network)
     layers = inspect.signature(fast_layers)
-    streamed = inspect.signature(streamed_network)
     for _, fast in rows:  # each raises TypeError on a keyword it lacks
-        if fast.get("streams"):
-            streamed.bind(None, **{k: v for k, v in fast.items() if k != "streams"})
-        else:
-            signature.bind(None, **fast)
-            layers.bind(None, **{k: v for k, v in fast.items() if k != "compile"})
+        signature.bind(None, **fast)
+        layers.bind(None, **{k: v for k, v in fast.items() if k != "compile"})
     zero_relu = dict(rows)["subpixel compiled, zero-padded edge ring, conv+ReLU"]
     assert zero_relu == {"compile": True, "subpixel": True, "align": 8, "edge_ring": True,
-                         "wide_ring": True, "conv_relu": True}  # fmt: skip
+                         "conv_relu": True}  # fmt: skip
     sums = dict(rows)["subpixel compiled, zero-padded edge ring, conv+ReLU, light sums"]
     assert sums == zero_relu | {"light_sums": True}
-    assert rows[9][1] == sums | {"fold_ring": True}
+    assert rows[-1][1] == sums | {"fold_ring": True} == FASTEST | {"align": 8}
     alone = dict(graph_rows(parser().parse_args(["--fold-ring"])))
     name = "subpixel compiled, zero-padded edge ring, conv+ReLU, ring in one product"
     assert alone[name] == zero_relu | {"light_sums": False, "fold_ring": True}
@@ -191,7 +177,7 @@ def test_kernel_plan_lists_the_launches_of_the_compiled_network_without_a_gpu():
     gathers from its level's input (the taps along the edges, the corners) and two batched
     products; each level's sum, correction and activation one kernel, and no padded copy."""
     cmd = [sys.executable, "-m", "benchmarks.kernel_plan", "--subpixel", "--edge-ring"]
-    cmd += ["--wide-ring", "--conv-relu", "--resolution", "32", "--width", "8", "--batch", "2"]
+    cmd += ["--conv-relu", "--resolution", "32", "--width", "8", "--batch", "2"]
     r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     names = [line.split()[1:3] for line in r.stdout.splitlines()[1:-1]]
@@ -229,10 +215,9 @@ def test_kernel_plan_parses_launches_and_refuses_edge_rings_without_the_rewrite(
     ]
     for extra, says in (
         (["--edge-ring"], "--edge-ring is a form of the --subpixel rewrite"),
-        (["--subpixel", "--wide-ring"], "--wide-ring here is a form of --edge-ring"),
         (["--conv-relu"], "--conv-relu is a form of the --subpixel rewrite"),
         (["--light-sums"], "--light-sums is a form of the --subpixel rewrite"),
-        (["--subpixel", "--edge-ring", "--fold-ring"], "--fold-ring is a form of --wide-ring"),
+        (["--subpixel", "--fold-ring"], "--fold-ring is a form of --edge-ring"),
     ):
         monkeypatch.setattr(sys, "argv", ["kernel_plan", *extra])
         with pytest.raises(SystemExit) as exit_:
@@ -335,9 +320,9 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
 
 def test_the_cpu_training_forms_are_timed_in_turn_and_tabled(tmp_path):
     """``benchmarks.cpu_train`` at a tiny size: a row for each recipe and form asked for,
-    positive rates, contiguous the unit of a recipe, the paper's contiguous step of all. Inductor's form is left out: compiling two networks'
-    training steps takes minutes on 2 cores (the renderer's tests compile the network's
-    operators)."""
+    positive rates, contiguous the unit of a recipe, the paper's contiguous step of all.
+    Inductor's form is left out: compiling two networks' training steps takes minutes on 2
+    cores (the renderer's tests compile the network's operators)."""
     from benchmarks.results import load
 
     env = {**os.environ, "SHADERBALL_BENCH_RESULTS": str(tmp_path)}

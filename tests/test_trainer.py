@@ -225,26 +225,15 @@ def test_upconv_is_upsampling_then_convolution(size):
     got = up(z)
     assert got.shape == want.shape
     torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
-    up.phases.gemm = True  # the im2col GEMM form of the same convolution
+    assert not hasattr(up, "zero_side")  # the edge ring's weights are made when asked for
+    up.set_ring(edge=True)  # zero-padded phases, the rings two deep as corrections from z
     torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
-    up.set_ring(gemm=True)  # and the ring's grouped convolution as a batched matrix product
+    up.set_ring(edge=True, fold=True)  # that correction as one product
     torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
-    for gemm in (True, False):  # zero-padded phases, the ring two deep (replicate below 2 wide)
-        up.phases.gemm = gemm
-        up.set_ring(gemm=gemm, wide=True)
-        torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
-    for wide in (False, True):  # the ring as a correction from the edges of z, one deep on
-        up.set_ring(edge=True, wide=wide)  # replicate-padded phases, two on zero-padded ones
-        assert hasattr(up, "zero_side") == wide  # those weights are made when asked for
-        torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
-    up.set_ring(edge=True, wide=True, fold=True)  # that correction as one product
-    torch.testing.assert_close(up(z), want, atol=1e-12, rtol=0)
-    with pytest.raises(ValueError, match="fold is a form of the edge ring on zero-padded"):
-        up.set_ring(edge=True, fold=True)
-    if size < 2:
-        y = torch.zeros_like(want)
-        with pytest.raises(ValueError, match="a ring 2 deep needs an input at least 2 wide"):
-            ring(z, up.ring, y, depth=2)
+    with pytest.raises(ValueError, match="fold is a form of the edge ring"):
+        up.set_ring(fold=True)
+    with pytest.raises(ValueError, match="the ring needs a square input, not 3x4"):
+        ring(torch.randn(1, 6, 3, 4), up.ring, torch.zeros(1, 5, 6, 8))
     with pytest.raises(ValueError, match="the ring needs a square input, not 3x4"):
         up(torch.randn(1, 6, 3, 4, dtype=torch.float64))
 
@@ -258,34 +247,24 @@ def test_upconv_is_upsampling_then_convolution(size):
         ModelConfig(resolution=128, width=8),
     ],
 )
-@pytest.mark.parametrize("gemm_at", [0, 1 << 10])
-@pytest.mark.parametrize("plain_levels", ["none", "the smaller half", "all"])
 @pytest.mark.parametrize("align", [1, 8])
-def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align):
-    """Exact in fp32 whichever decoder levels keep the upsample-and-concatenate form, with
-    channel counts padded to multiples of 8 or not; the padded input channels' values do not
-    matter, and maps with the model's own channel count are padded inside."""
-    from trainer.rendering.fastnet import PlainLevel, SubpixelRenderer
+def test_subpixel_rewrite_gives_the_same_image(cfg, align):
+    """Exact in fp32 in each of its forms, with channel counts padded to multiples of 8 or
+    not; the padded input channels' values do not matter, and maps with the model's own
+    channel count are padded inside."""
+    from trainer.rendering.fastnet import SubpixelRenderer
 
     model = NeuralRenderer(cfg).train()
     r, c = cfg.resolution, cfg.in_channels
     for _ in range(2):  # running statistics that are not the identity
         model(torch.rand(3, c, r, r) * 2, torch.rand(3, 4))
     model.eval()
-    start = {"none": 0, "the smaller half": r // 4, "all": r}[plain_levels]
-    fast = SubpixelRenderer(fold_batchnorm(model), start, align).gemm_at(gemm_at)
-    fast.rings(gemm=gemm_at > 0, wide=gemm_at > 0)  # with GEMMs: every convolution one
-    plain = [isinstance(level, PlainLevel) for level in fast.levels]
-    assert (
-        plain == {"none": [0] * 4, "the smaller half": [1, 1, 0, 0], "all": [1] * 4}[plain_levels]
-    )
+    fast = SubpixelRenderer(fold_batchnorm(model), align)
     fast.to(memory_format=torch.channels_last)
-    out = fast.levels[-1]  # its output channels: the colours, padded (x4 before pixel_shuffle)
-    colours = out.conv.weight.shape[0] if plain[-1] else out.up.phases.weight.shape[0] // 4
+    colours = fast.levels[-1].up.phases.weight.shape[0] // 4  # x4 phases before pixel_shuffle
     widths = [fast.in_channels, fast.fuse.weight.shape[1], colours]
-    # aligned: 4 colours x 4 phases (16 channels) for a sub-pixel output, 8 for a plain one
-    aligned = [16, 8 * cfg.width + 8, 8 if plain[-1] else 4]
-    assert widths == ([c, 8 * cfg.width + 1, 3] if align == 1 else aligned)
+    # aligned: 4 colours x 4 phases (16 channels) for the output convolution
+    assert widths == ([c, 8 * cfg.width + 1, 3] if align == 1 else [16, 8 * cfg.width + 8, 4])
     x, light = torch.rand(2, c, r, r), torch.rand(2, 4)
     extra = torch.rand(2, fast.in_channels - c, r, r) * 100
     cl = torch.channels_last
@@ -296,70 +275,25 @@ def test_subpixel_rewrite_gives_the_same_image(cfg, gemm_at, plain_levels, align
     assert got.shape == want.shape
     torch.testing.assert_close(got, want, atol=1e-5, rtol=0)
     torch.testing.assert_close(got_wide, want, atol=1e-5, rtol=0)
-    for wide in (False, True):  # the rings as corrections from the edges, on replicate-
-        with torch.no_grad():  # or zero-padded phases
-            got_edges = fast.rings(edge=True, wide=wide)(x.contiguous(memory_format=cl), light)
-        torch.testing.assert_close(got_edges, want, atol=1e-5, rtol=0)
+    with torch.no_grad():  # the rings as corrections from the edges, on zero-padded phases
+        got_edges = fast.rings(edge=True)(x.contiguous(memory_format=cl), light)
+    torch.testing.assert_close(got_edges, want, atol=1e-5, rtol=0)
     with torch.no_grad():  # and the ReLUs after convolutions in one operator with them
         got_fused = fast.fuse_relus()(x.contiguous(memory_format=cl), light)
     torch.testing.assert_close(got_fused, want, atol=1e-5, rtol=0)
     with torch.no_grad():  # each ring one product, the light encoder as sums
-        fast.rings(edge=True, wide=True, fold=True).light_sums()
+        fast.rings(edge=True, fold=True).light_sums()
         got_folded = fast(x.contiguous(memory_format=cl), light)
     torch.testing.assert_close(got_folded, want, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="fold the BatchNorm first"):
         SubpixelRenderer(model)
 
 
-@pytest.mark.parametrize("plain_levels", ["none", "the smaller half", "all"])
-@pytest.mark.parametrize("align", [1, 8])
-def test_two_stream_split_gives_the_same_image(plain_levels, align):
-    """benchmarks.streamnet: the skip halves and the light MLP cut off into their own segments
-    (run in order on CPU) give the image of the network, whichever form each level has; a
-    network without skips is refused."""
-    from benchmarks.streamnet import StreamedRenderer
-    from trainer.rendering.fastnet import SubpixelRenderer
-
-    cfg = ModelConfig(resolution=64, width=8)
-    model = NeuralRenderer(cfg).train()
-    model(torch.rand(3, cfg.in_channels, 64, 64) * 2, torch.rand(3, 4))  # running statistics
-    model.eval()
-    start = {"none": 0, "the smaller half": 16, "all": 64}[plain_levels]
-    net = StreamedRenderer(SubpixelRenderer(fold_batchnorm(model), start, align))
-    assert len(net.skips) == len(net.ups) + 1 == 4
-    x, light = torch.rand(2, cfg.in_channels, 64, 64), torch.rand(2, 4)
-    with torch.no_grad():
-        torch.testing.assert_close(net(x, light), model(x, light), atol=1e-5, rtol=0)
-    no_skips = NeuralRenderer(ModelConfig(resolution=64, width=8, skips=False)).eval()
-    with pytest.raises(ValueError, match="two streams need a network with skips"):
-        StreamedRenderer(SubpixelRenderer(fold_batchnorm(no_skips)))
-
-
-def test_two_stream_segments_each_trace_as_one_graph():
-    """Every segment compiles without a graph break (Dynamo's ``eager`` backend, fullgraph),
-    at three batch sizes in one process: more graphs of the shared skip segment than Dynamo
-    keeps by default."""
-    from benchmarks.streamnet import StreamedRenderer
-    from trainer.rendering.fastnet import SubpixelRenderer
-
-    torch._dynamo.reset()
-    model = NeuralRenderer(ModelConfig(resolution=32)).eval()
-    options = {"backend": "eager", "fullgraph": True, "dynamic": False}
-    for n in (1, 2, 3):
-        net = StreamedRenderer(SubpixelRenderer(fold_batchnorm(model), 32, 8))
-        net.compile_segments(**options)
-        x, light = torch.rand(n, model.config.in_channels, 32, 32), torch.rand(n, 4)
-        with torch.no_grad():
-            torch.testing.assert_close(net(x, light), model(x, light), atol=1e-5, rtol=0)
-
-
 def test_bf16_fast_networks_stay_close_to_fp32():
     """The networks the CUDA benchmark rows capture (trainer.rendering.infer.fast_network: BatchNorm
     folded, bf16 weights, channels_last; plain, sub-pixel with its channels aligned or not,
-    with GEMMs, with some or all levels plain, with the rings as GEMMs two deep, the fastest
-    measured form among them), run here on CPU: bf16 images stay within 0.02 of fp32, the
-    rewrite no further off than the original; and the two-stream form of benchmarks.streamnet."""
-    from benchmarks.streamnet import streamed_network
+    with its rings as edge corrections, the fastest form among them), run here on CPU: bf16
+    images stay within 0.02 of fp32, the rewrite no further off than the original."""
     from trainer.rendering.infer import FASTEST, fast_network
 
     torch.manual_seed(0)
@@ -371,45 +305,29 @@ def test_bf16_fast_networks_stay_close_to_fp32():
         nets = {
             "plain": {},
             "subpixel": {"subpixel": True},
-            "gemm": {"subpixel": True, "gemm_at": 64},
-            "mixed": {"subpixel": True, "subpixel_from": 16},
             "unaligned": {"subpixel": True, "align": 1},
-            "all plain": {"subpixel": True, "subpixel_from": 64},
-            "ring GEMMs, wide": {"subpixel": True, "ring_gemm": True, "wide_ring": True},
             "edge ring": {"subpixel": True, "edge_ring": True},
-            "edge ring, zero-padded": {"subpixel": True, "edge_ring": True, "wide_ring": True},
-            "zero-padded, conv+ReLU": {
+            "edge ring, conv+ReLU": {"subpixel": True, "edge_ring": True, "conv_relu": True},
+            "edge ring, conv+ReLU, light sums": {
                 "subpixel": True,
                 "edge_ring": True,
-                "wide_ring": True,
-                "conv_relu": True,
-            },
-            "zero-padded, conv+ReLU, light sums": {
-                "subpixel": True,
-                "edge_ring": True,
-                "wide_ring": True,
                 "conv_relu": True,
                 "light_sums": True,
             },
-            "zero-padded, conv+ReLU, light sums, one-product ring": {
+            "edge ring, conv+ReLU, light sums, one-product ring": {
                 "subpixel": True,
                 "edge_ring": True,
-                "wide_ring": True,
                 "conv_relu": True,
                 "light_sums": True,
                 "fold_ring": True,
             },
         }
-        streamed = {"two streams": {}, "two streams, sub-pixel": {"subpixel": True}}
         errors = {
             name: (fast_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
             for name, kw in nets.items()
-        } | {
-            name: (streamed_network(model, **kw)(xb, light.bfloat16()).float() - want).abs().max()
-            for name, kw in streamed.items()
         }
     # the fastest form is among those checked here (uncompiled)
-    fastest = nets["zero-padded, conv+ReLU, light sums, one-product ring"]
+    fastest = nets["edge ring, conv+ReLU, light sums, one-product ring"]
     assert fastest | {"compile": True} == FASTEST
     plain = errors.pop("plain")
     assert 0 < plain < 0.02, errors
@@ -470,55 +388,38 @@ def test_conv_relu_is_one_operator_that_compiles_and_gives_convolution_then_relu
         fast_network(tiny, conv_relu=True)
     with pytest.raises(ValueError, match="light_sums is a form of the subpixel"):
         fast_network(tiny, light_sums=True)
-    with pytest.raises(ValueError, match="fold_ring is a form of the edge ring on zero-padded"):
-        fast_network(tiny, subpixel=True, edge_ring=True, fold_ring=True)
+    with pytest.raises(ValueError, match="edge_ring is a form of the subpixel"):
+        fast_network(tiny, edge_ring=True)
+    with pytest.raises(ValueError, match="fold_ring is a form of the edge ring"):
+        fast_network(tiny, subpixel=True, fold_ring=True)
 
 
-def test_level_fusion_is_asked_for_edge_rings_on_the_torch_versions_checked():
+def test_compile_options_tune_over_cudnn_and_cublas_unless_the_environment_says():
     """trainer.rendering.infer.compile_options: max-autotune always, over cuDNN and cuBLAS alone
-    unless
-    the environment names Inductor's backends; Inductor's raised inlining limits only for
-    edge rings, and only on a torch whose Inductor compiles that plan (2.11)."""
-    from trainer.rendering.infer import LEVEL_FUSION, TUNED_BACKENDS, compile_options
+    unless the environment names Inductor's backends."""
+    from trainer.rendering.infer import TUNED_BACKENDS, compile_options
 
     base = {"max_autotune": True, "coordinate_descent_tuning": True} | TUNED_BACKENDS
     assert TUNED_BACKENDS == {"max_autotune_conv_backends": "ATEN",
                               "max_autotune_gemm_backends": "ATEN"}  # fmt: skip
-    none: dict = {}
-    assert compile_options(False, "2.11.0+cu130", environ=none) == base
-    assert compile_options(True, "2.11.0+cu130", environ=none) == base | LEVEL_FUSION
-    zero_padded = compile_options(True, "2.11.0+cu130", wide_ring=True, environ=none)
-    assert zero_padded == base  # zero-padded: no raised limits
-    assert compile_options(True, "2.13.0+cpu", environ=none) == base
-    assert compile_options(True, "2.1.0", environ=none) == base  # not 2.11
+    assert compile_options(environ={}) == base
     env = {"TORCHINDUCTOR_MAX_AUTOTUNE_GEMM_BACKENDS": "ATEN,TRITON"}
     assert "max_autotune_gemm_backends" not in compile_options(environ=env)
     assert compile_options(environ=env)["max_autotune_conv_backends"] == "ATEN"
 
 
-@pytest.mark.parametrize(
-    ("gemm_at", "subpixel_from", "align", "edge"),
-    [
-        (0, 0, 1, False),
-        (64, 0, 1, False),
-        (0, 8, 1, False),
-        (0, 0, 8, False),
-        (0, 0, 8, True),
-        (64, 0, 8, True),
-    ],
-)
-def test_subpixel_network_traces_as_one_graph(gemm_at, subpixel_from, align, edge):
+@pytest.mark.parametrize(("align", "edge"), [(1, False), (8, False), (8, True)])
+def test_subpixel_network_traces_as_one_graph(align, edge):
     """``--compile`` must see the rewrite whole: Dynamo traces it with ``fullgraph=True``
-    (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here); with
-    ``gemm_at``, the rings run as matrix products and two deep too; ``edge``: the rings as
-    corrections from the edges (with ``gemm_at``, two deep on zero-padded phases), and the
-    ReLUs after convolutions in one operator with them."""
+    (no graph break; the ``eager`` backend, so no C++ or GPU compiler is needed here);
+    ``edge``: the rings as corrections from the edges in one product, the ReLUs after
+    convolutions in one operator with them and the light encoder as sums."""
     from trainer.rendering.fastnet import SubpixelRenderer
 
     torch._dynamo.reset()
     model = NeuralRenderer(ModelConfig(resolution=32)).eval()
-    net = SubpixelRenderer(fold_batchnorm(model), subpixel_from, align).gemm_at(gemm_at)
-    net.rings(gemm=gemm_at > 0, wide=gemm_at > 0, edge=edge).fuse_relus(edge)
+    net = SubpixelRenderer(fold_batchnorm(model), align)
+    net.rings(edge=edge, fold=edge).fuse_relus(edge).light_sums(edge)
     x, light = torch.rand(1, model.config.in_channels, 32, 32), torch.rand(1, 4)
     traced = torch.compile(net, backend="eager", fullgraph=True, dynamic=False)
     with torch.no_grad():

@@ -11,11 +11,11 @@ convolves the concatenation of that with the skip. Both steps are linear, so for
   output channels, then ``pixel_shuffle``. ``z`` is replicate-padded first, as the upsampling
   clamps at the edge; that is exact everywhere but the outermost ring of the output, where the
   original convolution sees its zero padding. The ring is recomputed exactly from thin strips
-  of ``up(z)`` (:func:`ring`), or corrected from the edge lines of ``z`` (:func:`edges`,
-  ``SubpixelRenderer.rings(edge=True)``). With a zero-padded ``z`` (the convolution's own
-  padding, no padded copy written) the sub-pixel form is wrong on the two outer rings, and
-  those are corrected from the same edge lines (:func:`zero_edges`, ``rings(edge=True,
-  wide=True)``).
+  of ``up(z)`` (:func:`ring`; the CPU's form). On the GPU ``z`` is zero-padded instead (the
+  convolution's own padding, no padded copy written): the sub-pixel form is then wrong on the
+  two outer rings, and those are corrected from the edge lines of ``z`` (:func:`zero_edges`,
+  ``SubpixelRenderer.rings(edge=True)``), in one product (:func:`zero_edges_folded`,
+  ``rings(edge=True, fold=True)``).
 * **Light plane.** The 128 light channels are one plane repeated, so their weights are summed
   into one input channel.
 * **Aligned channels** (``align=8``, for tensor cores). Tensor-core convolutions want
@@ -74,40 +74,20 @@ def ring_weight(w: torch.Tensor) -> torch.Tensor:
     return torch.cat([w, w.transpose(2, 3)])
 
 
-def strip_gemm(strips: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
-    """``F.conv2d(x, w2, padding=(0, 1), groups=2)`` of R-row strips, as one batched matrix
-    product: ``strips`` is ``(2, m, C, R, W)``, group g's strips of ``x`` stacked along the
-    first axis; returns ``(m, 2·O, R - 2, W)`` like the convolution. The im2col of a strip is
-    3x the strip, small beside the level; cuBLAS has no group to slice apart."""
-    _, m, c, r, w = strips.shape
-    o, d = w2.shape[0] // 2, r - 2
-    t = F.pad(strips, (1, 1)).permute(0, 1, 3, 4, 2)  # (2, m, R, W + 2, C)
-    cols = torch.cat([t[:, :, a : a + d, b : b + w] for a in range(3) for b in range(3)], -1)
-    k = w2.reshape(2, o, c, 3, 3).permute(0, 3, 4, 2, 1).reshape(2, 9 * c, o)  # (a, b, c) rows
-    out = torch.bmm(cols.reshape(2, m * d * w, 9 * c), k)
-    return out.view(2, m, d, w, o).permute(1, 0, 4, 2, 3).reshape(m, 2 * o, d, w)
+def ring(z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """``y`` with its outer ring overwritten, in place, by the exact ``conv(up(z), w,
+    padding=1)``, for a square ``z`` and ``w2 = ring_weight(w)``; returns ``y``.
 
-
-def ring(
-    z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor, gemm: bool = False, depth: int = 1
-) -> torch.Tensor:
-    """``y`` with its outer ``depth`` rings (1 or 2) overwritten, in place, by the exact
-    ``conv(up(z), w, padding=1)``, for a square ``z`` and ``w2 = ring_weight(w)``; returns ``y``.
-
-    The output's first row sees the conv's zero padding and rows 0-1 of ``up(z)``, its second
-    rows 0-2, all made by upsampling rows 0-1 of ``z`` (the clamped edge included): a strip of
-    ``depth + 2`` rows convolved to ``depth`` rows, and the same at the bottom. A border
-    column is the same with rows and columns swapped, so the left and right columns go
-    transposed, as rows: one upsampling of all four edges, then one grouped convolution
-    (rows with ``w``, transposed columns with ``w`` transposed), or with ``gemm`` the same as
-    one batched matrix product (:func:`strip_gemm`); about 2·depth/h of the sub-pixel
-    convolution's work for a ``z`` h wide."""
+    The output's first row sees the conv's zero padding and rows 0-1 of ``up(z)``, made by
+    upsampling rows 0-1 of ``z`` (the clamped edge included): a strip of 3 rows convolved to
+    one, and the same at the bottom. A border column is the same with rows and columns
+    swapped, so the left and right columns go transposed, as rows: one upsampling of all four
+    edges, then one grouped convolution (rows with ``w``, transposed columns with ``w``
+    transposed); about 2/h of the sub-pixel convolution's work for a ``z`` h wide."""
     n, h = z.shape[0], z.shape[2]
     if z.shape[3] != h:
         raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
-    if depth > h:
-        raise ValueError(f"a ring {depth} deep needs an input at least {depth} wide, not {h}")
-    o, d = w2.shape[0] // 2, depth
+    o, d = w2.shape[0] // 2, 1
     firsts = torch.cat([z[:, :, :2], z[:, :, :, :2].transpose(2, 3)])  # top; left, as rows
     lasts = torch.cat([z[:, :, -2:], z[:, :, :, -2:].transpose(2, 3)])  # bottom; right
     up = F.interpolate(
@@ -117,69 +97,11 @@ def ring(
     zero = torch.zeros_like(first[:, :, :1])
     a, b = torch.cat([zero, first], 2), torch.cat([last, zero], 2)  # (2n, C, d + 2, 2h) strips
     rows, cols = torch.cat([a[:n], b[:n]]), torch.cat([a[n:], b[n:]])
-    if gemm:
-        out = strip_gemm(torch.stack([rows, cols]), w2)
-    else:
-        out = F.conv2d(torch.cat([rows, cols], 1), w2, padding=(0, 1), groups=2)  # (2n, 2O, d, 2h)
+    out = F.conv2d(torch.cat([rows, cols], 1), w2, padding=(0, 1), groups=2)  # (2n, 2O, 1, 2h)
     y[:, :, :d], y[:, :, -d:] = out[:n, :o], out[n:, :o]  # top, bottom
     y[:, :, :, :d] = out[:n, o:].transpose(2, 3)  # left
     y[:, :, :, -d:] = out[n:, o:].transpose(2, 3)  # right
     return y
-
-
-def edge_weights(w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(O, I, 3, 3)`` → the weights :func:`edges` takes: ``(4, 3·I, 2·O)``, one matrix a
-    side (top, bottom, left, right) that maps 3 taps along an edge line of ``z`` (rows in
-    ``(tap, channel)`` order) to the 2 output phases along it (columns in ``(phase,
-    channel)`` order), and ``(4, I, O)``, the corner taps (top-left, bottom-left, top-right,
-    bottom-right)."""
-    lines = [w[:, :, 0], w[:, :, 2], w[:, :, :, 0], w[:, :, :, 2]]  # (O, I, 3) taps a side
-    taps = TAPS.to(w.device)
-    sides = [torch.einsum("qbt,oct->bcqo", taps, v.double()) for v in lines]
-    o, i = w.shape[:2]
-    side = torch.stack([s.reshape(3 * i, 2 * o) for s in sides]).to(w.dtype)
-    corners = w[:, :, [0, 2, 0, 2], [0, 0, 2, 2]].permute(2, 1, 0)
-    return side, corners.contiguous()
-
-
-def edges(z: torch.Tensor, side: torch.Tensor, corners: torch.Tensor) -> torch.Tensor:
-    """What ``conv(up(z), w, padding=1)`` differs by from its sub-pixel form on a
-    replicate-padded ``z``, for a square ``z`` h wide and ``(side, corners) =
-    edge_weights(w)``: the ``(N, O, 2h, 2h)`` correction to subtract, zero but on the outer
-    ring.
-
-    Outside the upsampled image the sub-pixel form sees its edge rows and columns repeated,
-    where the convolution sees zeros. So the ring's error is the outer taps of ``w`` applied
-    to the upsampled edge lines: along each edge a 3-tap convolution of the edge line of
-    ``z`` itself (sub-pixel again: 2 phases a pixel), the four edges in one batched matrix
-    product. A corner pixel's corner tap is in both of its edges' lines, so the top and
-    bottom lines' ends start from minus that tap (the product adds onto them). About 12/h of
-    the sub-pixel convolution's work, and no upsampled strip.
-
-    Why one product with the ends as its addend: Inductor inlines this correction into the
-    pointwise kernel that adds the level's parts (a few reads of the small lines buffer);
-    computing the ends as a separate sum made the correction read more buffers than
-    Inductor inlines (``realize_acc_reads_threshold``), and torch 2.11 wrote it out whole,
-    a pass over the level (``docs/benchmarks.md``)."""
-    n, c, h = z.shape[:3]
-    if z.shape[3] != h:
-        raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
-    o, last = corners.shape[2], 2 * h - 1
-    points = torch.stack([z[:, :, 0, 0], z[:, :, -1, 0], z[:, :, 0, -1], z[:, :, -1, -1]])
-    k = torch.bmm(points, corners)  # (4, N, O): the corner taps, x = 0 then x = 2h - 1
-    ends = F.pad(k[:2, :, None], (0, 0, 0, last)) + F.pad(k[2:, :, None], (0, 0, last, 0))
-    ends = torch.cat([-ends, ends.new_zeros(ends.shape)])  # (4, N, 2h, O)
-    lines = torch.stack([z[:, :, 0], z[:, :, -1], z[:, :, :, 0], z[:, :, :, -1]])
-    lines = F.pad(lines.transpose(2, 3), (0, 0, 1, 1), mode="replicate")  # (4, N, h + 2, C)
-    cols = torch.cat([lines[:, :, b : b + h] for b in range(3)], 3).reshape(4, n * h, 3 * c)
-    d = torch.baddbmm(ends.view(4, n * h, 2 * o), cols, side).view(4, n, 2 * h, o)
-    d = d.transpose(2, 3)  # (4, N, O, 2h): top, bottom, left, right
-    return (
-        F.pad(d[0, :, :, None], (0, 0, 0, last))
-        + F.pad(d[1, :, :, None], (0, 0, last, 0))
-        + F.pad(d[2, ..., None], (0, last))
-        + F.pad(d[3, ..., None], (last, 0))
-    )
 
 
 #: ``OUTER[e][p][k]``: ``TAPS[p][a]`` for the low-resolution tap ``a`` on edge ``e`` (0: the
@@ -235,10 +157,12 @@ def zero_edges(z: torch.Tensor, side: torch.Tensor, corners: torch.Tensor) -> to
     The zero padding hides from the sub-pixel phases of the edge pixels the replicated edge
     lines that the upsampling's clamp gives them: the phases' taps on a padding line, applied
     to the edge line it repeats, 2 x 2 outputs for each pixel of the edge. Less, on the
-    outermost line, what :func:`edges` corrects (the original convolution's own zero
-    padding). Each side is a 3-tap product along its edge line, the four in one batched
-    matrix product; each corner pixel of the padding is on two sides' lines, so the corners'
-    terms go in once less, as the product's addend, as in :func:`edges`."""
+    outermost line, the outer taps of ``w`` on the upsampled edge line, which the original
+    convolution's own zero padding hides. Each side is a 3-tap product along its edge line,
+    the four in one batched matrix product; each corner pixel of the padding is on two sides'
+    lines, so the corners' terms go in once less, as the product's addend (a separate sum
+    would make the correction read more buffers than Inductor inlines into the pointwise
+    kernel that adds the level's parts)."""
     n, c, h = z.shape[:3]
     if z.shape[3] != h:
         raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
@@ -306,46 +230,27 @@ def zero_edges_folded(z: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
 
 
 class Conv(nn.Module):
-    """A 3x3 convolution with optional bias, stride and zero or replicate padding.
-
-    ``gemm = True`` runs it as an explicit channels-last im2col matrix product instead, the
-    same numbers, so that Inductor tunes it as a GEMM (its choices include split-K, which a
-    direct convolution on a small image lacks). A knob for ``benchmarks.infer --gemm-at``,
-    which compares it with the library's convolutions."""
+    """A 3x3 convolution with optional bias, stride and zero or replicate padding."""
 
     def __init__(self, weight, bias=None, stride: int = 1, pad: str = "zeros"):
         super().__init__()
         self.weight = nn.Parameter(weight.detach().clone(), requires_grad=False)
         self.bias = None if bias is None else nn.Parameter(bias.detach().clone(), False)
-        self.stride, self.pad, self.gemm, self.fused_relu = stride, pad, False, False
+        self.stride, self.pad, self.fused_relu = stride, pad, False
 
     def relu(self, x: torch.Tensor) -> torch.Tensor:
-        """``relu(self(x))``; with ``fused_relu`` (and zero padding, no GEMM) one operator,
-        on CUDA one cuDNN call (:func:`trainer.rendering.convrelu.conv_relu`)."""
-        if self.fused_relu and self.pad == "zeros" and not self.gemm:
+        """``relu(self(x))``; with ``fused_relu`` (and zero padding) one operator, on CUDA one
+        cuDNN call (:func:`trainer.rendering.convrelu.conv_relu`)."""
+        if self.fused_relu and self.pad == "zeros":
             return conv_relu(x, self.weight, self.bias, self.stride)
         return F.relu(self(x))
 
     def forward(self, x: torch.Tensor, pad: str | None = None) -> torch.Tensor:
         """``pad`` overrides the padding given at construction."""
-        pad = pad or self.pad
-        if pad == "zeros" and not self.gemm:
+        if (pad or self.pad) == "zeros":
             return F.conv2d(x, self.weight, self.bias, self.stride, 1)
-        x = F.pad(x, (1, 1, 1, 1), mode="replicate" if pad == "replicate" else "constant")
-        if not self.gemm:
-            return F.conv2d(x, self.weight, self.bias, self.stride)
-        n, c, hp, wp = x.shape
-        s, o = self.stride, self.weight.shape[0]
-        ho, wo = (hp - 3) // s + 1, (wp - 3) // s + 1
-        t = x.permute(0, 2, 3, 1)  # a view when x is channels_last
-        taps = [
-            t[:, a : a + s * (ho - 1) + 1 : s, b : b + s * (wo - 1) + 1 : s]
-            for a in range(3)
-            for b in range(3)
-        ]
-        w = self.weight.permute(2, 3, 1, 0).reshape(9 * c, o)  # rows in (a, b, c) order
-        y = (torch.cat(taps, 3).reshape(-1, 9 * c) @ w).view(n, ho, wo, o).permute(0, 3, 1, 2)
-        return y if self.bias is None else y + self.bias.view(1, -1, 1, 1)
+        x = F.pad(x, (1, 1, 1, 1), mode="replicate")
+        return F.conv2d(x, self.weight, self.bias, self.stride)
 
 
 class UpConv(nn.Module):
@@ -355,26 +260,19 @@ class UpConv(nn.Module):
     def __init__(self, weight: torch.Tensor):
         super().__init__()
         self.ring = nn.Parameter(ring_weight(weight.detach()), requires_grad=False)
-        side, corners = edge_weights(weight.detach())
-        self.side = nn.Parameter(side, requires_grad=False)
-        self.corners = nn.Parameter(corners, requires_grad=False)
         self.phases = Conv(subpixel_weight(weight.detach()), pad="replicate")
-        self.gemm_ring = self.wide_ring = self.edge_ring = self.fold = False
+        self.edge = self.fold = False
 
-    def set_ring(
-        self, gemm: bool = False, wide: bool = False, edge: bool = False, fold: bool = False
-    ) -> None:
-        """``gemm``: the ring's convolution as a matrix product (:func:`ring`). ``wide``: the
-        phases on a zero-padded ``z`` (no padding pass over it), which is wrong on the
-        output's two outer rings, so the ring is recomputed two deep (for a ``z`` at least 2
-        wide; a narrower one takes the replicate padding). ``edge``: the ring as a correction
-        from the edge lines of ``z`` (:func:`edges`), and with ``wide`` two deep on the
-        zero-padded phases (:func:`zero_edges`, whose weights are made here); ``fold`` (with
-        both): that correction as one product (:func:`zero_edges_folded`)."""
-        if fold and not (edge and wide):
-            raise ValueError("fold is a form of the edge ring on zero-padded phases")
-        self.gemm_ring, self.wide_ring, self.edge_ring, self.fold = gemm, wide, edge, fold
-        if edge and wide and not hasattr(self, "zero_side"):
+    def set_ring(self, edge: bool = False, fold: bool = False) -> None:
+        """The outer ring recomputed from strips of ``up(z)`` on replicate-padded phases (the
+        default, :func:`ring`), or (``edge``) the phases on a zero-padded ``z`` (no padding
+        pass over it) and the two outer rings corrected from the edge lines of ``z``
+        (:func:`zero_edges`, whose weights are made here); ``fold`` (with ``edge``): that
+        correction as one product (:func:`zero_edges_folded`)."""
+        if fold and not edge:
+            raise ValueError("fold is a form of the edge ring")
+        self.edge, self.fold = edge, fold
+        if edge and not hasattr(self, "zero_side"):
             o = self.ring.shape[0] // 2
             side, corners = zero_edge_weights(self.ring[:o].detach())
             self.zero_side = nn.Parameter(side, requires_grad=False)
@@ -383,17 +281,12 @@ class UpConv(nn.Module):
             self.folded = nn.Parameter(folded, requires_grad=False)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        if self.edge_ring and self.wide_ring:
-            y = F.pixel_shuffle(self.phases(z, "zeros"), 2)
-            if self.fold:
-                return y + zero_edges_folded(z, self.folded)
-            return y + zero_edges(z, self.zero_side, self.zero_corners)
-        if self.edge_ring:
-            y = F.pixel_shuffle(self.phases(z, "replicate"), 2)
-            return y - edges(z, self.side, self.corners)
-        depth = 2 if self.wide_ring and z.shape[2] >= 2 else 1
-        y = F.pixel_shuffle(self.phases(z, "zeros" if depth == 2 else "replicate"), 2)
-        return ring(z, self.ring, y, self.gemm_ring, depth)
+        if not self.edge:
+            return ring(z, self.ring, F.pixel_shuffle(self.phases(z, "replicate"), 2))
+        y = F.pixel_shuffle(self.phases(z, "zeros"), 2)
+        if self.fold:
+            return y + zero_edges_folded(z, self.folded)
+        return y + zero_edges(z, self.zero_side, self.zero_corners)
 
 
 class SubpixelLevel(nn.Module):
@@ -410,27 +303,6 @@ class SubpixelLevel(nn.Module):
     def forward(self, z: torch.Tensor, skip: torch.Tensor | None = None) -> torch.Tensor:
         y = self.up(z) + self.bias
         return y if self.skip is None else y + self.skip(skip)
-
-    def convs(self, size: int) -> list[tuple[Conv, int]]:
-        """Its convolutions with the width of their inputs, for ``z`` ``size`` wide."""
-        return [(self.up.phases, size)] + ([(self.skip, 2 * size)] if self.skip else [])
-
-
-class PlainLevel(nn.Module):
-    """One decoder level as the trained network computes it: ``z`` upsampled, concatenated
-    with the skip, one convolution. Fewer kernels than :class:`SubpixelLevel` (no ring), for
-    the mixed forms ``benchmarks.infer --subpixel-from`` compares with the pure ones."""
-
-    def __init__(self, weight: torch.Tensor, bias: torch.Tensor):
-        super().__init__()
-        self.conv = Conv(weight, bias)
-
-    def forward(self, z: torch.Tensor, skip: torch.Tensor | None = None) -> torch.Tensor:
-        up = F.interpolate(z, scale_factor=2, mode="bilinear", align_corners=False)
-        return self.conv(up if skip is None else torch.cat([up, skip], 1))
-
-    def convs(self, size: int) -> list[tuple[Conv, int]]:
-        return [(self.conv, 2 * size)]
 
 
 class SummedMLP(nn.Module):
@@ -469,15 +341,13 @@ def round_up(n: int, multiple: int) -> int:
 class SubpixelRenderer(nn.Module):
     """The folded network rewritten as the module docstring says; same inputs and outputs.
 
-    ``subpixel_from``: the decoder levels (and the output convolution) whose input ``z`` is
-    narrower than this keep the upsample-and-concatenate form (:class:`PlainLevel`); 0, the
-    default, rewrites them all. ``align``: pad channel counts to multiples of it with
+    ``align``: pad channel counts to multiples of it with
     zero-weight channels (1, the default, pads none; the CPU gains nothing from it).
     ``in_channels`` is the input's channel count it convolves; maps with the model's fewer
     channels are zero-padded up to it first (one extra pass: feed it ``in_channels`` to
     avoid that)."""
 
-    def __init__(self, folded: NeuralRenderer, subpixel_from: int = 0, align: int = 1):
+    def __init__(self, folded: NeuralRenderer, align: int = 1):
         super().__init__()
         if any(isinstance(block[1], nn.BatchNorm2d) for block in folded.encoder):
             raise ValueError("fold the BatchNorm first (trainer.model.fold_batchnorm)")
@@ -498,14 +368,10 @@ class SubpixelRenderer(nn.Module):
         self.colours = folded.out.weight.shape[0]
         # a sub-pixel output convolution has 4 channels a colour (its phases): 4 colours
         # (3 and a zero one) make 16 channels, aligned, where 8 would make 32
-        last_subpixel = self.b << len(convs) >= subpixel_from
-        width = round_up(self.colours, max(1, align // 4) if last_subpixel else align)
+        width = round_up(self.colours, max(1, align // 4))
         out_w, out_b = (padded(t, 0, width) for t in (folded.out.weight, folded.out.bias))
         convs.append((out_w, out_b, False))
-        self.levels = nn.ModuleList(
-            SubpixelLevel(w, b, skips) if self.b << i >= subpixel_from else PlainLevel(w, b)
-            for i, (w, b, skips) in enumerate(convs)
-        )
+        self.levels = nn.ModuleList(SubpixelLevel(w, b, skips) for w, b, skips in convs)
 
     def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         skips = []
@@ -523,18 +389,6 @@ class SubpixelRenderer(nn.Module):
             x = F.relu(level(x, skips[-2 - i] if self.config.skips else None))
         return torch.sigmoid(out(x)[:, : self.colours])
 
-    def gemm_at(self, largest: int) -> SubpixelRenderer:
-        """Run every convolution whose input is at most ``largest`` pixels wide as a GEMM
-        (:class:`Conv`); returns self."""
-        r = self.config.resolution
-        sized = [(c, r >> i) for i, c in enumerate(self.encoder)]
-        sized += [(self.fuse, self.b), (self.dec0, self.b)]
-        for i, level in enumerate(self.levels):
-            sized += level.convs(self.b << i)
-        for conv, size in sized:
-            conv.gemm = size <= largest
-        return self
-
     def fuse_relus(self, fused: bool = True) -> SubpixelRenderer:
         """Run the convolutions whose outputs only convolutions read (the encoder's and the
         bottleneck's last) with their ReLU in one operator (:meth:`Conv.relu`): on CUDA
@@ -550,15 +404,9 @@ class SubpixelRenderer(nn.Module):
         self.light = SummedMLP(self.mlp) if summed else self.mlp
         return self
 
-    def rings(
-        self, gemm: bool = False, wide: bool = False, edge: bool = False, fold: bool = False
-    ) -> SubpixelRenderer:
-        """Run the rings' grouped convolutions as batched matrix products (``gemm``), and
-        two deep on zero-padded phases (``wide``), or the ring as a correction from the
-        edges (``edge``, :func:`edges`; with ``wide``, :func:`zero_edges`, and with ``fold``
-        too as one product, :func:`zero_edges_folded`): :meth:`UpConv.set_ring`; returns
-        self."""
+    def rings(self, edge: bool = False, fold: bool = False) -> SubpixelRenderer:
+        """Every level's ring as :meth:`UpConv.set_ring` says; returns self."""
         for module in self.modules():
             if isinstance(module, UpConv):
-                module.set_ring(gemm, wide, edge, fold)
+                module.set_ring(edge, fold)
         return self

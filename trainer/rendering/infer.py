@@ -132,11 +132,7 @@ def check_graphable(model: torch.nn.Module, device: torch.device) -> None:
 def fast_layers(
     model: NeuralRenderer,
     subpixel: bool = False,
-    gemm_at: int = 0,
-    subpixel_from: int = 0,
     align: int = 8,
-    ring_gemm: bool = False,
-    wide_ring: bool = False,
     edge_ring: bool = False,
     conv_relu: bool = False,
     light_sums: bool = False,
@@ -144,18 +140,18 @@ def fast_layers(
 ) -> torch.nn.Module:
     """The fp32 layers of :func:`fast_network` (BatchNorm folded, and the sub-pixel rewrite
     when asked), before the cast and the compile; its keywords are :func:`fast_network`'s."""
-    for name, asked in (("conv_relu", conv_relu), ("light_sums", light_sums)):
+    for name, asked in (("conv_relu", conv_relu), ("light_sums", light_sums),
+                        ("edge_ring", edge_ring)):  # fmt: skip
         if asked and not subpixel:
             raise ValueError(f"{name} is a form of the subpixel network")
-    if fold_ring and not (edge_ring and wide_ring and subpixel):
-        raise ValueError("fold_ring is a form of the edge ring on zero-padded phases")
+    if fold_ring and not edge_ring:
+        raise ValueError("fold_ring is a form of the edge ring")
     if subpixel and not model.config.plain:
         raise ValueError("the sub-pixel rewrite is of the paper's network (no scene cues, "
                          "BatchNorm, no head)")  # fmt: skip
     net = fold_batchnorm(model)
     if subpixel:
-        net = SubpixelRenderer(net, subpixel_from, align).gemm_at(gemm_at)
-        net.rings(gemm=ring_gemm, wide=wide_ring, edge=edge_ring, fold=fold_ring)
+        net = SubpixelRenderer(net, align).rings(edge=edge_ring, fold=fold_ring)
         net.fuse_relus(conv_relu)
         net.light_sums(light_sums)
     return net
@@ -164,49 +160,24 @@ def fast_layers(
 def fast_network(model: NeuralRenderer, compile: bool = False, **layers) -> torch.nn.Module:
     """The network as the fast path runs it: BatchNorm folded, weights cast to bf16 once,
     channels_last (the scene cues stay fp32). ``subpixel``: the exact rewrite of
-    :mod:`trainer.rendering.fastnet` (no upsampled or concatenated tensors; ``gemm_at`` > 0
-    runs its convolutions on inputs at most that wide as GEMMs; decoder levels on inputs
-    narrower than ``subpixel_from`` keep the original form; its channel counts,
-    ``in_channels`` included, are padded to multiples of ``align`` with zero-weight
-    channels, the shapes tensor cores take); ``ring_gemm``, ``wide_ring`` and ``edge_ring``:
-    its rings as :meth:`trainer.rendering.fastnet.SubpixelRenderer.rings` says
-    (``edge_ring`` with ``wide_ring``: corrections two deep on zero-padded phases,
-    :func:`trainer.rendering.fastnet.zero_edges`). ``conv_relu`` (with ``subpixel``): the
-    encoder's convolutions and the bottleneck's last with their ReLU in one operator, on
-    CUDA one cuDNN call (:meth:`trainer.rendering.fastnet.SubpixelRenderer.fuse_relus`).
-    ``light_sums`` (with ``subpixel``): the light encoder's layers as sums that Inductor
-    compiles into one kernel each (:class:`trainer.rendering.fastnet.SummedMLP`).
-    ``fold_ring`` (with ``edge_ring`` and ``wide_ring``): each ring's correction as one
-    batched product (:func:`trainer.rendering.fastnet.zero_edges_folded`). ``compile``:
-    compiled by Inductor (``max-autotune-no-cudagraphs``: pointwise work fused around tuned
-    convolutions; minutes of autotuning at first use; :func:`compile_options`). Feed it bf16
-    channels_last inputs."""
+    :mod:`trainer.rendering.fastnet` (no upsampled or concatenated tensors; its channel
+    counts, ``in_channels`` included, are padded to multiples of ``align`` with zero-weight
+    channels, the shapes tensor cores take). With ``subpixel``: ``edge_ring``, its phases on
+    zero-padded inputs and the rings as corrections two deep, and ``fold_ring`` each such
+    correction as one batched product
+    (:meth:`trainer.rendering.fastnet.SubpixelRenderer.rings`); ``conv_relu``, the encoder's
+    convolutions and the bottleneck's last with their ReLU in one operator, on CUDA one cuDNN
+    call (:meth:`trainer.rendering.fastnet.SubpixelRenderer.fuse_relus`); ``light_sums``, the
+    light encoder's layers as sums that Inductor compiles into one kernel each
+    (:class:`trainer.rendering.fastnet.SummedMLP`). ``compile``: compiled by Inductor
+    (``max-autotune-no-cudagraphs``: pointwise work fused around tuned convolutions; minutes
+    of autotuning at first use; :func:`compile_options`). Feed it bf16 channels_last
+    inputs."""
     net = fast_layers(model, **layers)
     net = net.to(torch.bfloat16, memory_format=torch.channels_last)
     if not compile:
         return net
-    options = compile_options(
-        layers.get("edge_ring", False), wide_ring=layers.get("wide_ring", False)
-    )
-    return torch.compile(net, dynamic=False, options=options)
-
-
-#: Inductor's limits on the pointwise work it inlines into one kernel (its defaults: 4, 30
-#: and 8), raised for the sub-pixel levels with edge rings on replicate-padded phases: with
-#: them each level's sum, edge correction and ReLU and the next level's replicate padding are
-#: one kernel that writes only the padded tensor; with the defaults the level's output is
-#: written, then read again by a padding pass (``benchmarks.kernel_plan``,
-#: ``docs/benchmarks.md``). Edge rings on zero-padded phases (``wide_ring``) write no padded
-#: copy and get the same plan with the defaults
-LEVEL_FUSION = {
-    "realize_reads_threshold": 8,
-    "realize_opcount_threshold": 100,
-    "realize_acc_reads_threshold": 16,
-}
-#: the torch versions whose Inductor compiles :data:`LEVEL_FUSION`'s plan; later ones fail an
-#: assertion (``vr must not be None``) on a replicate padding fused over a ``pixel_shuffle``,
-#: even with the default limits, so there the defaults stand
-LEVEL_FUSION_TORCH = ("2.11.",)
+    return torch.compile(net, dynamic=False, options=compile_options())
 
 
 #: what Inductor's autotuning weighs for the fast path: cuDNN's convolutions and cuBLAS's
@@ -215,39 +186,23 @@ LEVEL_FUSION_TORCH = ("2.11.",)
 TUNED_BACKENDS = {"max_autotune_conv_backends": "ATEN", "max_autotune_gemm_backends": "ATEN"}
 
 
-def compile_options(
-    edge_ring: bool = False,
-    version: str = torch.__version__,
-    *,
-    wide_ring: bool = False,
-    environ=os.environ,
-) -> dict:
+def compile_options(environ=os.environ) -> dict:
     """The Inductor options :func:`fast_network` compiles with: ``max-autotune-no-cudagraphs``,
-    :data:`TUNED_BACKENDS` but where ``TORCHINDUCTOR_MAX_AUTOTUNE_CONV_BACKENDS`` or ``_GEMM_``
-    is set in ``environ`` (then Inductor reads that), and, for edge rings on replicate-padded
-    phases (``edge_ring`` without ``wide_ring``) on a torch ``version`` of
-    :data:`LEVEL_FUSION_TORCH`, :data:`LEVEL_FUSION`."""
+    and :data:`TUNED_BACKENDS` but where ``TORCHINDUCTOR_MAX_AUTOTUNE_CONV_BACKENDS`` or
+    ``_GEMM_`` is set in ``environ`` (then Inductor reads that)."""
     from torch._inductor import list_mode_options
 
     options = list_mode_options("max-autotune-no-cudagraphs")
     for key, value in TUNED_BACKENDS.items():
         if f"TORCHINDUCTOR_{key.upper()}" not in environ:
             options[key] = value
-    if edge_ring and not wide_ring and version.startswith(LEVEL_FUSION_TORCH):
-        options |= LEVEL_FUSION
     return options
 
 
 #: the keywords of :func:`fast_network` for the sub-pixel rewrite compiled, its rings as
 #: edge corrections on zero-padded phases, the encoder's convolutions with their ReLU in one
 #: cuDNN call
-EDGE_RELU = {
-    "compile": True,
-    "subpixel": True,
-    "edge_ring": True,
-    "wide_ring": True,
-    "conv_relu": True,
-}
+EDGE_RELU = {"compile": True, "subpixel": True, "edge_ring": True, "conv_relu": True}
 #: the fastest form of the paper's network, batched and at batch 1: :data:`EDGE_RELU` with the
 #: light encoder as sums and each ring one product (``benchmarks.infer``'s rows compare them)
 FASTEST = EDGE_RELU | {"light_sums": True, "fold_ring": True}
