@@ -5,11 +5,12 @@ torch's threads.
 
 For the default recipe's network and the paper's at ``--resolution``, one training step
 (forward, the recipe's loss, backward, Adam) on a fixed synthetic batch, in each form:
-contiguous (NCHW, the trainer's CPU default), channels_last, ``torch.compile`` (Inductor's
-C++ backend), and with one torch thread instead of all. Every form is timed in turn, round
-after round (``--rounds``), so a drift of the machine falls on all alike; the table has the
-median images a second, each form's ratio to its recipe's contiguous one and to the paper's
-recipe's. The scene buffers are zeros (a step's time does not depend on them).
+contiguous (NCHW, the trainer's CPU format), channels_last (its CUDA format),
+``torch.compile`` (Inductor's C++ backend), and with one torch thread instead of all. Every
+form is timed in turn, round after round (``--rounds``), so a drift of the machine falls on
+all alike; the table has the median images a second, each form's ratio to its recipe's
+contiguous one and to the paper's recipe's. The scene buffers are zeros (a step's time does
+not depend on them).
 """
 
 from __future__ import annotations
