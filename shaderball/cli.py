@@ -1,9 +1,8 @@
 """The click group of every shaderball CLI (``farm``, ``shards``, ``trainer``).
 
 A :class:`shaderball.errors.UserError` that reaches it ends the command in one line, its
-message; so does an ``OSError``: the system's own (``[Errno 17] File exists: 'path'``) as
-it reads, any other (a store out of reach after its retries, no such bucket, access denied)
-named by its type. Commands therefore let the errors they expect
+message; so does an ``OSError`` (a store out of reach after its retries, no such bucket,
+access denied, a full disk), named by its type. Commands therefore let the errors they expect
 rise rather than catch each kind. A closed pipe (``| head``) is left to click, which exits
 quietly.
 """
@@ -26,14 +25,7 @@ class Commands(click.Group):
         except OSError as exc:
             if exc.errno == errno.EPIPE:
                 raise
-            raise click.ClickException(os_error_line(exc)) from None
-
-
-def os_error_line(exc: OSError) -> str:
-    """An ``OSError`` in one line: an errno-numbered one says what and where itself; another
-    (a library's, such as a store's) is named by its type."""
-    text = str(exc)
-    return text if text.startswith("[Errno ") else f"{type(exc).__name__}: {text}"
+            raise click.ClickException(f"{type(exc).__name__}: {exc}") from None
 
 
 def human_bytes(n: float) -> str:

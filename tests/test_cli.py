@@ -239,7 +239,7 @@ def test_gpu_benchmark_script_refuses_bad_use(tmp_path):
     missing part or a missing store, before it installs or runs anything."""
     script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
     r = subprocess.run(["bash", str(script), "bogus"], capture_output=True, text=True)
-    usage = "usage: bash benchmarks/gpu.sh infer|train|viewer [ARGS]\n"
+    usage = "usage: bash benchmarks/gpu.sh learn|infer|train|viewer [ARGS]\n"
     assert (r.returncode, r.stderr) == (2, usage)
     r = subprocess.run(["bash", str(script), "train", "--x"], capture_output=True, text=True)
     assert (r.returncode, r.stderr) == (2, "gpu.sh: train takes no arguments\n")

@@ -51,7 +51,8 @@ def test_the_train_extra_alone_trains_and_names_the_missing_extras(tmp_path):
     run = tmp_path / "run"
     r = subprocess.run(
         [str(venv / "bin" / "trainer"), "launch", "--store", str(tmp_path / "tiny.zarr"),
-         "--out", str(run), "--epochs", "1", "--loss", "l1", "--batch-size", "2",
+         "--out", str(run), "--epochs", "1", "--recipe", "paper", "--loss", "l1",
+         "--batch-size", "2",
          "--workers", "0", "--width", "16"],
         capture_output=True, text=True, timeout=600, cwd=tmp_path,
     )  # fmt: skip

@@ -165,7 +165,8 @@ def test_a_misspelled_field_fails_the_check():
 
 def test_yamllint_and_hadolint(tmp_path):
     config = "{extends: default, rules: {line-length: {max: 100}, document-start: disable}}"
-    files = sorted(str(p) for p in K8S.rglob("*.yaml"))
+    vendored = K8S / "crds"  # the upstream schemas, kept byte for byte as published
+    files = sorted(str(p) for p in K8S.rglob("*.yaml") if vendored not in p.parents)
     r = subprocess.run([str(BIN / "yamllint"), "-d", config, *files], capture_output=True,
                        text=True)  # fmt: skip
     assert r.returncode == 0, r.stdout

@@ -268,7 +268,9 @@ def test_export_onnx_renders_as_the_checkpoint_and_a_failed_check_writes_nothing
         trainer_main, ["export", "--checkpoint", str(trained), "-o", str(blocked / "b.onnx")]
     )
     assert r.exit_code == 1 and len(r.stderr.splitlines()) == 2, r.stderr
-    assert r.stderr.splitlines()[1].startswith(f"Error: [Errno 17] File exists: '{blocked}'")
+    assert r.stderr.splitlines()[1].startswith(
+        f"Error: FileExistsError: [Errno 17] File exists: '{blocked}'"
+    )
 
 
 def test_export_at_an_older_opset_renders_as_the_checkpoint(tiny_store, trained, tmp_path):
@@ -753,18 +755,26 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
         assert re.fullmatch(rf"Error: {option} must be .+, not {value}(\.0)?", msg), msg
 
     env = {"TORCH_HOME": str(tmp_path / "torch-home")}
-    msg = one_line_error(["train", "--out", str(run), "--store", tiny_store.url], env=env)
+    paper = ["--recipe", "paper"]  # its loss, L1 + VGG16, needs the ImageNet weights
+    msg = one_line_error(["train", *paper, "--out", str(run), "--store", tiny_store.url], env=env)
     assert "needs ImageNet VGG16 weights" in msg and "--vgg-weights FILE" in msg
     nope = tmp_path / "nope.zarr"  # the store typed wrong is named before the missing weights
     r = CliRunner().invoke(
-        trainer_main, ["launch", "--out", str(run), "--store", str(nope)], env=env
+        trainer_main, ["launch", *paper, "--out", str(run), "--store", str(nope)], env=env
     )
     assert (
         r.exit_code == 1
         and r.output.splitlines()[-1] == f"Error: {nope}: not a shard store (no zarr.json)"
     )
     assert "missing.pth does not exist" in one_line_error(
-        [*base[:1], "--vgg-weights", str(tmp_path / "missing.pth"), "--store", tiny_store.url]
+        [
+            *base[:1],
+            *paper,
+            "--vgg-weights",
+            str(tmp_path / "missing.pth"),
+            "--store",
+            tiny_store.url,
+        ]
     )
     assert "no store given" in one_line_error(base)
     assert not run.exists()  # nothing half written
