@@ -191,19 +191,27 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
     return result
 
 
+def batch_of(result: dict) -> int:
+    """A row's batch: as its result says, else as its settings make it (for the results
+    written before they kept it)."""
+    settings = ROWS[result["row"]][1]
+    return result.get("batch") or TrainConfig(store=("-",), **settings).batch_size
+
+
 def table(resolution: int, budget: int, results: list[dict], about: str) -> Table:
     t = Table(
         title=f"Learning per image pass: {resolution}², {budget:,} passes, held-out materials",
         columns=["row", "what changes", "batch", "PSNR dB", "95 % interval", "SSIM", "FLIP",
                  "passes / CPU-s"],
-        notes=[about],
+        notes=[about, "passes / CPU-s: of a run trained in one go (— for a resumed one); rows "
+               "trained at different times met different loads on a shared machine"],
     )  # fmt: skip
     for r in results:
         if "diverged" in r:
-            t.rows.append([r["row"], ROWS[r["row"]][0], r.get("batch"), "diverged", *[None] * 4])
+            t.rows.append([r["row"], ROWS[r["row"]][0], batch_of(r), "diverged", *[None] * 4])
             continue
         t.rows.append([
-            r["row"], ROWS[r["row"]][0], r.get("batch"), round(r["psnr"], 2),
+            r["row"], ROWS[r["row"]][0], batch_of(r), round(r["psnr"], 2),
             f"{r['psnr_low']:.2f}-{r['psnr_high']:.2f}" if r.get("psnr_low") else None,
             round(r["ssim"], 4), round(r["flip"], 4),
             None if r["passes_per_cpu_second"] is None else round(r["passes_per_cpu_second"], 1),
