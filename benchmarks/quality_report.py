@@ -375,7 +375,7 @@ def _data_section(plan, rows: dict, cpu: str) -> list[str]:
         f"- fixed-sun sets (Zsolnai-Fehér has no light input): {s.fixed[0]} / {s.fixed[1]} "
         "uniform materials under one sun (direction (-0.4, -0.6, 0.7), turbidity 3);",
         f"- training, one CPU process ({cpu}): ours is the default recipe (`trainer "
-        "launch`'s defaults: scene cues, GroupNorm, a full-resolution head, L1 + MS-SSIM, "
+        "launch`'s defaults: scene cues, GroupNorm, L1 + MS-SSIM, "
         "one-cycle, a weight average; docs/training.md), "
         f"{s.epochs} epochs on the training set and {s.fixed_epochs} on the fixed-sun set; "
         f"the paper's U-Net (`--recipe paper` with its L1 loss: Adam lr 1e-3, batch {s.batch}, "
@@ -389,7 +389,7 @@ def _data_section(plan, rows: dict, cpu: str) -> list[str]:
         + ".",  # fmt: skip
         "- these are short runs, what one session on 2 CPU cores fits, far from the paper's "
         "training; the pictures show how far from converged. Raise the scale's epochs in "
-        "`benchmarks/quality.py` and rerun: training resumes from the last checkpoint.",
+        "`benchmarks/quality_plan.py` and rerun: training resumes from the last checkpoint.",
         "- not trained: the paper's L1 + VGG16 loss. No ImageNet VGG16 weights are available on "
         "these machines; `--loss l1+vgg` works for users who have them (`--vgg-weights`).",
     ]
