@@ -310,8 +310,8 @@ class SummedMLP(nn.Module):
     a broadcast product and a sum, in fp32 whatever the input's dtype, so that Inductor
     compiles a layer into one reduction kernel with its bias and Tanh. As matrix products
     (``nn.Linear``) a layer is an extern cuBLAS call, a copy of the bias into its output and
-    a Tanh pass: at batch 1, 11 launches on the device for four values in (7 in Inductor's
-    plan, ``benchmarks.kernel_plan --batch 1``, and cuBLAS's bias copies)."""
+    a Tanh pass: three launches a layer for four values in at batch 1
+    (``benchmarks.kernel_plan --batch 1`` lists Inductor's plan)."""
 
     def __init__(self, mlp: nn.Sequential):
         super().__init__()
