@@ -776,6 +776,9 @@ def test_bad_inputs_get_one_line_errors_and_leave_nothing(tiny_store, tmp_path):
             tiny_store.url,
         ]
     )
+    weights = vgg_weights_file(tmp_path / "vgg16.pth")  # given, but the loss reads none
+    msg = one_line_error([*base, *paper, "--vgg-weights", str(weights), "--store", tiny_store.url])
+    assert msg == "Error: --vgg-weights is read only by --loss l1+vgg, not by l1", msg
     assert "no store given" in one_line_error(base)
     assert not run.exists()  # nothing half written
 

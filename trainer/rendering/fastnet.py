@@ -87,20 +87,20 @@ def ring(z: torch.Tensor, w2: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     n, h = z.shape[0], z.shape[2]
     if z.shape[3] != h:
         raise ValueError(f"the ring needs a square input, not {h}x{z.shape[3]}")
-    o, d = w2.shape[0] // 2, 1
+    o = w2.shape[0] // 2
     firsts = torch.cat([z[:, :, :2], z[:, :, :, :2].transpose(2, 3)])  # top; left, as rows
     lasts = torch.cat([z[:, :, -2:], z[:, :, :, -2:].transpose(2, 3)])  # bottom; right
     up = F.interpolate(
         torch.cat([firsts, lasts]), scale_factor=2, mode="bilinear", align_corners=False
     )
-    first, last = up[: 2 * n, :, : d + 1], up[2 * n :, :, -d - 1 :]
+    first, last = up[: 2 * n, :, :2], up[2 * n :, :, -2:]
     zero = torch.zeros_like(first[:, :, :1])
-    a, b = torch.cat([zero, first], 2), torch.cat([last, zero], 2)  # (2n, C, d + 2, 2h) strips
+    a, b = torch.cat([zero, first], 2), torch.cat([last, zero], 2)  # (2n, C, 3, 2h) strips
     rows, cols = torch.cat([a[:n], b[:n]]), torch.cat([a[n:], b[n:]])
     out = F.conv2d(torch.cat([rows, cols], 1), w2, padding=(0, 1), groups=2)  # (2n, 2O, 1, 2h)
-    y[:, :, :d], y[:, :, -d:] = out[:n, :o], out[n:, :o]  # top, bottom
-    y[:, :, :, :d] = out[:n, o:].transpose(2, 3)  # left
-    y[:, :, :, -d:] = out[n:, o:].transpose(2, 3)  # right
+    y[:, :, :1], y[:, :, -1:] = out[:n, :o], out[n:, :o]  # top, bottom
+    y[:, :, :, :1] = out[:n, o:].transpose(2, 3)  # left
+    y[:, :, :, -1:] = out[n:, o:].transpose(2, 3)  # right
     return y
 
 

@@ -137,14 +137,23 @@ def preflight(cfg: TrainConfig, ranks: int = 1) -> None:
     catalog = _catalog(cfg, cpu, state, found, init)
     if state is None and init is None:
         _geometry(cfg, catalog)
-    if cfg.loss == "l1+vgg":
-        load_vgg(cfg.vgg_weights)
+    _vgg(cfg)
     _check_shared_memory(cfg, catalog, ranks)
 
 
 def _check_device(cfg: TrainConfig) -> None:
     if cfg.device == "cuda" and not torch.cuda.is_available():
         raise RunError(str(NoCuda()))
+
+
+def _vgg(cfg: TrainConfig):
+    """The VGG16 the loss uses (None when it uses none); weights given to a loss that
+    would not read them are refused rather than ignored."""
+    if cfg.loss == "l1+vgg":
+        return load_vgg(cfg.vgg_weights)
+    if cfg.vgg_weights:
+        raise RunError(f"--vgg-weights is read only by --loss l1+vgg, not by {cfg.loss}")
+    return None
 
 
 def _check_shared_memory(cfg: TrainConfig, catalog: Catalog, ranks: int) -> None:
@@ -159,7 +168,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     state, found = _resume_state(cfg, out)
     init = finetune.init_state(cfg, state)
     cfg = finetune.with_network(cfg, init)
-    vgg = load_vgg(cfg.vgg_weights) if cfg.loss == "l1+vgg" else None  # fail before any work
+    vgg = _vgg(cfg)  # fails before any work
     catalog = _catalog(cfg, rk, state, found, init)
     if not rk.distributed:  # under torchrun, `trainer launch` checked for every rank at once
         _check_shared_memory(cfg, catalog, 1)
