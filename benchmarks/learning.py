@@ -16,7 +16,7 @@ operating system's accounting, so a busy machine changes it little).
 
 The rows change one thing at a time from the paper's recipe (``--recipe paper``) at width 32
 (the ``w32`` row; the ``paper`` rows keep the paper's width 64), then the project's default
-recipe (``shaderball``). The paper's loss adds VGG16 features, whose ImageNet weights these
+recipe (``shaderball``) and rows that change one thing from it (``sb-*``). The paper's loss adds VGG16 features, whose ImageNet weights these
 machines do not have: every ``paper`` row trains with its L1 ablation.
 
 Every row's result is kept in its run folder (``--work``), so a run resumes and rows can be
@@ -84,6 +84,10 @@ ROWS = {
     "head": ("a full-resolution head", W32 | {"head": True}),
     "shaderball": ("the default recipe (trainer.training.config.RECIPES)", {}),
     "sb-head": ("the default recipe with a full-resolution head", {"head": True}),
+    "sb-l1": ("the default recipe with an L1 loss", {"loss": "l1"}),
+    "sb-batch4": ("the default recipe at batch 4", {"batch_size": 4}),
+    "sb-lr5e-3": ("the default recipe with a peak rate of 5e-3", {"lr": 5e-3}),
+    "sb-w48": ("the default recipe at width 48", {"width": 48}),
 }  # fmt: skip
 
 
