@@ -16,8 +16,9 @@ operating system's accounting, so a busy machine changes it little).
 
 The rows change one thing at a time from the paper's recipe (``--recipe paper``) at width 32
 (the ``w32`` row; the ``paper`` rows keep the paper's width 64), then the project's default
-recipe (``shaderball``) and rows that change one thing from it (``sb-*``). The paper's loss adds VGG16 features, whose ImageNet weights these
-machines do not have: every ``paper`` row trains with its L1 ablation.
+recipe (``shaderball``) and rows that change one thing from it (``sb-*``). The paper's
+loss adds VGG16 features, whose ImageNet weights these machines do not have: every
+``paper`` row trains with its L1 ablation.
 
 Every row's result is kept in its run folder (``--work``), so a run resumes and rows can be
 added; the tables go to ``benchmarks/results/learning-R.json`` (``python -m

@@ -3,8 +3,8 @@
 A *recipe* (:data:`RECIPES`, ``--recipe``) gives the defaults of the settings that decide
 how much the network learns per image: its inputs and shape, the loss, the batch, the
 learning rate and its schedule, the weight average. Any of them given on its own wins over
-the recipe. ``shaderball`` (the default) is the recipe that learnt the most per image pass
-in ``benchmarks/learning.py`` (docs/training.md, "Recipes"); ``paper`` is the paper's
+the recipe. ``shaderball`` (the default) is the recipe ``benchmarks/learning.py`` chose for what
+it learns per image pass and per second (docs/training.md, "Recipes"); ``paper`` is the paper's
 network and settings (batch 6, Adam β 0.9/0.999, L1 + VGG16 relu3_3, 30 epochs) with the
 authors' code's rate (1e-3; the paper prints 1e-2). ``trainer train`` and ``trainer launch``
 share these options; ``launch`` turns a config back into the exact ``trainer train``
@@ -143,7 +143,7 @@ class TrainConfig:
     recipe: str = _opt(
         DEFAULT_RECIPE,
         "the defaults of the settings marked 'the recipe's': shaderball (learns the most per "
-        "image, docs/training.md) or paper (the paper's network and settings)",
+        "image and second, docs/training.md) or paper (the paper's network and settings)",
         choices=tuple(RECIPES),
     )
     out: str = _opt("runs/latest", "run folder: checkpoints/, log.jsonl, tb/ (TensorBoard)")
