@@ -89,6 +89,7 @@ ROWS = {
     "sb-batch4": ("the default recipe at batch 4", {"batch_size": 4}),
     "sb-lr5e-3": ("the default recipe with a peak rate of 5e-3", {"lr": 5e-3}),
     "sb-w48": ("the default recipe at width 48", {"width": 48}),
+    "sb-w48-b4": ("the default recipe at width 48 and batch 4", {"width": 48, "batch_size": 4}),
 }  # fmt: skip
 
 
