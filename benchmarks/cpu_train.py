@@ -25,7 +25,7 @@ from benchmarks.results import Table, save
 from trainer.model import ModelConfig
 from trainer.networks import build_model
 from trainer.training.config import RECIPES, TrainConfig
-from trainer.training.losses import RendererLoss
+from trainer.training.losses import RendererLoss, mixed_term
 from trainer.training.train import network_config
 
 
@@ -34,7 +34,7 @@ def step_fn(cfg: ModelConfig, loss: str, batch: int, fmt, compiled: bool):
     torch.manual_seed(0)
     model = build_model(cfg).to(memory_format=fmt)
     opt = torch.optim.Adam(model.parameters(), 1e-4)
-    crit = RendererLoss(structural=loss == "l1+msssim")
+    crit = RendererLoss(mixed=mixed_term(loss))
     r = cfg.resolution
     x = torch.rand(batch, cfg.in_channels, r, r).contiguous(memory_format=fmt)
     light, target = torch.rand(batch, 4), torch.rand(batch, 3, r, r)

@@ -293,7 +293,7 @@ def test_one_cycle_rises_to_its_peak_then_falls_to_zero():
 def test_msssim_loss_fits_small_images(side):
     weights = scale_weights(side)
     assert sum(weights) == pytest.approx(1) and len(weights) == {16: 1, 32: 2, 64: 3, 128: 4}[side]
-    loss = RendererLoss(structural=True)
+    loss = RendererLoss(mixed="msssim")
     a = torch.rand(2, 3, side, side, requires_grad=True)
     b = torch.rand(2, 3, side, side)
     assert float(loss(b, b)) == pytest.approx(0, abs=1e-6)

@@ -714,6 +714,16 @@ def test_perceptual_loss_and_divergence(tiny_store, tmp_path):
         assert all(torch.isfinite(v).all() for v in checkpoint.load(path)["model"].values())
 
 
+def test_the_flip_loss_trains_and_is_kept_with_the_run(tiny_store, tmp_path):
+    out = tmp_path / "flip"
+    summary = train(config(tiny_store, out, loss="l1+flip", max_steps=2))
+    assert summary["steps"] == 2 and checkpoint.load(out)["config"]["loss"] == "l1+flip"
+    logged = [json.loads(x) for x in (out / "log.jsonl").read_text().splitlines()]
+    assert [x["loss"] for x in logged if "loss" in x] and all(
+        0 < x["loss"] < 1 for x in logged if "loss" in x
+    )
+
+
 def one_line_error(args: list[str], env: dict | None = None) -> str:
     r = CliRunner().invoke(trainer_main, args, env=env)
     assert r.exit_code == 1, r.output

@@ -21,7 +21,7 @@ import click
 from trainer.cues import CUES, check_cues, ordered
 from trainer.training.schedule import SCHEDULES
 
-LOSSES = ("l1+vgg", "l1", "l1+msssim")
+LOSSES = ("l1+vgg", "l1", "l1+msssim", "l1+flip")
 NORMS = ("batch", "group")
 
 
@@ -173,7 +173,8 @@ class TrainConfig:
     loss: str | None = _opt(
         None,
         "l1+vgg (the paper's: L1 + VGG16 relu3_3 features), l1 (its ablation), l1+msssim "
-        "(0.84 MS-SSIM + 0.16 L1, Zhao et al. 2017; no weights needed)",
+        "(0.84 MS-SSIM + 0.16 L1, Zhao et al. 2017; no weights needed), l1+flip (0.84 LDR-FLIP "
+        "+ 0.16 L1: trainer eval's perceptual score as the loss)",
         choices=LOSSES,
         recipe=True,
     )

@@ -1,6 +1,7 @@
 """The losses: the paper's L1 + the VGG16 relu3_3 feature reconstruction loss (Johnson et al.
-2016), its L1 ablation, and L1 + MS-SSIM (Zhao et al. 2017, OIDN's default), which needs no
-pretrained weights.
+2016), its L1 ablation, L1 + MS-SSIM (Zhao et al. 2017, OIDN's default) and L1 + LDR-FLIP
+(:mod:`trainer.training.flip`); the last two need no pretrained weights and mix their term
+with L1 in Zhao et al.'s proportions, so they differ in that term alone.
 
 VGG16's convolutional trunk up to relu3_3 is defined here, with the layer indices of
 torchvision's ``vgg16().features`` (0..15), so a torchvision-format state dict loads into it
@@ -21,6 +22,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from shaderball.errors import UserError
+from trainer.training.flip import flip_loss
 from trainer.training.msssim import ms_ssim
 
 # torchvision's vgg16 "features" up to relu3_3: conv channels, "M" = max pool
@@ -87,37 +89,54 @@ def load_vgg(path: str | os.PathLike | None = None) -> nn.Sequential:
     return trunk
 
 
-#: Zhao et al.'s weight of the MS-SSIM term (L1 gets the rest)
-MSSSIM_WEIGHT = 0.84
+#: Zhao et al.'s weight of the MS-SSIM term (L1 gets the rest); the FLIP term's too
+MIX_WEIGHT = 0.84
+#: the terms mixed with L1: name → ``(pred, target)`` → scalar, 0 for equal images
+TERMS = {
+    "msssim": lambda pred, target: 1 - ms_ssim(pred, target),
+    "flip": flip_loss,
+}
 
 
-class StructuralLoss(nn.Module):
-    """``(N, 3, H, W)`` images in [0, 1] → ``0.84 (1 - MS-SSIM) + 0.16 L1`` (Zhao et al.
-    2017) in fp32, MS-SSIM over the scales that fit the image (:mod:`trainer.training.msssim`)."""
+def mixed_term(loss: str) -> str | None:
+    """The term a ``--loss`` name mixes with L1 (``l1+flip`` → ``flip``), None for the rest."""
+    term = loss.removeprefix("l1+")
+    return term if term in TERMS else None
+
+
+class MixedLoss(nn.Module):
+    """``(N, 3, H, W)`` images in [0, 1] → ``0.84 term + 0.16 L1`` in fp32 (Zhao et al. 2017's
+    mix), ``term`` one of :data:`TERMS`."""
+
+    def __init__(self, term: str):
+        super().__init__()
+        if term not in TERMS:
+            raise ValueError(f"the term mixed with L1 is one of {', '.join(TERMS)}, not {term!r}")
+        self.term = term
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
         pred, target = pred.float(), target.float()
-        ms = ms_ssim(pred, target)
-        return MSSSIM_WEIGHT * (1 - ms) + (1 - MSSSIM_WEIGHT) * F.l1_loss(pred, target)
+        term = TERMS[self.term](pred, target)
+        return MIX_WEIGHT * term + (1 - MIX_WEIGHT) * F.l1_loss(pred, target)
 
 
 class RendererLoss(nn.Module):
     """``loss(pred, target)`` for ``(N, 3, H, W)`` images in [0, 1]: L1, plus
     ``perceptual_weight`` × MSE of relu3_3 features when a VGG trunk is given; or, with
-    ``structural``, :class:`StructuralLoss`."""
+    ``mixed`` (a name in :data:`TERMS`), :class:`MixedLoss`."""
 
     def __init__(
         self,
         vgg: nn.Module | None = None,
         perceptual_weight: float = 1.0,
-        structural: bool = False,
+        mixed: str | None = None,
     ):
         super().__init__()
-        if vgg is not None and structural:
-            raise ValueError("the loss is L1 + VGG16 or L1 + MS-SSIM, not both")
+        if vgg is not None and mixed:
+            raise ValueError(f"the loss is L1 + VGG16 or L1 + {mixed}, not both")
         self.vgg = vgg
         self.perceptual_weight = perceptual_weight
-        self.structural = StructuralLoss() if structural else None
+        self.mixed = MixedLoss(mixed) if mixed else None
         self.register_buffer("mean", torch.tensor(MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(STD).view(1, 3, 1, 1), persistent=False)
 
@@ -125,8 +144,8 @@ class RendererLoss(nn.Module):
         """Scalar fp32 loss. Under autocast the VGG convolutions run in its dtype (bf16 on
         CUDA); the L1 and the feature MSE are always computed in fp32."""
         pred, target = pred.float(), target.float()
-        if self.structural is not None:
-            return self.structural(pred, target)
+        if self.mixed is not None:
+            return self.mixed(pred, target)
         loss = F.l1_loss(pred, target)
         if self.vgg is not None:
             fp = self.vgg((pred - self.mean) / self.std)

@@ -13,16 +13,25 @@ which every backend runs fast forward and backward.
 
 from __future__ import annotations
 
-import functools
-
 import torch
 import torch.nn.functional as F
+
+from trainer.training.separable import filter_matrix
 
 TAPS = 11
 SIGMA = 1.5
 K1, K2 = 0.01, 0.03
 #: the scales' weights (Wang et al. 2003), finest first
 SCALE_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
+
+
+def _gaussian(taps: int, sigma: float) -> tuple[float, ...]:
+    x = torch.arange(taps, dtype=torch.float64) - taps // 2
+    g = torch.exp(-0.5 * (x / sigma) ** 2)
+    return tuple((g / g.sum()).tolist())
+
+
+_GAUSSIAN = _gaussian(TAPS, SIGMA)
 
 
 def scale_weights(side: int) -> tuple[float, ...]:
@@ -36,18 +45,10 @@ def scale_weights(side: int) -> tuple[float, ...]:
     return tuple(w / sum(kept) for w in kept)
 
 
-@functools.lru_cache(maxsize=32)
 def blur_matrix(n: int, device: str = "cpu") -> torch.Tensor:
     """``(n, n)`` fp32: row ``i`` holds the Gaussian taps that output pixel ``i`` takes from
     each input pixel of a reflection-padded side of ``n`` (``A @ x`` blurs ``x``'s rows)."""
-    x = torch.arange(TAPS, dtype=torch.float64) - TAPS // 2
-    g = torch.exp(-0.5 * (x / SIGMA) ** 2)
-    g /= g.sum()
-    src = torch.arange(n)[:, None] + torch.arange(TAPS)[None, :] - TAPS // 2
-    src = torch.where(src < 0, -src, torch.where(src >= n, 2 * (n - 1) - src, src))
-    a = torch.zeros(n, n, dtype=torch.float64)
-    a.index_put_((torch.arange(n)[:, None].expand_as(src), src), g.expand_as(src), accumulate=True)
-    return a.float().to(device)
+    return filter_matrix(_GAUSSIAN, n, "reflect", device)
 
 
 def _terms(pred: torch.Tensor, target: torch.Tensor, last: bool) -> torch.Tensor:

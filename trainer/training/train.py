@@ -50,7 +50,7 @@ from trainer.training import faults, finetune, shm
 from trainer.training.config import TrainConfig, absolute_store
 from trainer.training.data import Catalog, Preloaded, ShardStream, loader, steps_left
 from trainer.training.ema import WeightAverage
-from trainer.training.losses import RendererLoss, load_vgg
+from trainer.training.losses import RendererLoss, load_vgg, mixed_term
 from trainer.training.runlog import RunLog
 from trainer.training.schedule import DECAYING, lr_at, record, resumed_knee, run_steps
 from trainer.training.trainee import Rank, Trainee
@@ -460,8 +460,7 @@ def _build(
         geometry = _geometry(cfg, catalog)
     torch.manual_seed(cfg.seed)
     model = build_model(model_cfg, geometry).to(rk.device, memory_format=rk.fmt)
-    structural = cfg.loss == "l1+msssim"
-    criterion = RendererLoss(vgg, cfg.perceptual_weight, structural)
+    criterion = RendererLoss(vgg, cfg.perceptual_weight, mixed_term(cfg.loss))
     criterion = criterion.to(rk.device, memory_format=rk.fmt)
     if rk.cuda:
         torch.backends.cudnn.benchmark = True  # fixed shapes: let cuDNN pick its fastest convs
