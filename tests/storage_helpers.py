@@ -49,6 +49,7 @@ def rendered_store(worker, path: str, sources: list[str], suns: int, shard_size:
     layout = Layout(len(specs), suns, worker.settings.resolution, shard_size)
     settings = {
         "render": worker.settings.to_dict(),
+        "samples": worker.settings.samples,  # as farm stores record it
         "texture_tiling": worker.settings.texture_tiling,
         "geometry_hash": geometry_hash(shaderball()),
     }

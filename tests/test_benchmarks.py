@@ -9,6 +9,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from benchmarks.infer import interleaved, rounds_table
@@ -296,7 +297,9 @@ def test_worker_start_times_blender_in_a_ray_actor_both_ways_and_refuses_bad_cou
 def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_store, tmp_path):
     """``benchmarks.learning`` on the tiny real store: each row trained for the budget and
     scored on its held-out materials, the table written with the row's settings and the
-    side-by-side grid drawn; run again, every row is read from its result, not trained."""
+    side-by-side grid drawn; run again, every row is read from its result, not trained.
+    ``benchmarks.truth_noise`` then renders the held-out samples again (once) and tables the
+    rows with and without the truth's noise, under its ceiling."""
     import json
 
     from benchmarks.results import load
@@ -316,6 +319,24 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     assert result["images"] == 8 and result["passes_per_cpu_second"] > 0
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0 and " steps of " not in again.stdout  # nothing trained again
+
+    noise = [sys.executable, "-m", "benchmarks.truth_noise", *cmd[3:]]
+    noise[noise.index("--name") + 1] = "n"
+    r = subprocess.run(noise, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and "render again" in r.stderr, r.stderr[-3000:]
+    table = load(tmp_path / "n.json")
+    ceiling = float(re.search(r"scores ([\d.]+) dB against the truth", table.notes[1]).group(1))
+    assert [row[0] for row in table.rows] == ["paper", "shaderball"]
+    assert all(row[1] <= row[2] and row[1] < ceiling for row in table.rows)
+    r = subprocess.run(noise, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0 and "render again" not in r.stderr  # the second renders are kept
+
+    from benchmarks.truth_noise import render_again
+    from storage.reader import Store
+
+    store = Store(tiny_store.url)  # the store's own seeds give the store's own renders
+    same = render_again(store, [0], int(store.settings["samples"]), offset=0)
+    assert np.allclose(same[0], store.render(0), atol=2e-3, rtol=2e-3)
 
 
 def test_the_cpu_training_forms_are_timed_in_turn_and_tabled(tmp_path):

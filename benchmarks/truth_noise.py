@@ -1,0 +1,148 @@
+"""How noisy the learning benchmark's ground truth is, and what its rows score without that noise.
+
+    python -m benchmarks.truth_noise --budget 64000 --rows onecycle,shaderball,sb-w48
+
+The truth is a Cycles render at the store's 32 spp: every row's error against it includes the
+render's own noise, which no network should predict. The held-out samples of the learning
+store are rendered again at the same samples per pixel with the next Cycles seed (once, kept
+beside the runs in ``benchmarks/.cache/learning/R/again.npz``). Two independent renders
+differ by twice the noise's variance, so per sample ``var = MSE(truth, again) / 2`` in
+display space, and a network's error against the truth is its error against the truth's
+mean plus ``var``:
+
+- ``ceiling``: ``-10 log10(var)``, what a perfect prediction of the truth's mean scores against
+  the truth; no row's PSNR can mean more;
+- each row's PSNR against the truth (as ``benchmarks.learning`` scores it) and without the
+  noise, ``-10 log10(MSE - var)`` (floored at a hundredth of ``var``), both means over the
+  held-out samples.
+
+The rows are read from ``benchmarks.learning``'s run folders (trained there first).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from benchmarks.learning import CACHE, ROWS, ensure_store
+from benchmarks.results import Table, save
+from render_jobs.materials import load_maps
+from render_jobs.process import RenderProcess
+from render_jobs.specs import MaterialSpec, RenderSettings
+from storage.backend import write_atomic
+from storage.reader import Store
+from trainer.rendering.evaluate import test_split
+from trainer.rendering.load import load_renderer
+from trainer.samples import SampleReader
+
+
+def held_out(run: Path):
+    """The held-out split of a learning run (every row of a budget shares it)."""
+    return test_split(load_renderer(run, "cpu"), None, None)
+
+
+def render_again(store: Store, samples: list[int], spp: int, offset: int = 1) -> np.ndarray:
+    """``(N, 3, R, R)`` radiance of ``samples`` rendered again at ``spp`` with their Cycles
+    seeds moved by ``offset`` (0: the store's own renders again), each material's suns in
+    one call."""
+    specs = store.materials()
+    settings = RenderSettings(resolution=store.layout.resolution, samples=spp,
+                              texture_tiling=store.settings.get("texture_tiling", 2.0))  # fmt: skip
+    by_material = defaultdict(list)
+    for i in samples:
+        by_material[store.layout.material_of_sample(i)].append(store.sample(i))
+    out = {}
+    with RenderProcess(settings) as worker:
+        for material, group in tqdm(by_material.items(), desc="render again", unit="material"):
+            maps = load_maps(MaterialSpec.from_dict(specs[material]["spec"]))
+            seeds = [(s.seed + offset) % 2**31 for s in group]
+            result = worker.render_material(maps, [s.sun for s in group], seeds)
+            out |= {s.index: r.radiance for s, r in zip(group, result.renders, strict=True)}
+    return np.stack([out[i] for i in samples]).astype(np.float32)
+
+
+def again(store: Store, samples: list[int], spp: int, path: Path) -> np.ndarray:
+    """The samples' second renders, from ``path`` when it holds these samples of this store
+    at ``spp``."""
+    if path.exists():
+        with np.load(path) as z:
+            if (str(z["store"]), list(z["samples"]), int(z["spp"])) == (store.url, samples, spp):
+                return z["renders"]
+    renders = render_again(store, samples, spp)
+    arrays = {"store": store.url, "samples": np.array(samples), "spp": spp, "renders": renders}
+    write_atomic(path, lambda f: np.savez(f, **arrays))  # a killed run leaves no part of it
+    return renders
+
+
+def mse(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
+    return ((a - b) ** 2).flatten(1).mean(1).double().numpy()
+
+
+def row_mse(run: Path, split, batch: int = 16) -> np.ndarray:
+    """Per-sample MSE of a run's network against the truth on ``split``, in display space."""
+    renderer, reader = load_renderer(run, "cpu"), SampleReader(split)
+    out = []
+    for lo in range(0, len(split), batch):
+        b = reader.batch(np.arange(lo, min(lo + batch, len(split))))
+        with torch.no_grad():
+            pred = renderer.render_batch(b["maps"], b["light"]).cpu()
+        out.append(mse(pred, renderer.tonemap(b["render"])))
+    return np.concatenate(out)
+
+
+def psnr(m: np.ndarray) -> float:
+    return float((-10 * np.log10(m)).mean())
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--resolution", type=int, default=64)
+    p.add_argument("--budget", type=int, default=64_000)
+    p.add_argument("--rows", default="onecycle,shaderball")
+    p.add_argument("--work", type=Path, default=CACHE / "learning")
+    p.add_argument("--results", type=Path, default=None, help="folder of the result table")
+    p.add_argument("--name", default=None, help="the table's name (default learning-R-noise)")
+    p.add_argument("--store", default=None, help="the store the rows trained on (benchmarks."
+                   "learning --store), instead of the cached one")  # fmt: skip
+    args = p.parse_args(argv)
+    names = args.rows.split(",")
+    if unknown := [n for n in names if n not in ROWS]:
+        p.error(f"unknown row {unknown[0]!r}: one of {', '.join(ROWS)}")
+    store = Store(args.store or ensure_store(args.resolution))
+    work = args.work / str(store.layout.resolution)
+    runs = [work / str(args.budget) / n for n in names]
+    if missing := [r for r in runs if not (r / "result.json").exists()]:
+        p.error(f"{missing[0]} is not trained: run benchmarks.learning with its row first")
+    split = held_out(runs[0])
+    samples = [int(k) for _, k in split.refs.tolist()]
+    spp = int(store.settings["samples"])
+    second = again(store, samples, spp, work / "again.npz")
+    tonemap = load_renderer(runs[0], "cpu").tonemap
+    truth = tonemap(torch.from_numpy(np.stack([store.render(i) for i in samples])))
+    var = mse(truth, tonemap(torch.from_numpy(second))) / 2
+    t = Table(
+        f"The learning benchmark's truth and its noise: {store.layout.resolution}², "
+        f"{args.budget:,} passes, held-out samples",
+        ["row", "PSNR dB against the truth", "PSNR dB without its noise"],
+        notes=[
+            f"{len(samples)} held-out samples rendered again at {spp} spp with other Cycles "
+            "seeds: half the mean squared difference of the two renders is the truth's noise",
+            f"ceiling: a perfect prediction of the truth's mean scores {psnr(var):.2f} dB "
+            "against the truth",
+        ],
+    )
+    for name, run in zip(names, runs, strict=True):
+        m = row_mse(run, split)
+        t.rows.append([name, round(psnr(m), 2), round(psnr(np.maximum(m - var, var / 100)), 2)])
+    print(t.markdown(), flush=True)
+    name = args.name or f"learning-{store.layout.resolution}-noise"
+    save(name, t, *([args.results] if args.results else []))
+
+
+if __name__ == "__main__":
+    main()
