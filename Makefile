@@ -120,6 +120,7 @@ gpu-stores: bench-store
 # How much each recipe learns per image pass (hours on 2 cores; resumes row by row)
 bench-learning: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.learning
+	$(BIN)/python -m benchmarks.truth_noise
 
 # docs/benchmarks.md from every table in benchmarks/results/
 bench-report: $(BIN)/.installed

@@ -21,7 +21,8 @@ PAGE = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 #: (heading, the result names in it, in order)
 SECTIONS = (
     ("What the network learns per image pass", ("learning-64-16k", "learning-64-64k",
-                                                  "learning-128-16k", "learning-gpu")),
+                                                  "learning-64-noise", "learning-128-16k",
+                                                  "learning-gpu")),
     ("Training", ("cpu-train-64", "cpu-train-128", "train-cpu", "train-cuda")),
     ("Inference", ("infer-cpu", "infer-cuda", "frames")),
     ("The viewer", ("viewer-cpu", "viewer-cuda")),
@@ -38,7 +39,7 @@ and noisy: compare rows of one table (one run), not figures across tables.
 
 | command | what it measures |
 |---|---|
-| `make bench-learning` | held-out scores per recipe at a budget of image passes; passes/s |
+| `make bench-learning` | held-out scores per recipe for a budget of passes; the truth's noise |
 | `make bench-train` | training images/s and data wait at 400² |
 | `make bench-infer` | ms a frame at batch 1, frames/s batched (CUDA: bf16, CUDA graphs) |
 | `make bench-frames` | the quality table's methods timed side by side: networks and Cycles |
