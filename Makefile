@@ -121,6 +121,7 @@ gpu-stores: bench-store
 bench-learning: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.learning
 	$(BIN)/python -m benchmarks.truth_noise
+	$(BIN)/python -m benchmarks.learning --resolution 128 --budget 8000 --rows onecycle,shaderball --grid-rows onecycle,shaderball
 
 # docs/benchmarks.md from every table in benchmarks/results/
 bench-report: $(BIN)/.installed

@@ -1,8 +1,8 @@
 """How much the network learns per image pass: recipes trained for the same number of image
 passes on one store, scored on the same held-out materials.
 
-    make bench-learning                                      # 64², 16k and 64k passes (hours)
-    python -m benchmarks.learning --resolution 128 --budget 64000 --rows paper,shaderball
+    make bench-learning     # 64² at 16k and 64k passes, the truth's noise, 128² at 8k (hours)
+    python -m benchmarks.learning --resolution 128 --budget 8000 --rows onecycle,shaderball
     python -m benchmarks.learning --budget 800 --rows paper,shaderball --work /tmp/l  # a look
 
 The store (``benchmarks/.cache/learning-R.zarr``) is rendered once by the farm: 100 uniform
