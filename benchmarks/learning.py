@@ -12,7 +12,8 @@ materials out. Each row of :data:`ROWS` runs ``trainer train`` with its settings
 every held-out sample (PSNR with its 95 % interval over materials, SSIM, FLIP;
 ``trainer.rendering.evaluate``). Throughput is the training loop's image passes per second (from the
 run's log) and per CPU-second of the whole run (the trainer and its loader, from the
-operating system's accounting, so a busy machine changes it little).
+operating system's accounting, so a busy machine changes it little, unless two runs'
+threads contend for the same cores: waiting threads spin and count).
 
 The rows change one thing at a time from the paper's recipe (``--recipe paper``) at width 32
 (the ``w32`` row; the ``paper`` rows keep the paper's width 64), then the project's default
