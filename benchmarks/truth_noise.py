@@ -41,11 +41,6 @@ from trainer.rendering.load import load_renderer
 from trainer.samples import SampleReader
 
 
-def held_out(run: Path):
-    """The held-out split of a learning run (every row of a budget shares it)."""
-    return test_split(load_renderer(run, "cpu"), None, None)
-
-
 def render_again(store: Store, samples: list[int], spp: int, offset: int = 1) -> np.ndarray:
     """``(N, 3, R, R)`` radiance of ``samples`` rendered again at ``spp`` with their Cycles
     seeds moved by ``offset`` (0: the store's own renders again), each material's suns in
@@ -118,11 +113,12 @@ def main(argv: list[str] | None = None) -> None:
     runs = [work / str(args.budget) / n for n in names]
     if missing := [r for r in runs if not (r / "result.json").exists()]:
         p.error(f"{missing[0]} is not trained: run benchmarks.learning with its row first")
-    split = held_out(runs[0])
+    first = load_renderer(runs[0], "cpu")
+    split = test_split(first, None, None)  # every row of a budget holds out the same samples
     samples = [int(k) for _, k in split.refs.tolist()]
     spp = int(store.settings["samples"])
     second = again(store, samples, spp, work / "again.npz")
-    tonemap = load_renderer(runs[0], "cpu").tonemap
+    tonemap = first.tonemap
     truth = tonemap(torch.from_numpy(np.stack([store.render(i) for i in samples])))
     var = mse(truth, tonemap(torch.from_numpy(second))) / 2
     t = Table(

@@ -330,6 +330,9 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     assert all(row[1] <= row[2] and row[1] < ceiling for row in table.rows)
     r = subprocess.run(noise, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0 and "render again" not in r.stderr  # the second renders are kept
+    untrained = [("onecycle" if a == "paper,shaderball" else a) for a in noise]
+    r = subprocess.run(untrained, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 2 and "onecycle is not trained: run benchmarks.learning" in r.stderr
 
     from benchmarks.truth_noise import render_again
     from storage.reader import Store

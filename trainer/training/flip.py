@@ -63,6 +63,12 @@ def rgb_to_xyz() -> torch.Tensor:
     return p * torch.linalg.solve(p, _xyz(WHITE))[None, :]
 
 
+@functools.cache
+def xyz_to_rgb() -> torch.Tensor:
+    """``(3, 3)`` float64: CIE XYZ → linear sRGB."""
+    return torch.linalg.inv(rgb_to_xyz())
+
+
 def _mix(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """``(3, 3)`` matrix applied to the channels of ``(N, 3, H, W)``."""
     return torch.einsum("ij,njhw->nihw", m.to(x), x)
@@ -82,7 +88,7 @@ def from_ycxcz(o: torch.Tensor) -> torch.Tensor:
     """YCxCz → linear sRGB."""
     y = (o[:, 0] + 16) / 116
     xyz = torch.stack([y + o[:, 1] / 500, y, y - o[:, 2] / 200], 1) * _white().to(o)
-    return _mix(torch.linalg.inv(rgb_to_xyz()), xyz)
+    return _mix(xyz_to_rgb(), xyz)
 
 
 def to_hunt_lab(linear: torch.Tensor) -> torch.Tensor:
