@@ -30,9 +30,8 @@ from PIL import Image, ImageDraw, ImageFont
 
 from benchmarks import frame_times
 from benchmarks.quality_plan import baseline_store, load_json, save_json
-from render_jobs.materials import load_maps
-from render_jobs.process import RenderProcess
-from render_jobs.specs import MaterialSpec, RenderSettings
+from benchmarks.store_renders import frames as store_frames
+from benchmarks.store_renders import render_again, store_settings
 from render_jobs.tonemap import to_uint8
 from storage.backend import write_atomic
 from storage.reader import Store
@@ -160,20 +159,9 @@ def reference(plan) -> None:
         with np.load(path) as z:
             if list(z["samples"]) == samples and int(z["spp"]) == s.reference_spp:
                 return
-    specs = store.materials()
-    settings = RenderSettings(resolution=s.resolution, samples=s.reference_spp,
-                              texture_tiling=store.settings.get("texture_tiling", 2.0))  # fmt: skip
-    renders, seconds = [], []
-    with RenderProcess(settings) as worker:
-        for i in samples:
-            sample = store.sample(i)
-            maps = load_maps(MaterialSpec.from_dict(specs[sample.material_index]["spec"]))
-            print(f"reference: sample {i} at {s.reference_spp} spp", flush=True)
-            r = worker.render_material(maps, [sample.sun], [sample.seed]).renders[0]
-            renders.append(r.radiance)
-            seconds.append(r.seconds)
+    renders, seconds = render_again(store, samples, s.reference_spp, each_alone=True)
     arrays = {"samples": np.array(samples), "spp": s.reference_spp,
-              "renders": np.stack(renders), "seconds": np.array(seconds)}  # fmt: skip
+              "renders": renders, "seconds": seconds}  # fmt: skip
     write_atomic(path, lambda f: np.savez(f, **arrays))  # a killed run leaves no part of it
 
 
@@ -210,14 +198,8 @@ def cycles_ms(plan, samples: int, denoise: bool) -> float:
         return known[key]
     s = plan.scale
     store = Store(plan.store("test"))
-    specs = store.materials()
-    settings = RenderSettings(resolution=s.resolution, samples=samples, denoise=denoise,
-                              texture_tiling=store.settings.get("texture_tiling", 2.0))  # fmt: skip
-    frames = []
-    for i in reference_samples(store, s.timing_count + 1):
-        sample = store.sample(i)
-        maps = load_maps(MaterialSpec.from_dict(specs[sample.material_index]["spec"]))
-        frames.append((maps, sample.sun, sample.seed))
+    settings = store_settings(store, samples, denoise=denoise)
+    frames = store_frames(store, reference_samples(store, s.timing_count + 1))
     ms = known[key] = frame_times.cycles_ms(settings, frames)
     save_json(path, known)
     return ms

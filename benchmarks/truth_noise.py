@@ -22,43 +22,19 @@ The rows are read from ``benchmarks.learning``'s run folders (trained there firs
 from __future__ import annotations
 
 import argparse
-from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from benchmarks.learning import CACHE, ROWS, ensure_store
 from benchmarks.results import Table, save
-from render_jobs.materials import load_maps
-from render_jobs.process import RenderProcess
-from render_jobs.specs import MaterialSpec, RenderSettings
+from benchmarks.store_renders import render_again
 from storage.backend import write_atomic
 from storage.reader import Store
 from trainer.rendering.evaluate import test_split
 from trainer.rendering.load import load_renderer
 from trainer.samples import SampleReader
-
-
-def render_again(store: Store, samples: list[int], spp: int, offset: int = 1) -> np.ndarray:
-    """``(N, 3, R, R)`` radiance of ``samples`` rendered again at ``spp`` with their Cycles
-    seeds moved by ``offset`` (0: the store's own renders again), each material's suns in
-    one call."""
-    specs = store.materials()
-    settings = RenderSettings(resolution=store.layout.resolution, samples=spp,
-                              texture_tiling=store.settings.get("texture_tiling", 2.0))  # fmt: skip
-    by_material = defaultdict(list)
-    for i in samples:
-        by_material[store.layout.material_of_sample(i)].append(store.sample(i))
-    out = {}
-    with RenderProcess(settings) as worker:
-        for material, group in tqdm(by_material.items(), desc="render again", unit="material"):
-            maps = load_maps(MaterialSpec.from_dict(specs[material]["spec"]))
-            seeds = [(s.seed + offset) % 2**31 for s in group]
-            result = worker.render_material(maps, [s.sun for s in group], seeds)
-            out |= {s.index: r.radiance for s, r in zip(group, result.renders, strict=True)}
-    return np.stack([out[i] for i in samples]).astype(np.float32)
 
 
 def again(store: Store, samples: list[int], spp: int, path: Path) -> np.ndarray:
@@ -68,7 +44,7 @@ def again(store: Store, samples: list[int], spp: int, path: Path) -> np.ndarray:
         with np.load(path) as z:
             if (str(z["store"]), list(z["samples"]), int(z["spp"])) == (store.url, samples, spp):
                 return z["renders"]
-    renders = render_again(store, samples, spp)
+    renders = render_again(store, samples, spp, seed_offset=1)[0]
     arrays = {"store": store.url, "samples": np.array(samples), "spp": spp, "renders": renders}
     write_atomic(path, lambda f: np.savez(f, **arrays))  # a killed run leaves no part of it
     return renders

@@ -334,12 +334,14 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     r = subprocess.run(untrained, capture_output=True, text=True, timeout=600)
     assert r.returncode == 2 and "onecycle is not trained: run benchmarks.learning" in r.stderr
 
-    from benchmarks.truth_noise import render_again
+    from benchmarks.store_renders import render_again
     from storage.reader import Store
 
     store = Store(tiny_store.url)  # the store's own seeds give the store's own renders
-    same = render_again(store, [0], int(store.settings["samples"]), offset=0)
-    assert np.allclose(same[0], store.render(0), atol=2e-3, rtol=2e-3)
+    spp = int(store.settings["samples"])
+    same, seconds = render_again(store, [0, 1], spp, each_alone=True)
+    assert np.allclose(same, [store.render(0), store.render(1)], atol=2e-3, rtol=2e-3)
+    assert (seconds > 0).all()
 
 
 def test_the_cpu_training_forms_are_timed_in_turn_and_tabled(tmp_path):
