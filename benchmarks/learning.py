@@ -96,6 +96,7 @@ ROWS = {
     "sb-w48-b2": ("the default recipe at width 48 and batch 2", {"width": 48, "batch_size": 2}),
     "sb-w64-b4": ("the default recipe at width 64 and batch 4", {"width": 64, "batch_size": 4}),
     "sb-w64-b2": ("the default recipe at width 64 and batch 2", {"width": 64, "batch_size": 2}),
+    "sb-w80-b4": ("the default recipe at width 80 and batch 4", {"width": 80, "batch_size": 4}),
     "sb-w64-b4-seed1": ("the sb-w64-b4 row with another seed: how far it moves by chance",
                         {"width": 64, "batch_size": 4, "seed": 1}),
     "sb-seed1": ("the default recipe with another seed: how far a row moves by chance",
