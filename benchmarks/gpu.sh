@@ -19,6 +19,9 @@
 # images), the split held in the GPU's memory (trainer train --preload), each row scored on its
 # held-out materials; the table (learning-gpu.json), the side-by-side grid and each run's
 # result and grid are written under $OUT (a row finished is kept if a later one is cut off).
+# ROWS picks other rows of benchmarks.learning, each at batch BATCH: ROWS=sb-w80-b4 trains width
+# 80, the width that learnt the most per pass on the CPU (its time on a GPU is not measured: run
+# it after the two default rows, not in their call).
 # Tried here first, on the CPU with a few steps: DEVICE=cpu PASSES=64 BATCH=8 PYTHON=.venv/bin/python
 # LEARN_STORE=benchmarks/.cache/learning-64.zarr OUT=/tmp/learn bash benchmarks/gpu.sh learn
 #
@@ -78,7 +81,7 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
                    --sim-epochs 0 ;;
         viewer) "$py" -m benchmarks.viewer --device cuda "$@" ;;
         learn) "$py" -m benchmarks.learning --store "$store" --device "${DEVICE:-cuda}" --preload \
-                   --budget "${PASSES:-1470000}" --batch "${BATCH:-128}" --rows shaderball,paper \
+                   --budget "${PASSES:-1470000}" --batch "${BATCH:-128}" --rows "${ROWS:-shaderball,paper}" \
                    --work "$out/learning" --results "$out" --name learning-gpu ;;
     esac
 } 2>&1 | tee -a "$log"

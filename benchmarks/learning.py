@@ -99,6 +99,8 @@ ROWS = {
     "sb-w80-b4": ("the default recipe at width 80 and batch 4", {"width": 80, "batch_size": 4}),
     "sb-w64-b4-seed1": ("the sb-w64-b4 row with another seed: how far it moves by chance",
                         {"width": 64, "batch_size": 4, "seed": 1}),
+    "sb-w80-b4-seed1": ("the sb-w80-b4 row with another seed: how far it moves by chance",
+                        {"width": 80, "batch_size": 4, "seed": 1}),
     "sb-seed1": ("the default recipe with another seed: how far a row moves by chance",
                  {"seed": 1}),
 }  # fmt: skip
@@ -262,6 +264,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--batch", type=int, default=None, help="every row's batch size")
     p.add_argument("--preload", action="store_true", help="trainer train --preload")
+    p.add_argument("--note", action="append", default=[], help="a note for the table (repeatable)")
     args = p.parse_args(argv)
     names = args.rows.split(",") if args.rows else list(ROWS)
     if unknown := [n for n in names if n not in ROWS]:
@@ -284,6 +287,7 @@ def main(argv: list[str] | None = None) -> None:
     for budget in args.budget or BUDGETS:
         results = [run_row(n, store, work, budget, **run_as) for n in names]
         t = table(layout.resolution, budget, results, about)
+        t.notes += args.note
         name = args.name or f"learning-{layout.resolution}-{budget // 1000}k"
         trained = {r["row"] for r in results if "diverged" not in r}
         shown = [n for n in args.grid_rows.split(",") if n in trained]
