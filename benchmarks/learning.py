@@ -60,6 +60,9 @@ GRID_COUNT = 6
 
 #: the width-32 paper recipe the one-change rows start from (L1: no VGG16 weights here)
 W32 = {"recipe": "paper", "loss": "l1", "width": 32}
+#: the default recipe's widest settings, each also run with another seed
+W64_B4 = {"width": 64, "batch_size": 4}
+W80_B4 = {"width": 80, "batch_size": 4}
 #: name: (what it changes, TrainConfig settings)
 ROWS = {
     "paper": ("the paper's recipe: width 64, batch 6, Adam 1e-3 (the authors'), L1",
@@ -94,13 +97,13 @@ ROWS = {
     "sb-w48": ("the default recipe at width 48", {"width": 48}),
     "sb-w48-b4": ("the default recipe at width 48 and batch 4", {"width": 48, "batch_size": 4}),
     "sb-w48-b2": ("the default recipe at width 48 and batch 2", {"width": 48, "batch_size": 2}),
-    "sb-w64-b4": ("the default recipe at width 64 and batch 4", {"width": 64, "batch_size": 4}),
+    "sb-w64-b4": ("the default recipe at width 64 and batch 4", W64_B4),
     "sb-w64-b2": ("the default recipe at width 64 and batch 2", {"width": 64, "batch_size": 2}),
-    "sb-w80-b4": ("the default recipe at width 80 and batch 4", {"width": 80, "batch_size": 4}),
+    "sb-w80-b4": ("the default recipe at width 80 and batch 4", W80_B4),
     "sb-w64-b4-seed1": ("the sb-w64-b4 row with another seed: how far it moves by chance",
-                        {"width": 64, "batch_size": 4, "seed": 1}),
+                        W64_B4 | {"seed": 1}),
     "sb-w80-b4-seed1": ("the sb-w80-b4 row with another seed: how far it moves by chance",
-                        {"width": 80, "batch_size": 4, "seed": 1}),
+                        W80_B4 | {"seed": 1}),
     "sb-seed1": ("the default recipe with another seed: how far a row moves by chance",
                  {"seed": 1}),
 }  # fmt: skip
