@@ -94,6 +94,8 @@ ROWS = {
     "sb-flip": ("the default recipe with L1 + LDR-FLIP", {"loss": "l1+flip"}),
     "sb-batch4": ("the default recipe at batch 4", {"batch_size": 4}),
     "sb-lr5e-3": ("the default recipe with a peak rate of 5e-3", {"lr": 5e-3}),
+    "sb-dec2": ("the default recipe with two convolutions a decoder level",
+                {"decoder_convs": 2}),
     "sb-w48": ("the default recipe at width 48", {"width": 48}),
     "sb-w48-b4": ("the default recipe at width 48 and batch 4", {"width": 48, "batch_size": 4}),
     "sb-w48-b2": ("the default recipe at width 48 and batch 2", {"width": 48, "batch_size": 2}),

@@ -619,12 +619,13 @@ def test_a_cosine_resumed_for_more_epochs_goes_on_from_its_rate(tiny_store, tmp_
 
 
 def test_a_run_fine_tunes_another_runs_network_on_more_stores(tiny_store, tmp_path, capsys):
-    """``--init``: the network (the average's weights, shape, tonemap) of another run, a fresh
-    optimizer at step 0, the first run's held-out materials still held out; a run folder with
-    checkpoints resumes instead; a store of another resolution and network options given
-    beside it are refused."""
+    """``--init``: the network (the average's weights, shape, here with two convolutions a
+    decoder level, tonemap) of another run, a fresh optimizer at step 0, the first run's
+    held-out materials still held out; a run folder with checkpoints resumes instead; a store
+    of another resolution and network options given beside it are refused."""
     first = tmp_path / "first"
-    train(config(tiny_store, first, width=8, exposure=0.5, ema_decay=0.9, max_steps=2))
+    train(config(tiny_store, first, width=8, exposure=0.5, ema_decay=0.9, max_steps=2,
+                 decoder_convs=2))  # fmt: skip
     was = checkpoint.load(first)
     layout = Layout(num_materials=2, suns_per_material=2, resolution=64, shard_size=4)
     more = create_store(str(tmp_path / "more.zarr"), layout, {})
@@ -644,6 +645,7 @@ def test_a_run_fine_tunes_another_runs_network_on_more_stores(tiny_store, tmp_pa
     assert len(now["catalog"]["heldout"][1]) == 1  # a quarter of the new store's 2, at least 1
     said = json.loads((run / "config.json").read_text())
     assert (said["width"], said["exposure"], said["init"]) == (8, 0.5, str(first))
+    assert said["decoder_convs"] == now["model_config"]["decoder_convs"] == 2
     assert f"fine-tuning the network of {first}" in capsys.readouterr().out
     train(dataclasses.replace(cfg, resume=True, max_steps=2))
     assert checkpoint.load(run)["step"] == 2  # resumed, not started again from --init

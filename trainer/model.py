@@ -25,7 +25,10 @@ Beyond the paper (each off in the paper's network, ``ModelConfig()``'s defaults)
 - ``norm``: ``group`` (GroupNorm, per-sample statistics) instead of BatchNorm;
 - ``head``: a full-resolution block over the last decoder level and the network's inputs
   before the output convolution (the paper's last level works at half resolution);
-- ``residual``: the output is the ``shade`` cue corrected: ``sigmoid(out + logit(shade))``.
+- ``residual``: the output is the ``shade`` cue corrected: ``sigmoid(out + logit(shade))``;
+- ``decoder_convs``: more 3x3 conv + norm + ReLU blocks at each decoder level, after the one
+  that takes the skip (the paper's one), before the upsampling: depth where the channels are
+  few, so it costs far less than width.
 """
 
 from __future__ import annotations
@@ -63,6 +66,7 @@ class ModelConfig:
     norm: str = "batch"  # one of NORMS
     head: bool = False  # a full-resolution block before the output convolution
     residual: bool = False  # correct the shade cue instead of drawing the image
+    decoder_convs: int = 1  # 3x3 conv blocks at each decoder level (the paper's 1)
     exposure: float = DEFAULT_EXPOSURE  # the targets' tonemap, for the shade cue
 
     def __post_init__(self) -> None:
@@ -73,6 +77,8 @@ class ModelConfig:
             raise ValueError(why)
         if self.width < 1:
             raise ValueError(f"width must be positive, not {self.width}")
+        if self.decoder_convs < 1:
+            raise ValueError(f"decoder_convs must be at least 1, not {self.decoder_convs}")
         if self.arch not in ARCHS:
             raise ValueError(f"arch must be one of {ARCHS}, not {self.arch!r}")
         if self.roughness_channels not in (1, 3):
@@ -103,9 +109,12 @@ class ModelConfig:
 
     @property
     def plain(self) -> bool:
-        """The paper's network: no cues, BatchNorm, no head, no residual (the form the fast
-        inference rewrites of ``trainer.rendering.fastnet`` take)."""
-        return not self.inputs and self.norm == "batch" and not self.head and not self.residual
+        """The paper's network: no cues, BatchNorm, no head, no residual, one conv a decoder
+        level (the form the fast inference rewrites of ``trainer.rendering.fastnet`` take)."""
+        return (
+            not self.inputs and self.norm == "batch" and not self.head and not self.residual
+            and self.decoder_convs == 1
+        )  # fmt: skip
 
     @property
     def bottleneck(self) -> int:
@@ -196,6 +205,13 @@ class NeuralRenderer(nn.Module):
             _block(cin + (skip if cfg.skips else 0), cout, norm=norm)
             for cin, skip, cout in zip(ins, reversed(chans), outs, strict=True)
         )
+        # absent in the paper's form, so its checkpoints keep their keys
+        self.refine = None
+        if cfg.decoder_convs > 1:
+            self.refine = nn.ModuleList(
+                nn.Sequential(*(_block(c, c, norm=norm) for _ in range(cfg.decoder_convs - 1)))
+                for c in outs
+            )
         self.head = _block(w + cfg.network_channels, w, norm=norm) if cfg.head else None
         self.out = nn.Conv2d(w, 3, 3, padding=1)
         self.reset_parameters()
@@ -216,7 +232,10 @@ class NeuralRenderer(nn.Module):
         for i, dec in enumerate(self.decoder):
             if self.config.skips:
                 x = torch.cat([x, skips[-1 - i]], 1)
-            x = F.interpolate(dec(x), scale_factor=2, mode="bilinear", align_corners=False)
+            x = dec(x)
+            if self.refine is not None:
+                x = self.refine[i](x)
+            x = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
         if self.head is not None:
             x = self.head(torch.cat([x, inputs], 1))
         out = self.out(x)
@@ -236,6 +255,8 @@ def fold_batchnorm(model: NeuralRenderer) -> NeuralRenderer:
     it, using the running statistics: the same outputs with fewer kernels and less traffic."""
     folded = copy.deepcopy(model).eval()
     blocks = [*folded.encoder, folded.fuse, *folded.decoder]
+    if getattr(folded, "refine", None) is not None:
+        blocks += [block for level in folded.refine for block in level]
     for block in blocks + ([folded.head] if getattr(folded, "head", None) is not None else []):
         conv, bn = block[0], block[1]
         if not isinstance(bn, nn.BatchNorm2d):  # GroupNorm's statistics are the input's own

@@ -28,7 +28,7 @@ NORMS = ("batch", "group")
 #: the options that shape the network: a run started from --init takes them from it
 NETWORK = (
     "model", "width", "skips", "roughness_channels", "exposure", "inputs", "norm", "head",
-    "residual",
+    "residual", "decoder_convs",
 )  # fmt: skip
 
 #: every recipe's settings (the fields a recipe leaves to its default are left out); a
@@ -45,6 +45,7 @@ RECIPES = {
         "norm": "group",
         "head": False,
         "residual": False,
+        "decoder_convs": 1,
         "ema_decay": 0.999,
     },
     "paper": {
@@ -58,12 +59,13 @@ RECIPES = {
         "norm": "batch",
         "head": False,
         "residual": False,
+        "decoder_convs": 1,
         "ema_decay": 0.0,
     },
 }
 DEFAULT_RECIPE = "shaderball"
 #: the recipe settings that --model zf (Zsolnai-Fehér's baseline) takes from the paper's
-ZF_PLAIN = ("inputs", "norm", "head", "residual")
+ZF_PLAIN = ("inputs", "norm", "head", "residual", "decoder_convs")
 #: a checkpoint whose config names no recipe was trained before recipes: the paper's
 LEGACY_RECIPE = "paper"
 
@@ -120,6 +122,7 @@ RULES = {
     "warmup_steps": _at_least(0),
     "ema_decay": _UNIT,
     "width": _at_least(1),
+    "decoder_convs": _at_least(1),
     "roughness_channels": _one_of((1, 3)),
     "seed": _at_least(0),
     "holdout_seed": _at_least(0),
@@ -204,6 +207,11 @@ class TrainConfig:
     )
     residual: bool | None = _opt(
         None, "draw the image as a correction of the shade cue", recipe=True
+    )
+    decoder_convs: int | None = _opt(
+        None,
+        "3x3 conv blocks at each decoder level (the paper's 1): depth where the channels are few",
+        recipe=True,
     )
     skips: bool = _opt(True, "skip connections (--no-skips: the paper's ablation)")
     roughness_channels: int = _opt(

@@ -3,7 +3,7 @@
 The new run takes the network whole from the checkpoint: the weights it renders with (the
 moving average when it kept one, ``trainer.checkpoint.weights``), its shape (``--model``,
 ``--width``, ``--skips``, ``--roughness-channels``, ``--inputs``, ``--norm``, ``--head``,
-``--residual``) and its tonemap (``--exposure``), so
+``--residual``, ``--decoder-convs``) and its tonemap (``--exposure``), so
 that its targets are the ones the network learnt. Everything else starts afresh: the
 optimizer, the step count, the rate schedule, the moving average (from the loaded weights),
 the best score. The held-out split keeps the checkpoint's: a material it held out stays held
@@ -53,6 +53,7 @@ def with_network(cfg: TrainConfig, init: dict | None) -> TrainConfig:
         norm=net.get("norm", "batch"),
         head=net.get("head", False),
         residual=net.get("residual", False),
+        decoder_convs=net.get("decoder_convs", 1),
     )
 
 

@@ -493,7 +493,7 @@ def network_config(cfg: TrainConfig, resolution: int) -> ModelConfig:
     return ModelConfig(
         resolution, cfg.width, cfg.skips, cfg.roughness_channels, arch=cfg.model,
         inputs=cfg.inputs, norm=cfg.norm, head=cfg.head, residual=cfg.residual,
-        exposure=cfg.exposure,
+        decoder_convs=cfg.decoder_convs, exposure=cfg.exposure,
     )  # fmt: skip
 
 
