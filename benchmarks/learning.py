@@ -93,6 +93,11 @@ ROWS = {
     "sb-l1": ("the default recipe with an L1 loss", {"loss": "l1"}),
     "sb-flip": ("the default recipe with L1 + LDR-FLIP", {"loss": "l1+flip"}),
     "sb-batch4": ("the default recipe at batch 4", {"batch_size": 4}),
+    "sb-batch32": ("the default recipe at batch 32", {"batch_size": 32}),
+    "sb-batch32-lr8e-3": ("the default recipe at batch 32, the peak rate scaled with it",
+                          {"batch_size": 32, "lr": 8e-3}),
+    "sb-batch32-lr4e-3": ("the default recipe at batch 32, the peak rate scaled with its root",
+                          {"batch_size": 32, "lr": 4e-3}),
     "sb-lr5e-3": ("the default recipe with a peak rate of 5e-3", {"lr": 5e-3}),
     "sb-dec2": ("the default recipe with two convolutions a decoder level",
                 {"decoder_convs": 2}),
@@ -128,6 +133,17 @@ def ensure_store(resolution: int, cache: Path = CACHE) -> str:
     if not summary.ok:
         raise RuntimeError(f"the learning store failed: {summary.failed_materials}")
     return str(path)
+
+
+#: how ``--lr-scale`` turns a row's batch ratio into a factor on its (peak) rate
+LR_SCALES = {"none": lambda k: 1.0, "sqrt": lambda k: k**0.5, "linear": lambda k: k}
+
+
+def scaled_lr(name: str, store: str, batch: int, rule: str) -> float:
+    """Row ``name``'s (peak) rate at ``batch``: its own rate times ``rule`` of the ratio of
+    ``batch`` to its own batch (``linear``: Goyal et al. 2017's rule)."""
+    own = TrainConfig(store=(store,), **ROWS[name][1])
+    return own.lr * LR_SCALES[rule](batch / own.batch_size)
 
 
 def row_config(name: str, store: str, run: Path, budget: int, **run_as) -> TrainConfig:
@@ -200,7 +216,7 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
         return json.loads(done.read_text())
     cfg = row_config(name, store, run, budget, **run_as)
     print(f"{name} ({budget:,} passes, {cfg.max_steps} steps of {cfg.batch_size})", flush=True)
-    result = {"row": name, "budget": budget, "batch": cfg.batch_size}
+    result = {"row": name, "budget": budget, "batch": cfg.batch_size, "lr": cfg.lr}
     try:
         speed = train_row(cfg)
     except Diverged as exc:  # a row's result too: this setting does not train
@@ -268,9 +284,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--name", default=None, help="the table's name (default learning-R-Bk)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--batch", type=int, default=None, help="every row's batch size")
+    p.add_argument("--lr-scale", default="none", choices=list(LR_SCALES),
+                   help="with --batch: scale each row's (peak) rate by the ratio of --batch to "
+                   "its own batch (linear) or by its square root (sqrt)")  # fmt: skip
     p.add_argument("--preload", action="store_true", help="trainer train --preload")
     p.add_argument("--note", action="append", default=[], help="a note for the table (repeatable)")
     args = p.parse_args(argv)
+    if args.lr_scale != "none" and args.batch is None:
+        p.error("--lr-scale scales the rates to --batch: give --batch")
     names = args.rows.split(",") if args.rows else list(ROWS)
     if unknown := [n for n in names if n not in ROWS]:
         p.error(f"unknown row {unknown[0]!r}: one of {', '.join(ROWS)}")
@@ -287,10 +308,16 @@ def main(argv: list[str] | None = None) -> None:
         + (", the split in its memory" if args.preload else
            ", one loader worker" if args.device == "cpu" else "")
         + ("" if args.batch is None else f", batch {args.batch} for every row")
+        + ("" if args.lr_scale == "none" else
+           f", each row's rate scaled by {'the square root of ' * (args.lr_scale == 'sqrt')}"
+           "the ratio of that batch to its own")
     )  # fmt: skip
     os.environ.setdefault("OMP_NUM_THREADS", str(len(os.sched_getaffinity(0))))
+    rates = {n: {} for n in names}
+    if args.lr_scale != "none":
+        rates = {n: {"lr": scaled_lr(n, store, args.batch, args.lr_scale)} for n in names}
     for budget in args.budget or BUDGETS:
-        results = [run_row(n, store, work, budget, **run_as) for n in names]
+        results = [run_row(n, store, work, budget, **run_as, **rates[n]) for n in names]
         t = table(layout.resolution, budget, results, about)
         t.notes += args.note
         name = args.name or f"learning-{layout.resolution}-{budget // 1000}k"

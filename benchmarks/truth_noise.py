@@ -14,7 +14,10 @@ mean plus ``var``:
   the truth; no row's PSNR can mean more;
 - each row's PSNR against the truth (as ``benchmarks.learning`` scores it) and without the
   noise, ``-10 log10(MSE - var)`` (floored at a hundredth of ``var``), both means over the
-  held-out samples.
+  held-out samples;
+- the second renders' LDR-FLIP against the truth: what the noise alone scores in the
+  perceptual measure (FLIP does not split into parts as the squared error does), beside the
+  rows' FLIP in ``benchmarks.learning``'s table.
 
 The rows are read from ``benchmarks.learning``'s run folders (trained there first).
 """
@@ -35,17 +38,20 @@ from storage.reader import Store
 from trainer.rendering.evaluate import test_split
 from trainer.rendering.load import load_renderer
 from trainer.samples import SampleReader
+from trainer.scoring import flip
+from trainer.training.config import absolute_store
 
 
 def again(store: Store, samples: list[int], spp: int, path: Path) -> np.ndarray:
     """The samples' second renders, from ``path`` when it holds these samples of this store
-    at ``spp``."""
+    at ``spp`` (a local store by its absolute path, however it was named)."""
+    url = absolute_store(store.url)
     if path.exists():
         with np.load(path) as z:
-            if (str(z["store"]), list(z["samples"]), int(z["spp"])) == (store.url, samples, spp):
+            if (str(z["store"]), list(z["samples"]), int(z["spp"])) == (url, samples, spp):
                 return z["renders"]
     renders = render_again(store, samples, spp, seed_offset=1)[0]
-    arrays = {"store": store.url, "samples": np.array(samples), "spp": spp, "renders": renders}
+    arrays = {"store": url, "samples": np.array(samples), "spp": spp, "renders": renders}
     write_atomic(path, lambda f: np.savez(f, **arrays))  # a killed run leaves no part of it
     return renders
 
@@ -96,7 +102,9 @@ def main(argv: list[str] | None = None) -> None:
     second = again(store, samples, spp, work / "again.npz")
     tonemap = first.tonemap
     truth = tonemap(torch.from_numpy(np.stack([store.render(i) for i in samples])))
-    var = mse(truth, tonemap(torch.from_numpy(second))) / 2
+    second = tonemap(torch.from_numpy(second))
+    var = mse(truth, second) / 2
+    noise_flip = float(flip(second, truth).mean())
     t = Table(
         f"The learning benchmark's truth and its noise: {store.layout.resolution}², "
         f"{args.budget:,} passes, held-out samples",
@@ -106,6 +114,7 @@ def main(argv: list[str] | None = None) -> None:
             "seeds: half the mean squared difference of the two renders is the truth's noise",
             f"ceiling: a perfect prediction of the truth's mean scores {psnr(var):.2f} dB "
             "against the truth",
+            f"the second renders against the truth: LDR-FLIP {noise_flip:.4f}, the noise alone",
         ],
     )
     for name, run in zip(names, runs, strict=True):

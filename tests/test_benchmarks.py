@@ -293,13 +293,28 @@ def test_worker_start_times_blender_in_a_ray_actor_both_ways_and_refuses_bad_cou
     assert bad.returncode == 2 and "--starts 0: must be at least 1" in bad.stderr
 
 
+def test_the_learning_rows_rates_scale_with_the_batch_given_to_every_row(capsys):
+    """``--lr-scale``: each row's own rate times the batch ratio or its root; refused in one
+    line without ``--batch``, before any store is read or rendered."""
+    from benchmarks.learning import main, scaled_lr
+
+    assert scaled_lr("shaderball", "-", 32, "linear") == pytest.approx(8e-3)
+    assert scaled_lr("shaderball", "-", 32, "sqrt") == pytest.approx(4e-3)
+    assert scaled_lr("sb-batch32-lr8e-3", "-", 32, "linear") == pytest.approx(8e-3)
+    assert scaled_lr("paper", "-", 24, "none") == pytest.approx(1e-3)
+    with pytest.raises(SystemExit) as stop:
+        main(["--lr-scale", "linear", "--rows", "shaderball"])
+    assert stop.value.code == 2
+    assert "--lr-scale scales the rates to --batch: give --batch" in capsys.readouterr().err
+
+
 @pytest.mark.slow
 def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_store, tmp_path):
     """``benchmarks.learning`` on the tiny real store: each row trained for the budget and
     scored on its held-out materials, the table written with the row's settings and the
     side-by-side grid drawn; run again, every row is read from its result, not trained.
     ``benchmarks.truth_noise`` then renders the held-out samples again (once) and tables the
-    rows with and without the truth's noise, under its ceiling."""
+    rows with and without the truth's noise, under its ceiling, with the noise's own FLIP."""
     import json
 
     from benchmarks.results import load
@@ -317,6 +332,7 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     assert (tmp_path / "t.png").stat().st_size > 0
     result = json.loads((tmp_path / "work" / "64" / "8" / "shaderball" / "result.json").read_text())
     assert result["images"] == 8 and result["passes_per_cpu_second"] > 0
+    assert result["lr"] == 2e-3  # the recipe's own: no --lr-scale
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0 and " steps of " not in again.stdout  # nothing trained again
 
@@ -328,6 +344,8 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     ceiling = float(re.search(r"scores ([\d.]+) dB against the truth", table.notes[1]).group(1))
     assert [row[0] for row in table.rows] == ["paper", "shaderball"]
     assert all(row[1] <= row[2] and row[1] < ceiling for row in table.rows)
+    noise_flip = float(re.search(r"LDR-FLIP ([\d.]+), the noise alone", table.notes[2]).group(1))
+    assert 0 < noise_flip < 1
     r = subprocess.run(noise, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0 and "render again" not in r.stderr  # the second renders are kept
     untrained = [("onecycle" if a == "paper,shaderball" else a) for a in noise]

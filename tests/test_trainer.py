@@ -68,8 +68,9 @@ def test_glorot_init():
     assert float(conv.std()) == pytest.approx(bound / 3**0.5, rel=0.1)
 
 
-def test_folded_batchnorm_gives_the_same_image():
-    model = NeuralRenderer(ModelConfig(resolution=64, width=16))
+@pytest.mark.parametrize("decoder_convs", [1, 2])
+def test_folded_batchnorm_gives_the_same_image(decoder_convs):
+    model = NeuralRenderer(ModelConfig(resolution=64, width=16, decoder_convs=decoder_convs))
     model.train()
     for _ in range(3):  # running statistics that are not the identity
         model(torch.rand(4, 10, 64, 64) * 2, torch.rand(4, 4))
@@ -81,9 +82,9 @@ def test_folded_batchnorm_gives_the_same_image():
         torch.testing.assert_close(folded(x, light), model(x, light), atol=1e-5, rtol=1e-4)
 
 
-def test_decoder_convs_add_blocks_at_each_level_and_fold():
-    """Two blocks a decoder level: more weights, the same image shape, BatchNorm folded in
-    every block; the paper's form (one) has no keys of theirs, so its checkpoints load."""
+def test_decoder_convs_add_a_block_at_each_level():
+    """Two blocks a decoder level: more weights, the same image shape; the paper's form (one)
+    has no keys of theirs, so its checkpoints load."""
     one = NeuralRenderer(ModelConfig(resolution=64, width=16))
     two = NeuralRenderer(ModelConfig(resolution=64, width=16, decoder_convs=2))
     assert not any(k.startswith("refine.") for k in one.state_dict())
@@ -91,15 +92,7 @@ def test_decoder_convs_add_blocks_at_each_level_and_fold():
     # each level's extra block is a c -> c 3x3 conv + norm (c = 128, 64, 32, 16 at width 16)
     extra = sum(c * c * 9 + 2 * c for c in (128, 64, 32, 16))
     assert count_parameters(two) - count_parameters(one) == extra
-    two.train()
-    for _ in range(3):
-        two(torch.rand(4, 10, 64, 64) * 2, torch.rand(4, 4))
-    two.eval()
-    x, light = torch.rand(2, 10, 64, 64), torch.rand(2, 4)
-    folded = fold_batchnorm(two)
-    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in folded.modules())
-    with torch.no_grad():
-        torch.testing.assert_close(folded(x, light), two(x, light), atol=1e-5, rtol=1e-4)
+    assert two(torch.rand(2, 10, 64, 64), torch.rand(2, 4)).shape == (2, 3, 64, 64)
     with pytest.raises(ValueError, match="decoder_convs must be at least 1, not 0"):
         ModelConfig(resolution=64, decoder_convs=0)
 
