@@ -22,7 +22,7 @@ loss adds VGG16 features, whose ImageNet weights these machines do not have: eve
 ``paper`` row trains with its L1 ablation.
 
 Every row's result is kept in its run folder (``--work``), so a run resumes and rows can be
-added; the tables go to ``benchmarks/results/learning-R.json`` (``python -m
+added (a kept result of another batch or rate than asked for is refused); the tables go to ``benchmarks/results/learning-R.json`` (``python -m
 benchmarks.report`` renders them into docs/benchmarks.md), each row's picture grid (ground
 truth | network | |error| x 4) beside its run, and a grid of ``--grid-rows`` side by side to
 ``docs/img/learning-R.png``.
@@ -159,6 +159,10 @@ def row_config(name: str, store: str, run: Path, budget: int, **run_as) -> Train
     )  # fmt: skip
 
 
+class OtherSettings(ValueError):
+    """A row's kept result was trained at another batch or rate than asked for."""
+
+
 class Diverged(RuntimeError):
     """A row's training stopped on NaN or infinite values (its one-line error)."""
 
@@ -212,9 +216,16 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
     """Row ``name`` at ``budget`` passes: trained and scored once, then read from its file."""
     run = work / str(budget) / name
     done = run / "result.json"
-    if done.exists():
-        return json.loads(done.read_text())
     cfg = row_config(name, store, run, budget, **run_as)
+    if done.exists():
+        kept = json.loads(done.read_text())
+        was = (kept["batch"], kept.get("lr", cfg.lr))  # results kept before rates were: any
+        if was != (cfg.batch_size, cfg.lr):
+            raise OtherSettings(
+                f"{run} was trained at batch {was[0]} and rate {was[1]:g}, not "
+                f"{cfg.batch_size} and {cfg.lr:g}: give another --work"
+            )
+        return kept
     print(f"{name} ({budget:,} passes, {cfg.max_steps} steps of {cfg.batch_size})", flush=True)
     result = {"row": name, "budget": budget, "batch": cfg.batch_size, "lr": cfg.lr}
     try:
@@ -317,7 +328,10 @@ def main(argv: list[str] | None = None) -> None:
     if args.lr_scale != "none":
         rates = {n: {"lr": scaled_lr(n, store, args.batch, args.lr_scale)} for n in names}
     for budget in args.budget or BUDGETS:
-        results = [run_row(n, store, work, budget, **run_as, **rates[n]) for n in names]
+        try:
+            results = [run_row(n, store, work, budget, **run_as, **rates[n]) for n in names]
+        except OtherSettings as exc:
+            p.error(str(exc))
         t = table(layout.resolution, budget, results, about)
         t.notes += args.note
         name = args.name or f"learning-{layout.resolution}-{budget // 1000}k"

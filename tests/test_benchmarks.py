@@ -335,6 +335,10 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     assert result["lr"] == 2e-3  # the recipe's own: no --lr-scale
     again = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert again.returncode == 0 and " steps of " not in again.stdout  # nothing trained again
+    other = subprocess.run([*cmd, "--batch", "4", "--lr-scale", "linear"], capture_output=True,
+                           text=True, timeout=600)  # fmt: skip
+    assert other.returncode == 2 and " steps of " not in other.stdout
+    assert "paper was trained at batch 6 and rate 0.001, not 4 and 0.000666667" in other.stderr
 
     noise = [sys.executable, "-m", "benchmarks.truth_noise", *cmd[3:]]
     noise[noise.index("--name") + 1] = "n"
