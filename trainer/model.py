@@ -28,7 +28,8 @@ Beyond the paper (each off in the paper's network, ``ModelConfig()``'s defaults)
 - ``residual``: the output is the ``shade`` cue corrected: ``sigmoid(out + logit(shade))``;
 - ``decoder_convs``: more 3x3 conv + norm + ReLU blocks at each decoder level, after the one
   that takes the skip (the paper's one), before the upsampling: depth where the channels are
-  few, so it costs far less than width.
+  few, for less time a step than more width (it learnt no more per image pass:
+  docs/training.md).
 """
 
 from __future__ import annotations
