@@ -22,10 +22,10 @@ loss adds VGG16 features, whose ImageNet weights these machines do not have: eve
 ``paper`` row trains with its L1 ablation.
 
 Every row's result is kept in its run folder (``--work``), so a run resumes and rows can be
-added (a kept result of another batch or rate than asked for is refused); the tables go to ``benchmarks/results/learning-R.json`` (``python -m
-benchmarks.report`` renders them into docs/benchmarks.md), each row's picture grid (ground
-truth | network | |error| x 4) beside its run, and a grid of ``--grid-rows`` side by side to
-``docs/img/learning-R.png``.
+added (a kept result of another batch or rate than asked for is refused); the tables go to
+``benchmarks/results/learning-R.json`` (``python -m benchmarks.report`` renders them into
+docs/benchmarks.md), each row's picture grid (ground truth | network | |error| x 4) beside its
+run, and a grid of ``--grid-rows`` side by side to ``docs/img/learning-R.png``.
 """
 
 from __future__ import annotations
