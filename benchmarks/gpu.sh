@@ -21,8 +21,8 @@
 # result and grid are written under $OUT (a row finished is kept if a later one is cut off).
 # Each row's (peak) rate is scaled to BATCH by LR_SCALE (sqrt, the default: the rate times the
 # square root of BATCH over the row's own batch; linear; none): on the CPU at 64k passes, batch 32
-# instead of 8 lost 1.03 dB at the default's rate, 0.68 with sqrt and 0.23 with linear scaling
-# (the sb-batch32 rows); at batch 128 itself (500 steps on the CPU: benchmarks.learning --budget
+# instead of 8 lost the most at the default's rate and the least scaled linearly (the sb-batch32
+# rows, docs/benchmarks.md); at batch 128 itself (500 steps on the CPU: benchmarks.learning --budget
 # 64000 --batch 128 --lr-scale sqrt|linear --rows shaderball) sqrt learnt more than linear, whose
 # peak of 3.2e-2 trained but less well.
 # ROWS picks other rows of benchmarks.learning, each at batch BATCH: ROWS=sb-w80-b4 trains width

@@ -319,14 +319,13 @@ def main(argv: list[str] | None = None) -> None:
         + (", the split in its memory" if args.preload else
            ", one loader worker" if args.device == "cpu" else "")
         + ("" if args.batch is None else f", batch {args.batch} for every row")
-        + ("" if args.lr_scale == "none" else
-           f", each row's rate scaled by {'the square root of ' * (args.lr_scale == 'sqrt')}"
-           "the ratio of that batch to its own")
+        + {"none": "", "sqrt": ", each row's rate scaled by the square root of the ratio of "
+           "that batch to its own", "linear": ", each row's rate scaled by the ratio of that "
+           "batch to its own"}[args.lr_scale]
     )  # fmt: skip
     os.environ.setdefault("OMP_NUM_THREADS", str(len(os.sched_getaffinity(0))))
-    rates = {n: {} for n in names}
-    if args.lr_scale != "none":
-        rates = {n: {"lr": scaled_lr(n, store, args.batch, args.lr_scale)} for n in names}
+    rates = {n: {"lr": scaled_lr(n, store, args.batch, args.lr_scale)} if args.batch else {}
+             for n in names}  # fmt: skip
     for budget in args.budget or BUDGETS:
         try:
             results = [run_row(n, store, work, budget, **run_as, **rates[n]) for n in names]

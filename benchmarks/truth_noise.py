@@ -102,9 +102,9 @@ def main(argv: list[str] | None = None) -> None:
     second = again(store, samples, spp, work / "again.npz")
     tonemap = first.tonemap
     truth = tonemap(torch.from_numpy(np.stack([store.render(i) for i in samples])))
-    second = tonemap(torch.from_numpy(second))
-    var = mse(truth, second) / 2
-    noise_flip = float(flip(second, truth).mean())
+    shown = tonemap(torch.from_numpy(second))
+    var = mse(truth, shown) / 2
+    noise_flip = float(flip(shown, truth).mean())
     t = Table(
         f"The learning benchmark's truth and its noise: {store.layout.resolution}², "
         f"{args.budget:,} passes, held-out samples",
