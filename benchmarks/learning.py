@@ -22,7 +22,8 @@ loss adds VGG16 features, whose ImageNet weights these machines do not have: eve
 ``paper`` row trains with its L1 ablation.
 
 Every row's result is kept in its run folder (``--work``), so a run resumes and rows can be
-added (a kept result of another batch or rate than asked for is refused); the tables go to
+added (a kept run, finished or not, trained with other settings than a row now asks for, as
+when its recipe's defaults changed or ``--batch`` differs, is refused); the tables go to
 ``benchmarks/results/learning-R.json`` (``python -m benchmarks.report`` renders them into
 docs/benchmarks.md), each row's picture grid (ground truth | network | |error| x 4) beside its
 run, and a grid of ``--grid-rows`` side by side to ``docs/img/learning-R.png``.
@@ -160,7 +161,38 @@ def row_config(name: str, store: str, run: Path, budget: int, **run_as) -> Train
 
 
 class OtherSettings(ValueError):
-    """A row's kept result was trained at another batch or rate than asked for."""
+    """A row's kept run (finished or not) was trained with other settings than asked for."""
+
+
+#: the settings of how and where a run goes, not what it learns: a kept run may differ in them
+HOW_IT_RUNS = frozenset((
+    "store", "out", "resume", "device", "workers", "preload", "log_every", "checkpoint_every",
+    "keep", "log_samples", "val_every", "val_samples", "epochs",
+))  # fmt: skip
+
+
+def check_kept(run: Path, cfg: TrainConfig) -> None:
+    """Raise :class:`OtherSettings` naming each setting in which the run ``run`` kept (its
+    ``config.json``, written when it started) differs from ``cfg``, the one asked for now:
+    a row's name and budget alone do not pin what it trains (its recipe's defaults, ``--batch``
+    and ``--lr-scale`` change it)."""
+    path = run / runfiles.CONFIG
+    if not path.exists():
+        return
+    kept = TrainConfig.from_dict(json.loads(path.read_text())).to_dict()
+    asked = cfg.to_dict()
+    differ = [k for k in asked if k not in HOW_IT_RUNS and kept.get(k) != asked[k]]
+    if differ:
+        was = ", ".join(f"{k}={_shown(kept.get(k))}" for k in differ)
+        now = ", ".join(f"{k}={_shown(asked[k])}" for k in differ)
+        raise OtherSettings(f"{run} was trained with {was}, not {now}: give another --work "
+                            "or remove that run")  # fmt: skip
+
+
+def _shown(value) -> str:
+    if isinstance(value, list):
+        return ",".join(map(str, value)) or "none"
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 class Diverged(RuntimeError):
@@ -216,16 +248,9 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
     """Row ``name`` at ``budget`` passes: trained and scored once, then read from its file."""
     run = work / str(budget) / name
     done = run / "result.json"
-    cfg = row_config(name, store, run, budget, **run_as)
     if done.exists():
-        kept = json.loads(done.read_text())
-        was = (kept["batch"], kept.get("lr", cfg.lr))  # results kept before rates were: any
-        if was != (cfg.batch_size, cfg.lr):
-            raise OtherSettings(
-                f"{run} was trained at batch {was[0]} and rate {was[1]:g}, not "
-                f"{cfg.batch_size} and {cfg.lr:g}: give another --work"
-            )
-        return kept
+        return json.loads(done.read_text())
+    cfg = row_config(name, store, run, budget, **run_as)
     print(f"{name} ({budget:,} passes, {cfg.max_steps} steps of {cfg.batch_size})", flush=True)
     result = {"row": name, "budget": budget, "batch": cfg.batch_size, "lr": cfg.lr}
     try:
@@ -326,11 +351,15 @@ def main(argv: list[str] | None = None) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", str(len(os.sched_getaffinity(0))))
     rates = {n: {"lr": scaled_lr(n, store, args.batch, args.lr_scale)} if args.batch else {}
              for n in names}  # fmt: skip
-    for budget in args.budget or BUDGETS:
-        try:
-            results = [run_row(n, store, work, budget, **run_as, **rates[n]) for n in names]
-        except OtherSettings as exc:
-            p.error(str(exc))
+    budgets = args.budget or BUDGETS
+    try:  # every kept run, finished or not, before any row trains
+        for budget, n in ((b, n) for b in budgets for n in names):
+            run = work / str(budget) / n
+            check_kept(run, row_config(n, store, run, budget, **run_as, **rates[n]))
+    except OtherSettings as exc:
+        p.error(str(exc))
+    for budget in budgets:
+        results = [run_row(n, store, work, budget, **run_as, **rates[n]) for n in names]
         t = table(layout.resolution, budget, results, about)
         t.notes += args.note
         name = args.name or f"learning-{layout.resolution}-{budget // 1000}k"

@@ -338,7 +338,15 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     other = subprocess.run([*cmd, "--batch", "4", "--lr-scale", "linear"], capture_output=True,
                            text=True, timeout=600)  # fmt: skip
     assert other.returncode == 2 and " steps of " not in other.stdout
-    assert "paper was trained at batch 6 and rate 0.001, not 4 and 0.000666667" in other.stderr
+    assert ("paper was trained with batch_size=6, lr=0.001, max_steps=1, not batch_size=4, "
+            "lr=0.000666667, max_steps=2: give another --work") in other.stderr  # fmt: skip
+    done = tmp_path / "work" / "64" / "8" / "shaderball" / "result.json"
+    done.rename(done.with_suffix(".kept"))  # a run left unfinished is checked too
+    other = subprocess.run([*cmd, "--rows", "shaderball", "--batch", "4"], capture_output=True,
+                           text=True, timeout=600)  # fmt: skip
+    assert other.returncode == 2 and " steps of " not in other.stdout
+    assert "shaderball was trained with batch_size=8, max_steps=1, not batch_size=4" in other.stderr
+    done.with_suffix(".kept").rename(done)
 
     noise = [sys.executable, "-m", "benchmarks.truth_noise", *cmd[3:]]
     noise[noise.index("--name") + 1] = "n"
