@@ -100,6 +100,8 @@ ROWS = {
     "sb-batch32-lr4e-3": ("the default recipe at batch 32, the peak rate scaled with its root",
                           {"batch_size": 32, "lr": 4e-3}),
     "sb-lr5e-3": ("the default recipe with a peak rate of 5e-3", {"lr": 5e-3}),
+    "sb-glossy": ("the default recipe with the glossy cue (the sky and floor in the specular lobe)",
+                  {"inputs": "paint,geometry,light,normal,reflection,shadow,glossy,shade"}),
     "sb-dec2": ("the default recipe with two convolutions a decoder level",
                 {"decoder_convs": 2}),
     "sb-w48": ("the default recipe at width 48", {"width": 48}),

@@ -23,8 +23,8 @@ from render_jobs.specs import CAMERA, Sun
 from render_jobs.sun import sun_lamp
 from trainer.cues import CUES, cue_channels
 from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
-from trainer.scene import SceneInputs, sun_irradiance
-from trainer.targets import light_vector
+from trainer.scene import GLOSSY_LOSS, SKY_IRRADIANCE, SceneInputs, sun_irradiance
+from trainer.targets import Tonemap, light_vector
 from trainer.training.config import RECIPES, TrainConfig, parse_inputs, to_argv
 from trainer.training.losses import RendererLoss
 from trainer.training.msssim import ms_ssim, scale_weights
@@ -180,6 +180,57 @@ def test_cue_channels_painting_normals_and_shading():
     shade = out[:, -3:]
     assert shade[0, :, 1, 1].mean() > shade[1, :, 1, 1].mean() + 0.2  # lit from the front
     assert shade[0, :, 0, 0].tolist() == pytest.approx([0.5] * 3)  # the sky is not shaded
+
+
+def test_the_glossy_cue_sees_the_sky_above_the_horizon_and_the_floor_below():
+    up, down = (0.0, -0.6, 0.8), (0.0, -1.0, 0.0)  # reflect the camera's view up, and down
+    g = geometry_at({
+        (1, 1): ((0.0, -0.6, 0.8), up, "ball"),
+        (1, 2): ((0.0, -1.0, 0.0), down, "ball"),
+    })  # fmt: skip
+    scene = SceneInputs(("glossy",), 4, 1, 0.0, g)
+    maps = torch.zeros(3, 10, 4, 4)
+    maps[:, 7:10] = torch.tensor([0.5, 0.5, 1.0])[:, None, None]  # flat normal maps
+    maps[:2, 3:6] = 1.0  # a white mirror, then the same as rough as it gets; then no specular
+    maps[1, 6] = 1.0
+    sun = light((0.3, -0.5, 0.8))
+    glossy = scene(maps, sun.expand(3, -1))[:, 10:]
+    tonemap = Tonemap(exposure=0.0)
+    sky = tonemap(torch.full((1, 3, 1, 1), SKY_IRRADIANCE / np.pi))[0, :, 0, 0]
+    floor_albedo = g.materials["floor"]["diffuse"]
+    lit = sun_irradiance(sun)[0] * float(torch.nn.functional.normalize(sun[:, :3], dim=1)[0, 2])
+    floor = tonemap((floor_albedo / np.pi * (lit + SKY_IRRADIANCE))[None, :, None, None])
+    np.testing.assert_allclose(glossy[0, :, 1, 1], sky, rtol=1e-5)
+    np.testing.assert_allclose(glossy[0, :, 1, 2], floor[0, :, 0, 0], rtol=1e-5)
+    # a rough lobe loses light and sees both sides of the horizon
+    sky_l, floor_l = SKY_IRRADIANCE / np.pi, floor_albedo / np.pi * (float(lit[0]) + SKY_IRRADIANCE)
+    ends = [float(tonemap(torch.full((1, 3, 1, 1), (1 - GLOSSY_LOSS) * v))[0, 0, 0, 0])
+            for v in sorted((sky_l, floor_l))]  # fmt: skip
+    assert ends[0] < float(glossy[1, 0, 1, 1]) < ends[1]
+    assert torch.all(glossy[2] == 0) and torch.all(glossy[:, :, 0, 0] == 0)  # none; the sky
+
+
+@pytest.mark.parametrize("opset", [18, 11])
+def test_every_cue_exports_to_onnx_and_runs_there_as_in_torch(tmp_path, opset):
+    import onnxruntime
+
+    from trainer.rendering.export import save_onnx
+
+    g = geometry_at({
+        (1, 1): ((0.0, -0.6, 0.8), (0.0, -0.6, 0.8), "ball"),
+        (1, 2): ((0.0, -1.0, 0.0), (0, -1, 0), "ball"),
+        (2, 2): ((3.0, 0.0, -1.5), (0, 0, 1), "floor"),
+    })  # fmt: skip
+    scene = SceneInputs(ALL, 4, 1, 1.0, g).eval()
+    maps = torch.rand(2, 10, 4, 4, generator=torch.Generator().manual_seed(0))
+    sun = torch.cat([light((0.3, -0.5, 0.8)), light((0.0, 1.0, 0.3), 7.0)])
+    path = tmp_path / "cues.onnx"
+    save_onnx(scene, {"maps": maps, "light": sun}, "cues", path, opset=opset)
+    (got,) = onnxruntime.InferenceSession(str(path)).run(
+        ["cues"], {"maps": maps.numpy(), "light": sun.numpy()}
+    )
+    with torch.no_grad():
+        np.testing.assert_allclose(got, scene(maps, sun).numpy(), atol=1e-4)
 
 
 def _srgb(x: float) -> float:

@@ -11,12 +11,13 @@ CUES = {
     "normal": 3,
     "reflection": 3,
     "shadow": 1,
-    "shade": 3,
+    "glossy": 3,
+    "shade": 3,  # last: a residual network corrects the inputs' last three channels
 }
 #: the parts that carry the material's maps
 MATERIAL_PARTS = ("ball", "ring", "core")
 #: the cues that need the scene's geometry buffers
-NEEDS_GEOMETRY = ("paint", "geometry", "normal", "reflection", "shadow", "shade")
+NEEDS_GEOMETRY = ("paint", "geometry", "normal", "reflection", "shadow", "glossy", "shade")
 
 
 def check_cues(cues: tuple[str, ...]) -> None:

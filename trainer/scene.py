@@ -20,6 +20,12 @@ light and concatenates them after the maps:
   (z up): where a glossy surface reflects the sky and where the floor;
 - ``shadow`` (1): the sun's visibility, a ray from each pixel's surface towards the sun
   tested against the scene's analytic shadow casters (``render_jobs.geometry.occluders``);
+- ``glossy`` (3): the sky and the floor seen in the specular lobe: the specular reflectance
+  times GGX's directional albedo (Karis 2014's analytic fit) times the light that arrives
+  along the reflected view direction (the sky's or the sun-lit floor's, blended across the
+  horizon over a width that grows with roughness), tonemapped; 0 where the camera sees sky.
+  The ``shade`` cue's sky term is diffuse only, so without this cue a glossy material's
+  colour under the sky is left to the network;
 - ``shade`` (3): Cook-Torrance under the sun lamp (Lambert + GGX as the renderer's
   material, the lamp's strength and colour from ``render_jobs.sun``), times the sun's
   visibility, plus a hemispherical sky term, tonemapped as the targets are; mid-grey
@@ -51,6 +57,12 @@ SKY_IRRADIANCE = 0.25
 SKY_SHADE = 0.5
 #: the least GGX alpha shaded (a mirror's sun highlight would be a single huge pixel)
 MIN_ALPHA = 0.02
+#: GGX's directional albedo with no Fresnel term, ``1 - GLOSSY_LOSS * r`` at Blender roughness
+#: ``r`` (Karis 2014, "Physically Based Shading on Mobile": the analytic environment BRDF at
+#: F0 = 1, where its view-angle terms cancel)
+GLOSSY_LOSS = 0.55
+#: the narrowest blend of sky and floor across the horizon, in the reflected ray's z
+HORIZON_BLEND = 0.05
 #: how far a shadow ray starts off its surface, metres
 RAY_OFFSET = 2e-3
 
@@ -142,7 +154,7 @@ class SceneInputs(nn.Module):
         painted = self.painted(maps, cov)
         out = [painted if "paint" in self.cues else maps]
         sun = light[:, :3] @ self.camera_to_world  # camera space, (N, 3)
-        shaded = {"normal", "reflection", "shade"} & set(self.cues)
+        shaded = {"normal", "reflection", "glossy", "shade"} & set(self.cues)
         normal = self.shading_normal(maps, cov) if shaded else None
         vis = self.visibility(light[:, :3]) if {"shadow", "shade"} & set(self.cues) else None
         for cue in self.cues:
@@ -157,6 +169,8 @@ class SceneInputs(nn.Module):
                 out.append(self.reflection(normal))
             elif cue == "shadow":
                 out.append(vis)
+            elif cue == "glossy":
+                out.append(self.glossy(painted, normal, light))
             elif cue == "shade":
                 out.append(self.shade(painted, normal, vis, light))
         return torch.cat(out, 1)
@@ -222,6 +236,21 @@ class SceneInputs(nn.Module):
         for f in self.frustums:
             blocked = blocked | _frustum_blocks(origin, d, f)
         return (~blocked).float()
+
+    def glossy(self, painted, normal, light) -> torch.Tensor:
+        """``(N, 3, H, W)`` tonemapped radiance of the sky and the floor in the specular lobe."""
+        specular = srgb_decode(painted[:, 3:6].clamp(0, 1))
+        rough = painted[:, 6:7] if self.r == 1 else painted[:, 6:9].mean(1, keepdim=True)
+        up = self.reflection(normal)[:, 2:3]
+        sky_weight = (0.5 + 0.5 * up / (rough * rough).clamp_min(HORIZON_BLEND)).clamp(0, 1)
+        floor_albedo = self.part_materials[PARTS.index("floor"), 0]
+        sun_z = F.normalize(light[:, :3], dim=1)[:, 2:3].clamp_min(0)
+        floor = floor_albedo / math.pi * (sun_irradiance(light) * sun_z + SKY_IRRADIANCE)
+        sky = SKY_IRRADIANCE / math.pi
+        arriving = sky_weight * sky + (1 - sky_weight) * floor[:, :, None, None]
+        albedo = 1 - GLOSSY_LOSS * rough
+        radiance = specular * albedo * arriving * (1 - self.parts[PARTS.index("sky")])
+        return self.tonemap(radiance)
 
     def shade(self, painted, normal, vis, light) -> torch.Tensor:
         """``(N, 3, H, W)`` tonemapped radiance of the sun and a sky term on every surface."""
