@@ -25,7 +25,8 @@ light and concatenates them after the maps:
   along the reflected view direction (the sky's or the sun-lit floor's, blended across the
   horizon over a width that grows with roughness), tonemapped; 0 where the camera sees sky.
   The ``shade`` cue's sky term is diffuse only, so without this cue a glossy material's
-  colour under the sky is left to the network;
+  colour under the sky is left to the network (it learnt less per image pass with the cue
+  than without: docs/training.md; the default recipe leaves it out);
 - ``shade`` (3): Cook-Torrance under the sun lamp (Lambert + GGX as the renderer's
   material, the lamp's strength and colour from ``render_jobs.sun``), times the sun's
   visibility, plus a hemispherical sky term, tonemapped as the targets are; mid-grey
