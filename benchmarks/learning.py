@@ -94,6 +94,8 @@ ROWS = {
     "sb-l1": ("the default recipe with an L1 loss", {"loss": "l1"}),
     "sb-flip": ("the default recipe with L1 + LDR-FLIP", {"loss": "l1+flip"}),
     "sb-batch4": ("the default recipe at batch 4", {"batch_size": 4}),
+    "sb-batch4-lr1e-3": ("the default recipe at batch 4, the peak rate scaled with it",
+                         {"batch_size": 4, "lr": 1e-3}),
     "sb-batch32": ("the default recipe at batch 32", {"batch_size": 32}),
     "sb-batch32-lr8e-3": ("the default recipe at batch 32, the peak rate scaled with it",
                           {"batch_size": 32, "lr": 8e-3}),
