@@ -24,7 +24,7 @@ from render_jobs.sun import sun_lamp
 from trainer.cues import CUES, cue_channels
 from trainer.model import ModelConfig, NeuralRenderer, fold_batchnorm
 from trainer.scene import GLOSSY_LOSS, SKY_IRRADIANCE, SceneInputs, sun_irradiance
-from trainer.targets import Tonemap, light_vector
+from trainer.targets import Tonemap, light_vector, srgb_decode
 from trainer.training.config import RECIPES, TrainConfig, parse_inputs, to_argv
 from trainer.training.losses import RendererLoss
 from trainer.training.msssim import ms_ssim, scale_weights
@@ -208,6 +208,27 @@ def test_the_glossy_cue_sees_the_sky_above_the_horizon_and_the_floor_below():
             for v in sorted((sky_l, floor_l))]  # fmt: skip
     assert ends[0] < float(glossy[1, 0, 1, 1]) < ends[1]
     assert torch.all(glossy[2] == 0) and torch.all(glossy[:, :, 0, 0] == 0)  # none; the sky
+
+
+def test_the_ambient_cue_lights_a_surface_by_the_sky_above_and_the_lit_floor_below():
+    g = geometry_at({
+        (1, 1): ((0.0, 0.0, 1.0), (0, 0, 1), "ball"),  # faces the sky
+        (1, 2): ((0.0, 0.0, -1.0), (0, 0, -1), "ball"),  # faces the floor
+    })  # fmt: skip
+    scene = SceneInputs(("ambient",), 4, 1, 0.0, g)
+    maps = torch.zeros(1, 10, 4, 4)
+    maps[:, :3] = 0.8  # a light grey diffuse material with no specular, flat normal maps
+    maps[:, 7:10] = torch.tensor([0.5, 0.5, 1.0])[:, None, None]
+    sun = light((0.3, -0.5, 0.8))
+    ambient = scene(maps, sun)[0, 10:]
+    tonemap, albedo = Tonemap(exposure=0.0), srgb_decode(torch.tensor(0.8))
+    lit = sun_irradiance(sun)[0] * float(torch.nn.functional.normalize(sun[:, :3], dim=1)[0, 2])
+    floor = g.materials["floor"]["diffuse"] * (lit + SKY_IRRADIANCE)  # irradiance from below
+    want_up = tonemap(torch.full((1, 3, 1, 1), float(albedo) / np.pi * SKY_IRRADIANCE))
+    want_down = tonemap((albedo / np.pi * floor)[None, :, None, None])
+    np.testing.assert_allclose(ambient[:, 1, 1], want_up[0, :, 0, 0], rtol=1e-5)
+    np.testing.assert_allclose(ambient[:, 1, 2], want_down[0, :, 0, 0], rtol=1e-5)
+    assert torch.all(ambient[:, 0, 0] == 0)  # the sky
 
 
 @pytest.mark.parametrize("opset", [18, 11])

@@ -12,12 +12,15 @@ CUES = {
     "reflection": 3,
     "shadow": 1,
     "glossy": 3,
+    "ambient": 3,
     "shade": 3,  # last: a residual network corrects the inputs' last three channels
 }
 #: the parts that carry the material's maps
 MATERIAL_PARTS = ("ball", "ring", "core")
 #: the cues that need the scene's geometry buffers
-NEEDS_GEOMETRY = ("paint", "geometry", "normal", "reflection", "shadow", "glossy", "shade")
+NEEDS_GEOMETRY = (
+    "paint", "geometry", "normal", "reflection", "shadow", "glossy", "ambient", "shade",
+)  # fmt: skip
 
 
 def check_cues(cues: tuple[str, ...]) -> None:

@@ -27,6 +27,11 @@ light and concatenates them after the maps:
   The ``shade`` cue's sky term is diffuse only, so without this cue a glossy material's
   colour under the sky is left to the network (it learnt less per image pass with the cue
   than without: docs/training.md; the default recipe leaves it out);
+- ``ambient`` (3): every surface lit by the sky above and the sun-lit floor below (Lambert,
+  each in its share of the surface's hemisphere), plus the ``glossy`` term, tonemapped; 0
+  where the camera sees sky. Where the sun does not reach the ball, the ``shade`` cue's sky
+  term is a few times darker than the renders, this one close to them (the floor's light
+  is most of it); it learnt no more per image pass than the default's cues (docs/training.md);
 - ``shade`` (3): Cook-Torrance under the sun lamp (Lambert + GGX as the renderer's
   material, the lamp's strength and colour from ``render_jobs.sun``), times the sun's
   visibility, plus a hemispherical sky term, tonemapped as the targets are; mid-grey
@@ -155,7 +160,7 @@ class SceneInputs(nn.Module):
         painted = self.painted(maps, cov)
         out = [painted if "paint" in self.cues else maps]
         sun = light[:, :3] @ self.camera_to_world  # camera space, (N, 3)
-        shaded = {"normal", "reflection", "glossy", "shade"} & set(self.cues)
+        shaded = {"normal", "reflection", "glossy", "ambient", "shade"} & set(self.cues)
         normal = self.shading_normal(maps, cov) if shaded else None
         vis = self.visibility(light[:, :3]) if {"shadow", "shade"} & set(self.cues) else None
         for cue in self.cues:
@@ -172,6 +177,8 @@ class SceneInputs(nn.Module):
                 out.append(vis)
             elif cue == "glossy":
                 out.append(self.glossy(painted, normal, light))
+            elif cue == "ambient":
+                out.append(self.ambient(painted, normal, light))
             elif cue == "shade":
                 out.append(self.shade(painted, normal, vis, light))
         return torch.cat(out, 1)
@@ -240,18 +247,38 @@ class SceneInputs(nn.Module):
 
     def glossy(self, painted, normal, light) -> torch.Tensor:
         """``(N, 3, H, W)`` tonemapped radiance of the sky and the floor in the specular lobe."""
+        return self.tonemap(self._glossy(painted, normal, light))
+
+    def ambient(self, painted, normal, light) -> torch.Tensor:
+        """``(N, 3, H, W)`` tonemapped radiance of every surface lit by the sky and the sun-lit
+        floor, not by the sun: Lambert under the sky above and the floor below, plus
+        :meth:`glossy`'s term."""
+        diffuse = srgb_decode(painted[:, 0:3].clamp(0, 1))
+        up = (normal * self.camera_to_world[2][None, :, None, None]).sum(1, keepdim=True)
+        sky, floor = self._environment(light)
+        below = (1 - up) / 2  # the share of the surface's hemisphere under the horizon
+        irradiance = math.pi * (sky * (1 - below) + floor * below)
+        radiance = diffuse / math.pi * irradiance * (1 - self.parts[PARTS.index("sky")])
+        return self.tonemap(radiance + self._glossy(painted, normal, light))
+
+    def _environment(self, light) -> tuple[float, torch.Tensor]:
+        """The radiance of the sky (a uniform one of ``SKY_IRRADIANCE``) and, ``(N, 3, 1,
+        1)``, of the floor lit by the sun and that sky (Lambert, no shadows)."""
+        floor_albedo = self.part_materials[PARTS.index("floor"), 0]
+        sun_z = F.normalize(light[:, :3], dim=1)[:, 2:3].clamp_min(0)
+        floor = floor_albedo / math.pi * (sun_irradiance(light) * sun_z + SKY_IRRADIANCE)
+        return SKY_IRRADIANCE / math.pi, floor[:, :, None, None]
+
+    def _glossy(self, painted, normal, light) -> torch.Tensor:
+        """:meth:`glossy`'s linear radiance."""
         specular = srgb_decode(painted[:, 3:6].clamp(0, 1))
         rough = painted[:, 6:7] if self.r == 1 else painted[:, 6:9].mean(1, keepdim=True)
         up = self.reflection(normal)[:, 2:3]
         sky_weight = (0.5 + 0.5 * up / (rough * rough).clamp_min(HORIZON_BLEND)).clamp(0, 1)
-        floor_albedo = self.part_materials[PARTS.index("floor"), 0]
-        sun_z = F.normalize(light[:, :3], dim=1)[:, 2:3].clamp_min(0)
-        floor = floor_albedo / math.pi * (sun_irradiance(light) * sun_z + SKY_IRRADIANCE)
-        sky = SKY_IRRADIANCE / math.pi
-        arriving = sky_weight * sky + (1 - sky_weight) * floor[:, :, None, None]
+        sky, floor = self._environment(light)
+        arriving = sky_weight * sky + (1 - sky_weight) * floor
         albedo = 1 - GLOSSY_LOSS * rough
-        radiance = specular * albedo * arriving * (1 - self.parts[PARTS.index("sky")])
-        return self.tonemap(radiance)
+        return specular * albedo * arriving * (1 - self.parts[PARTS.index("sky")])
 
     def shade(self, painted, normal, vis, light) -> torch.Tensor:
         """``(N, 3, H, W)`` tonemapped radiance of the sun and a sky term on every surface."""
