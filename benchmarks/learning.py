@@ -45,7 +45,8 @@ from farm.driver import submit
 from farm.plan import JobConfig
 from storage.reader import Store
 from trainer import runfiles
-from trainer.training.config import TrainConfig, to_argv
+from trainer.cues import ordered
+from trainer.training.config import DEFAULT_RECIPE, RECIPES, TrainConfig, to_argv
 
 BIN = Path(sys.executable).parent
 CACHE = Path(__file__).resolve().parent / ".cache"
@@ -64,8 +65,13 @@ W32 = {"recipe": "paper", "loss": "l1", "width": 32}
 #: the default recipe's widest settings, each also run with another seed
 W64_B4 = {"width": 64, "batch_size": 4}
 W80_B4 = {"width": 80, "batch_size": 4}
-#: the default recipe's cues with the ambient cue added
-AMBIENT = {"inputs": "paint,geometry,light,normal,reflection,shadow,ambient,shade"}
+
+
+def with_cue(cue: str) -> dict:
+    """The settings of the default recipe's cues with ``cue`` added (in their order)."""
+    return {"inputs": ordered((*RECIPES[DEFAULT_RECIPE]["inputs"], cue))}
+
+
 #: name: (what it changes, TrainConfig settings)
 ROWS = {
     "paper": ("the paper's recipe: width 64, batch 6, Adam 1e-3 (the authors'), L1",
@@ -105,11 +111,11 @@ ROWS = {
                           {"batch_size": 32, "lr": 4e-3}),
     "sb-lr5e-3": ("the default recipe with a peak rate of 5e-3", {"lr": 5e-3}),
     "sb-glossy": ("the default recipe with the glossy cue (the sky and floor in the specular lobe)",
-                  {"inputs": "paint,geometry,light,normal,reflection,shadow,glossy,shade"}),
+                  with_cue("glossy")),
     "sb-ambient": ("the default recipe with the ambient cue (the sky's and the lit floor's light)",
-                   AMBIENT),
+                   with_cue("ambient")),
     "sb-ambient-b4": ("the default recipe with the ambient cue, at batch 4",
-                      AMBIENT | {"batch_size": 4}),
+                      with_cue("ambient") | {"batch_size": 4}),
     "sb-dec2": ("the default recipe with two convolutions a decoder level",
                 {"decoder_convs": 2}),
     "sb-w48": ("the default recipe at width 48", {"width": 48}),

@@ -254,12 +254,20 @@ class SceneInputs(nn.Module):
         floor, not by the sun: Lambert under the sky above and the floor below, plus
         :meth:`glossy`'s term."""
         diffuse = srgb_decode(painted[:, 0:3].clamp(0, 1))
-        up = (normal * self.camera_to_world[2][None, :, None, None]).sum(1, keepdim=True)
+        up = self._up(normal)
         sky, floor = self._environment(light)
         below = (1 - up) / 2  # the share of the surface's hemisphere under the horizon
         irradiance = math.pi * (sky * (1 - below) + floor * below)
         radiance = diffuse / math.pi * irradiance * (1 - self.parts[PARTS.index("sky")])
         return self.tonemap(radiance + self._glossy(painted, normal, light))
+
+    def _roughness(self, painted) -> torch.Tensor:
+        """``(N, 1, H, W)``: Blender's roughness ``r`` of the painted maps."""
+        return painted[:, 6:7] if self.r == 1 else painted[:, 6:9].mean(1, keepdim=True)
+
+    def _up(self, normal) -> torch.Tensor:
+        """``(N, 1, H, W)``: the world's z of camera-space ``normal``."""
+        return (normal * self.camera_to_world[2][None, :, None, None]).sum(1, keepdim=True)
 
     def _environment(self, light) -> tuple[float, torch.Tensor]:
         """The radiance of the sky (a uniform one of ``SKY_IRRADIANCE``) and, ``(N, 3, 1,
@@ -272,7 +280,7 @@ class SceneInputs(nn.Module):
     def _glossy(self, painted, normal, light) -> torch.Tensor:
         """:meth:`glossy`'s linear radiance."""
         specular = srgb_decode(painted[:, 3:6].clamp(0, 1))
-        rough = painted[:, 6:7] if self.r == 1 else painted[:, 6:9].mean(1, keepdim=True)
+        rough = self._roughness(painted)
         up = self.reflection(normal)[:, 2:3]
         sky_weight = (0.5 + 0.5 * up / (rough * rough).clamp_min(HORIZON_BLEND)).clamp(0, 1)
         sky, floor = self._environment(light)
@@ -282,10 +290,9 @@ class SceneInputs(nn.Module):
 
     def shade(self, painted, normal, vis, light) -> torch.Tensor:
         """``(N, 3, H, W)`` tonemapped radiance of the sun and a sky term on every surface."""
-        r = self.r
         diffuse = srgb_decode(painted[:, 0:3].clamp(0, 1))
         specular = srgb_decode(painted[:, 3:6].clamp(0, 1))
-        rough = painted[:, 6:7] if r == 1 else painted[:, 6:9].mean(1, keepdim=True)
+        rough = self._roughness(painted)
         sun_cam = F.normalize(light[:, :3] @ self.camera_to_world, dim=1)[:, :, None, None]
         view = -self.rays[None]
         nl = (normal * sun_cam).sum(1, keepdim=True)
@@ -299,7 +306,7 @@ class SceneInputs(nn.Module):
         g = _smith_g1(nl.clamp_min(1e-4), a2) * _smith_g1(nv, a2)
         brdf = diffuse / math.pi + specular * d * g / (4 * nl.clamp_min(1e-4) * nv)
         sun_rgb = sun_irradiance(light)[:, :, None, None]
-        up = (normal * self.camera_to_world[2][None, :, None, None]).sum(1, keepdim=True)
+        up = self._up(normal)
         sky = diffuse * SKY_IRRADIANCE / math.pi * (1 + up) / 2
         sky_cov = self.parts[PARTS.index("sky")]
         radiance = (brdf * sun_rgb * lit + sky) * (1 - sky_cov)
