@@ -39,7 +39,7 @@ from farm.cancel import cancel_requested, clear_cancel
 from farm.cluster import address_in_force, check_cluster, connect, ray_environment
 from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
-from farm.pool import WorkerPool
+from farm.pool import WorkerPool, read_errors
 from farm.scheduler import Scheduler
 from farm.state import JobState, now
 from farm.validate import pending, read_all
@@ -624,4 +624,7 @@ class Loop:
             if wid in self.pool.actors:
                 self.pool.remove(wid, "stopped")
         self.pool.stop_all(wait_s=2 if interrupted else 15)
+        deadline = time.monotonic() + 2  # the runs left (dropped, or killed just now): read
+        for ref, f in self.refs.items():
+            read_errors((ref, f.arrays), wait_s=max(0.0, deadline - time.monotonic()))
         self.state.save(self.job.store.backend)

@@ -18,6 +18,8 @@ from render_jobs.specs import RenderSettings
 
 #: worker statuses that may be given tasks
 USABLE = ("idle", "busy")
+#: how long :func:`read_errors` waits for each result of an ended task
+READ_ERRORS_WAIT_S = 10.0
 
 
 class WorkerPool:
@@ -122,17 +124,9 @@ class WorkerPool:
         render = self.actors[wid].render.options(num_returns=2)
         return tuple(render.remote(task, timeout_s, ticket))
 
-    def read_errors(self, *refs) -> None:
-        """Read the errors that ``refs``, the results of one ended task in order, hold, so
-        that Ray does not print each, traceback and all, as an "Unhandled error" when its ref
-        goes: the job reports failures its own way. Stops at the first that holds a value: a
-        task whose report is fine succeeded, and its arrays (megabytes) never come here."""
-        for ref in refs:
-            try:
-                self.ray.get(ref, timeout=0)
-            except Exception:  # noqa: BLE001 - an error, now read
-                continue
-            return
+    def read_errors(self, *refs) -> int:
+        """:func:`read_errors` of ``refs``, the results of one ended task in order."""
+        return read_errors(refs)
 
     def revoke(self, wid: str, ticket: int) -> None:
         """Have worker ``wid`` skip the task of ``ticket`` when it comes to it
@@ -173,3 +167,28 @@ class WorkerPool:
         if wid in self.actors:
             self.remove(wid, status)
             self.start()
+
+
+def read_errors(refs, wait_s: float = READ_ERRORS_WAIT_S) -> int:
+    """Read the errors that ``refs``, the results of one ended task in order, hold, so that
+    Ray does not print each, traceback and all, as an "Unhandled error" when its ref goes: the
+    job reports failures its own way. Returns how many it read. Stops at the first that holds
+    a value: a task whose report is fine succeeded, and its arrays (megabytes) never come here.
+
+    Each is waited for (up to ``wait_s``), not only asked for: a failed task's results reach
+    this process one after another, so the arrays' copy of the error may land just after the
+    report's, which is what woke the driver."""
+    import ray
+    from ray.exceptions import GetTimeoutError
+
+    read = 0
+    for ref in refs:
+        try:
+            ray.get(ref, timeout=wait_s)
+        except GetTimeoutError:  # not come (a killed worker's, say): left
+            return read
+        except Exception:  # noqa: BLE001 - an error, now read
+            read += 1
+            continue
+        return read
+    return read

@@ -343,6 +343,51 @@ def test_an_idle_worker_is_released_at_the_tail_and_a_retry_after_it_still_runs(
     assert sorted(w["status"] for w in st["workers"].values()) == ["released", "stopped"]
 
 
+READ_ERRORS = """
+import gc, sys, time
+import ray
+from farm.pool import read_errors
+
+ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, _node_ip_address="127.0.0.1")
+
+
+@ray.remote
+class Late:
+    def fail(self, tag):
+        time.sleep(1)
+        raise ValueError(tag)
+
+    def succeed(self):
+        return {"ok": True}, b"arrays"
+
+
+late = Late.remote()
+control = late.fail.options(num_returns=2).remote("left-unread")
+ray.wait([control[0]], fetch_local=False)
+with __import__("contextlib").suppress(Exception):
+    ray.get(control[0])  # the report read, the arrays' copy of the error left
+failed = late.fail.options(num_returns=2).remote("read")
+print("failed", read_errors(failed), flush=True)  # neither has come yet: both waited for
+print("fine", read_errors(late.succeed.options(num_returns=2).remote()), flush=True)
+del control, failed
+gc.collect()
+time.sleep(3)
+"""
+
+
+def test_every_result_of_a_failed_task_is_read_even_before_it_comes():
+    """A failed task's report and arrays reach the driver one after another; reading the
+    errors waits for each, so no copy of the error is left for Ray to print as unhandled.
+    The control, whose arrays are left unread, shows that Ray prints what was left."""
+    env = {**os.environ, "RAY_AUTH_MODE": "disabled"}
+    r = subprocess.run([sys.executable, "-c", READ_ERRORS], env=env, capture_output=True,
+                       text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "failed 2\nfine 0\n" in r.stdout
+    assert "ValueError: left-unread" in r.stderr  # the control: Ray prints an unread error
+    assert "ValueError: read" not in r.stderr
+
+
 def test_two_submits_at_once_one_renders_the_other_refuses(tmp_path):
     out = tmp_path / "set.zarr"
     args = ["submit", "-m", "uniform:4", *TINY, "--workers", "1", "-o", out]
