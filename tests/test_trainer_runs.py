@@ -618,6 +618,25 @@ def test_a_cosine_resumed_for_more_epochs_goes_on_from_its_rate(tiny_store, tmp_
         train(config(tiny_store, run, epochs=5, resume=True, **kw))
 
 
+def test_a_resumed_run_keeps_its_network_and_says_where_it_goes_on_otherwise(
+    tiny_store, tmp_path, capsys
+):
+    """Resumed with other network options (or after the recipe's defaults changed), a run
+    goes on with the network of its checkpoint, and its checkpoints say so; the start lines
+    name the network kept and a batch other than its own."""
+    run = tmp_path / "r"
+    kw = {"lr_schedule": "constant", "recipe": "shaderball", "width": 8}
+    train(config(tiny_store, run, max_steps=2, inputs="light", batch_size=4, **kw))
+    capsys.readouterr()
+    train(config(tiny_store, run, max_steps=4, resume=True, inputs="light,shadow", **kw))
+    out = capsys.readouterr().out
+    kept = checkpoint.load(run)
+    assert kept["step"] == 4 and kept["model_config"]["inputs"] == ["light"]
+    assert kept["config"]["inputs"] == ["light"] and kept["config"]["batch_size"] == 2
+    assert "its network goes on as it was trained (--inputs light)" in out
+    assert "resuming at batch 2; " in out and "trained at 4 (--batch-size 4 goes on" in out
+
+
 def test_a_run_fine_tunes_another_runs_network_on_more_stores(tiny_store, tmp_path, capsys):
     """``--init``: the network (the average's weights, shape, here with two convolutions a
     decoder level, tonemap) of another run, a fresh optimizer at step 0, the first run's

@@ -327,12 +327,15 @@ def to_argv(cfg: TrainConfig) -> list[str]:
         if f.name == "store":
             for s in value:
                 argv += ["--store", s]
-        elif value == recipe.get(f.name, f.default):
-            continue
-        elif f.name == "inputs":
-            argv += ["--inputs", ",".join(value) or "none"]
-        elif isinstance(value, bool):
-            argv.append(_flag(f.name) if value else "--no-" + f.name.replace("_", "-"))
-        else:
-            argv += [_flag(f.name), str(value)]
+        elif value != recipe.get(f.name, f.default):
+            argv += option_argv(f.name, value)
     return argv
+
+
+def option_argv(name: str, value) -> list[str]:
+    """The ``trainer train`` arguments that set field ``name`` to ``value``."""
+    if name == "inputs":
+        return ["--inputs", ",".join(value) or "none"]
+    if isinstance(value, bool):
+        return [_flag(name) if value else "--no-" + name.replace("_", "-")]
+    return [_flag(name), str(value)]

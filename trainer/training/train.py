@@ -47,7 +47,7 @@ from trainer.model import ModelConfig
 from trainer.networks import build_model
 from trainer.targets import Tonemap, model_inputs
 from trainer.training import faults, finetune, shm
-from trainer.training.config import TrainConfig, absolute_store
+from trainer.training.config import NETWORK, TrainConfig, absolute_store, option_argv
 from trainer.training.data import Catalog, Preloaded, ShardStream, loader, steps_left
 from trainer.training.ema import WeightAverage
 from trainer.training.losses import RendererLoss, load_vgg, mixed_term
@@ -133,7 +133,7 @@ def preflight(cfg: TrainConfig, ranks: int = 1) -> None:
     state, found = _resume_state(cfg, Path(cfg.out))
     init = finetune.init_state(cfg, state)
     cpu = Rank(0, 1, torch.device("cpu"), False)
-    cfg = finetune.with_network(cfg, init)
+    cfg = finetune.with_network(cfg, state if state is not None else init)
     catalog = _catalog(cfg, cpu, state, found, init)
     if state is None and init is None:
         _geometry(cfg, catalog)
@@ -167,7 +167,8 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     out = Path(cfg.out)
     state, found = _resume_state(cfg, out)
     init = finetune.init_state(cfg, state)
-    cfg = finetune.with_network(cfg, init)
+    asked = cfg  # a resumed run goes on with its network, whatever the options say now
+    cfg = finetune.with_network(cfg, state if state is not None else init)
     vgg = _vgg(cfg)  # fails before any work
     catalog = _catalog(cfg, rk, state, found, init)
     if not rk.distributed:  # under torchrun, `trainer launch` checked for every rank at once
@@ -187,7 +188,8 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         reader = Preloaded(stream, rk.device)
     else:
         reader = loader(stream, cfg.workers, pin_memory=rk.cuda)
-    notes = _start_notes(cfg, t, catalog, init, found, was)
+    notes = _resumed_notes(asked, cfg, state, found)
+    notes += _start_notes(cfg, t, catalog, init, found, was)
     log = _start_log(cfg, rk, out, t, catalog, len(split), notes)
     started = time.perf_counter()
     images = _epochs(cfg, rk, t, stream, reader, log, out)
@@ -273,6 +275,25 @@ def _check_epoch_whole(cfg: TrainConfig, t: Trainee, trained: int, mine: int) ->
             f"the data loader ended epoch {t.epoch + 1} after {trained} of this rank's "
             f"{mine} batches: a worker lost the others ({WORKER_ERROR})"
         )
+
+
+def _resumed_notes(asked: TrainConfig, cfg: TrainConfig, state, found) -> list[str]:
+    """Lines on a resumed run that goes on otherwise than ``asked`` says: with the network
+    it was trained with (its options, or the recipe's defaults, may have changed since), or
+    at another batch than its own."""
+    if state is None:
+        return []
+    notes = []
+    kept = TrainConfig.from_dict(state["config"])
+    if differ := [n for n in NETWORK if getattr(asked, n) != getattr(cfg, n)]:
+        said = " ".join(a for n in differ for a in option_argv(n, getattr(cfg, n)))
+        notes.append(f"resuming from {found}: its network goes on as it was trained ({said})")
+    if kept.batch_size != cfg.batch_size:
+        notes.append(
+            f"resuming at batch {cfg.batch_size}; {found} trained at {kept.batch_size} "
+            f"(--batch-size {kept.batch_size} goes on as it was)"
+        )
+    return notes
 
 
 def _start_notes(cfg: TrainConfig, t: Trainee, catalog: Catalog, init, found, was) -> list[str]:
