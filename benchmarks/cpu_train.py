@@ -1,16 +1,17 @@
 """Training steps on the CPU in each form the trainer could run them: memory format, Inductor,
 torch's threads.
 
-    python -m benchmarks.cpu_train [--resolution 128] [--batch 8] [--rounds 5] [--forms ...]
+    python -m benchmarks.cpu_train [--resolution 128] [--batch N] [--rounds 5] [--forms ...]
 
-For the default recipe's network and the paper's at ``--resolution``, one training step
-(forward, the recipe's loss, backward, Adam) on a fixed synthetic batch, in each form:
+For the default recipe's network and the paper's at ``--resolution``, each at its own batch
+(or every one at ``--batch``), one training step (forward, the recipe's loss, backward,
+Adam) on a fixed synthetic batch, in each form:
 contiguous (NCHW, the trainer's CPU format), channels_last (its CUDA format),
 ``torch.compile`` (Inductor's C++ backend), and with one torch thread instead of all. Every
 form is timed in turn, round after round (``--rounds``), so a drift of the machine falls on
 all alike; the table has the median images a second, each form's ratio to its recipe's
-contiguous one and to the paper's recipe's. The scene buffers are zeros (a step's time does
-not depend on them).
+contiguous one and to the paper's recipe's (at their own batches, what a training run of
+each goes at). The scene buffers are zeros (a step's time does not depend on them).
 """
 
 from __future__ import annotations
@@ -72,7 +73,8 @@ def timed(step, threads: int | None, repeat: int = 2) -> float:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--resolution", type=int, default=128)
-    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--batch", type=int, default=None,
+                    help="every recipe's batch (default: each recipe's own)")  # fmt: skip
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument(
         "--forms",
@@ -80,7 +82,7 @@ def main(argv: list[str] | None = None) -> None:
         help="comma-separated forms to time (contiguous always runs: the ratios' base)",
     )
     args = ap.parse_args(argv)
-    if args.rounds < 1 or args.batch < 1:
+    if args.rounds < 1 or (args.batch is not None and args.batch < 1):
         ap.error("--rounds and --batch must be at least 1")
     forms = ["contiguous"] + [f for f in args.forms.split(",") if f and f != "contiguous"]
     unknown = [f for f in forms if f not in FORMS]
@@ -88,32 +90,35 @@ def main(argv: list[str] | None = None) -> None:
         ap.error(f"unknown form {unknown[0]!r} (forms: {', '.join(FORMS)})")
     table = Table(
         title=f"Training steps on the CPU (`python -m benchmarks.cpu_train`): "
-        f"{args.resolution}², batch {args.batch}",
-        columns=["recipe", "form", "images/s", "x contiguous", "x paper"],
+        f"{args.resolution}², " + (f"batch {args.batch}" if args.batch else "each recipe's batch"),
+        columns=["recipe", "batch", "form", "images/s", "x contiguous", "x paper"],
         notes=[f"medians of {args.rounds} rounds, every recipe and form timed in turn; a "
                f"synthetic batch, torch's {torch.get_num_threads()} threads unless one; x paper: "
                "against the paper's recipe, contiguous"],
     )  # fmt: skip
-    steps = {}
+    steps, batches = {}, {}
     for recipe in RECIPES:
         train = TrainConfig(store=("-",), recipe=recipe)
+        batches[recipe] = batch = args.batch or train.batch_size
         cfg = network_config(train, args.resolution)
         loss = "l1" if train.loss == "l1+vgg" else train.loss  # no VGG16 weights here
         for name in forms:
             fmt, compiled, threads = FORMS[name]
-            steps[recipe, name] = (step_fn(cfg, loss, args.batch, fmt, compiled), threads)
+            steps[recipe, name] = (step_fn(cfg, loss, batch, fmt, compiled), threads)
             for _ in range(2):  # warm-up (and the compile)
                 timed(*steps[recipe, name], repeat=1)
     times = {key: [] for key in steps}
     for _ in range(args.rounds):
         for key, (step, threads) in steps.items():
             times[key].append(timed(step, threads))
-    median = {key: statistics.median(ts) for key, ts in times.items()}
-    for (recipe, name), t in median.items():
-        base, paper = median[recipe, "contiguous"], median["paper", "contiguous"]
-        row = [recipe, name, round(args.batch / t, 1), round(base / t, 2), round(paper / t, 2)]
+    rate = {(r, n): batches[r] / statistics.median(ts) for (r, n), ts in times.items()}
+    for (recipe, name), images in rate.items():
+        base, paper = rate[recipe, "contiguous"], rate["paper", "contiguous"]
+        row = [recipe, batches[recipe], name, round(images, 1), round(images / base, 2),
+               round(images / paper, 2)]  # fmt: skip
         table.rows.append(row)
-        print(f"{recipe:<12}{name:<16}{row[2]:8.1f} images/s  {row[3]:5.2f}x  {row[4]:5.2f}x paper")
+        print(f"{recipe:<12}{batches[recipe]:>3}  {name:<16}{row[3]:8.1f} images/s  "
+              f"{row[4]:5.2f}x  {row[5]:5.2f}x paper")  # fmt: skip
     save(f"cpu-train-{args.resolution}", table)
 
 

@@ -14,7 +14,7 @@
 #     bash benchmarks/gpu.sh viewer [ARGS]  # benchmarks.viewer --device cuda (carry benchmarks/.cache
 #                                           # too: the screen UV layouts `make bench-viewer` renders)
 #
-# learn: benchmarks.learning's rows shaderball and paper, at batch BATCH (128: the paper's 6
+# learn: benchmarks.learning's rows default and paper, at batch BATCH (128: the paper's 6
 # would take hours of steps) for PASSES image passes (1470000, the paper's 30 epochs of 49,000
 # images), the split held in the GPU's memory (trainer train --preload), each row scored on its
 # held-out materials; the table (learning-gpu.json), the side-by-side grid and each run's
@@ -24,7 +24,8 @@
 # instead of 8 lost the most at the default's rate and the least scaled linearly (the sb-batch32
 # rows, docs/benchmarks.md); at batch 128 itself (500 steps on the CPU: benchmarks.learning --budget
 # 64000 --batch 128 --lr-scale sqrt|linear --rows shaderball) sqrt learnt more than linear, whose
-# peak of 3.2e-2 trained but less well.
+# peak of 3.2e-2 trained but less well. The default's batch of 4 gives it a peak of 1.13e-2 at
+# batch 128, which trained as well there as the shaderball row's 8e-3 (--rows sb-ambient-b4).
 # ROWS picks other rows of benchmarks.learning, each at batch BATCH: ROWS=sb-w80-b4 trains width
 # 80, the width that learnt the most per pass on the CPU (its time on a GPU is not measured: run
 # it after the two default rows, not in their call).
@@ -88,7 +89,7 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
         viewer) "$py" -m benchmarks.viewer --device cuda "$@" ;;
         learn) "$py" -m benchmarks.learning --store "$store" --device "${DEVICE:-cuda}" --preload \
                    --budget "${PASSES:-1470000}" --batch "${BATCH:-128}" \
-                   --lr-scale "${LR_SCALE:-sqrt}" --rows "${ROWS:-shaderball,paper}" \
+                   --lr-scale "${LR_SCALE:-sqrt}" --rows "${ROWS:-default,paper}" \
                    --work "$out/learning" --results "$out" --name learning-gpu ;;
     esac
 } 2>&1 | tee -a "$log"

@@ -2,8 +2,8 @@
 passes on one store, scored on the same held-out materials.
 
     make bench-learning     # 64² at 16k and 64k passes, the truth's noise, 128² at 8k (hours)
-    python -m benchmarks.learning --resolution 128 --budget 8000 --rows onecycle,shaderball
-    python -m benchmarks.learning --budget 800 --rows paper,shaderball --work /tmp/l  # a look
+    python -m benchmarks.learning --resolution 128 --budget 8000 --rows onecycle,default
+    python -m benchmarks.learning --budget 800 --rows paper,default --work /tmp/l  # a look
 
 The store (``benchmarks/.cache/learning-R.zarr``) is rendered once by the farm: 100 uniform
 and 100 procedural materials x 5 suns at 32 spp; the trainer's seeded split holds 15 % of the
@@ -16,8 +16,9 @@ operating system's accounting, so a busy machine changes it little, unless two r
 threads contend for the same cores: waiting threads spin and count).
 
 The rows change one thing at a time from the paper's recipe (``--recipe paper``) at width 32
-(the ``w32`` row; the ``paper`` rows keep the paper's width 64), then the project's default
-recipe (``shaderball``) and rows that change one thing from it (``sb-*``). The paper's
+(the ``w32`` row; the ``paper`` rows keep the paper's width 64), then the project's recipe
+with its cues and batch pinned (``shaderball``, :data:`SB`) and rows that change one thing
+from it (``sb-*``); ``default`` is whatever ``trainer train`` trains by default. The paper's
 loss adds VGG16 features, whose ImageNet weights these machines do not have: every
 ``paper`` row trains with its L1 ablation.
 
@@ -46,7 +47,7 @@ from farm.plan import JobConfig
 from storage.reader import Store
 from trainer import runfiles
 from trainer.cues import ordered
-from trainer.training.config import DEFAULT_RECIPE, RECIPES, TrainConfig, to_argv
+from trainer.training.config import TrainConfig, to_argv
 
 BIN = Path(sys.executable).parent
 CACHE = Path(__file__).resolve().parent / ".cache"
@@ -62,14 +63,23 @@ GRID_COUNT = 6
 
 #: the width-32 paper recipe the one-change rows start from (L1: no VGG16 weights here)
 W32 = {"recipe": "paper", "loss": "l1", "width": 32}
-#: the default recipe's widest settings, each also run with another seed
+#: the sb-* rows' widest settings, each also run with another seed
 W64_B4 = {"width": 64, "batch_size": 4}
 W80_B4 = {"width": 80, "batch_size": 4}
 
 
+#: the base of the ``sb-*`` rows (the ``shaderball`` row): the shaderball recipe with seven cues
+#: (no ``ambient``) at batch 8, pinned here so that those rows keep what they trained when the
+#: recipe's defaults move
+SB = {
+    "recipe": "shaderball", "batch_size": 8,
+    "inputs": ("paint", "geometry", "light", "normal", "reflection", "shadow", "shade"),
+}  # fmt: skip
+
+
 def with_cue(cue: str) -> dict:
-    """The settings of the default recipe's cues with ``cue`` added (in their order)."""
-    return {"inputs": ordered((*RECIPES[DEFAULT_RECIPE]["inputs"], cue))}
+    """The ``sb-*`` base with ``cue`` added to its cues (in their order)."""
+    return SB | {"inputs": ordered((*SB["inputs"], cue))}
 
 
 #: name: (what it changes, TrainConfig settings)
@@ -97,39 +107,49 @@ ROWS = {
     "residual": ("output: a correction of the analytic shading",
                  W32 | {"inputs": "shade", "residual": True}),
     "head": ("a full-resolution head", W32 | {"head": True}),
-    "shaderball": ("the default recipe (trainer.training.config.RECIPES)", {}),
-    "sb-head": ("the default recipe with a full-resolution head", {"head": True}),
-    "sb-l1": ("the default recipe with an L1 loss", {"loss": "l1"}),
-    "sb-flip": ("the default recipe with L1 + LDR-FLIP", {"loss": "l1+flip"}),
-    "sb-batch4": ("the default recipe at batch 4", {"batch_size": 4}),
-    "sb-batch4-lr1e-3": ("the default recipe at batch 4, the peak rate scaled with it",
-                         {"batch_size": 4, "lr": 1e-3}),
-    "sb-batch32": ("the default recipe at batch 32", {"batch_size": 32}),
-    "sb-batch32-lr8e-3": ("the default recipe at batch 32, the peak rate scaled with it",
-                          {"batch_size": 32, "lr": 8e-3}),
-    "sb-batch32-lr4e-3": ("the default recipe at batch 32, the peak rate scaled with its root",
-                          {"batch_size": 32, "lr": 4e-3}),
-    "sb-lr5e-3": ("the default recipe with a peak rate of 5e-3", {"lr": 5e-3}),
-    "sb-glossy": ("the default recipe with the glossy cue (the sky and floor in the specular lobe)",
+    "default": ("the default recipe (trainer.training.config.RECIPES; the sb-ambient-b4 row's "
+                "settings)", {}),
+    "shaderball": ("the shaderball recipe with seven cues (no ambient) at batch 8: the sb-* "
+                   "rows change one thing from it", SB),
+    "sb-head": ("the shaderball row with a full-resolution head", SB | {"head": True}),
+    "sb-l1": ("the shaderball row with an L1 loss", SB | {"loss": "l1"}),
+    "sb-flip": ("the shaderball row with L1 + LDR-FLIP", SB | {"loss": "l1+flip"}),
+    "sb-batch4": ("the shaderball row at batch 4", SB | {"batch_size": 4}),
+    "sb-batch4-lr1e-3": ("the shaderball row at batch 4, the peak rate scaled with it",
+                         SB | {"batch_size": 4, "lr": 1e-3}),
+    "sb-batch32": ("the shaderball row at batch 32", SB | {"batch_size": 32}),
+    "sb-batch32-lr8e-3": ("the shaderball row at batch 32, the peak rate scaled with it",
+                          SB | {"batch_size": 32, "lr": 8e-3}),
+    "sb-batch32-lr4e-3": ("the shaderball row at batch 32, the peak rate scaled with its root",
+                          SB | {"batch_size": 32, "lr": 4e-3}),
+    "sb-lr5e-3": ("the shaderball row with a peak rate of 5e-3", SB | {"lr": 5e-3}),
+    "sb-glossy": ("the shaderball row with the glossy cue (the sky and floor in the specular "
+                  "lobe)",
                   with_cue("glossy")),
-    "sb-ambient": ("the default recipe with the ambient cue (the sky's and the lit floor's light)",
+    "sb-ambient": ("the shaderball row with the ambient cue (the sky's and the lit floor's "
+                   "light)",
                    with_cue("ambient")),
-    "sb-ambient-b4": ("the default recipe with the ambient cue, at batch 4",
+    "sb-ambient-b4": ("the shaderball row with the ambient cue, at batch 4",
                       with_cue("ambient") | {"batch_size": 4}),
-    "sb-dec2": ("the default recipe with two convolutions a decoder level",
-                {"decoder_convs": 2}),
-    "sb-w48": ("the default recipe at width 48", {"width": 48}),
-    "sb-w48-b4": ("the default recipe at width 48 and batch 4", {"width": 48, "batch_size": 4}),
-    "sb-w48-b2": ("the default recipe at width 48 and batch 2", {"width": 48, "batch_size": 2}),
-    "sb-w64-b4": ("the default recipe at width 64 and batch 4", W64_B4),
-    "sb-w64-b2": ("the default recipe at width 64 and batch 2", {"width": 64, "batch_size": 2}),
-    "sb-w80-b4": ("the default recipe at width 80 and batch 4", W80_B4),
+    "sb-ambient-b2": ("the shaderball row with the ambient cue, at batch 2",
+                      with_cue("ambient") | {"batch_size": 2}),
+    "sb-dec2": ("the shaderball row with two convolutions a decoder level",
+                SB | {"decoder_convs": 2}),
+    "sb-w48": ("the shaderball row at width 48", SB | {"width": 48}),
+    "sb-w48-b4": ("the shaderball row at width 48 and batch 4",
+                  SB | {"width": 48, "batch_size": 4}),
+    "sb-w48-b2": ("the shaderball row at width 48 and batch 2",
+                  SB | {"width": 48, "batch_size": 2}),
+    "sb-w64-b4": ("the shaderball row at width 64 and batch 4", SB | W64_B4),
+    "sb-w64-b2": ("the shaderball row at width 64 and batch 2",
+                  SB | {"width": 64, "batch_size": 2}),
+    "sb-w80-b4": ("the shaderball row at width 80 and batch 4", SB | W80_B4),
     "sb-w64-b4-seed1": ("the sb-w64-b4 row with another seed: how far it moves by chance",
-                        W64_B4 | {"seed": 1}),
+                        SB | W64_B4 | {"seed": 1}),
     "sb-w80-b4-seed1": ("the sb-w80-b4 row with another seed: how far it moves by chance",
-                        W80_B4 | {"seed": 1}),
-    "sb-seed1": ("the default recipe with another seed: how far a row moves by chance",
-                 {"seed": 1}),
+                        SB | W80_B4 | {"seed": 1}),
+    "sb-seed1": ("the shaderball row with another seed: how far a row moves by chance",
+                 SB | {"seed": 1}),
 }  # fmt: skip
 
 
@@ -327,7 +347,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--resolution", type=int, default=64)
     p.add_argument("--budget", type=int, action="append", help="image passes (repeatable)")
     p.add_argument("--rows", default=None, help="comma-separated rows (default: every row)")
-    p.add_argument("--grid-rows", default="paper,shaderball")
+    p.add_argument("--grid-rows", default="paper,default")
     p.add_argument("--work", type=Path, default=CACHE / "learning")
     p.add_argument("--results", type=Path, default=None, help="folder of the result tables")
     p.add_argument("--store", default=None,

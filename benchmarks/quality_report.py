@@ -35,6 +35,7 @@ from benchmarks.store_renders import render_again, store_settings
 from render_jobs.tonemap import to_uint8
 from storage.backend import write_atomic
 from storage.reader import Store
+from trainer import runfiles
 from trainer.intervals import (
     LEVEL,
     MIN_MATERIALS,
@@ -339,6 +340,16 @@ def markdown(plan, scale_name: str, rows: dict, img: Path, doc: Path) -> str:
     return "\n".join(out)
 
 
+def _recipe(plan) -> str:
+    """What the ``unet`` run trained, from its config: the settings a recipe gives."""
+    c = json.loads((plan.run("unet") / runfiles.CONFIG).read_text())
+    cues = ", ".join(c["inputs"]) or "none"
+    average = f"a weight average ({c['ema_decay']})" if c["ema_decay"] else "no weight average"
+    return (f"`--recipe {c['recipe']}`, scene cues {cues}, {c['norm']} norm, loss "
+            f"{c['loss']}, batch {c['batch_size']}, Adam {c['lr']:g} {c['lr_schedule']}, "
+            f"{average}")  # fmt: skip
+
+
 def _data_section(plan, rows: dict, cpu: str) -> list[str]:
     s = plan.scale
     train, test = Store(plan.store("train")), Store(plan.store("test"))
@@ -356,9 +367,8 @@ def _data_section(plan, rows: dict, cpu: str) -> list[str]:
         f"{test.layout.num_samples} renders, same settings, seed 1;",
         f"- fixed-sun sets (Zsolnai-Fehér has no light input): {s.fixed[0]} / {s.fixed[1]} "
         "uniform materials under one sun (direction (-0.4, -0.6, 0.7), turbidity 3);",
-        f"- training, one CPU process ({cpu}): ours is the default recipe (`trainer "
-        "launch`'s defaults: scene cues, GroupNorm, L1 + MS-SSIM, "
-        "one-cycle, a weight average; docs/training.md), "
+        f"- training, one CPU process ({cpu}): ours is the shaderball recipe (docs/training.md) "
+        f"with the settings its run recorded: {_recipe(plan)}; "
         f"{s.epochs} epochs on the training set and {s.fixed_epochs} on the fixed-sun set; "
         f"the paper's U-Net (`--recipe paper` with its L1 loss: Adam lr 1e-3, batch {s.batch}, "
         f"U-Nets {s.width} channels wide at their first level"
@@ -380,7 +390,7 @@ def _data_section(plan, rows: dict, cpu: str) -> list[str]:
 def _random_suns_section(s, rows: dict, cpu: str) -> list[str]:
     """The main table, the findings, the scores per material kind and the differences."""
     named = [
-        ("ours (the default recipe)", "unet"),
+        ("ours (the shaderball recipe)", "unet"),
         ("the paper's U-Net (L1)", "paper"),
         ("the paper's U-Net without skips (L1)", "unet-noskips"),
     ]

@@ -293,6 +293,28 @@ def test_worker_start_times_blender_in_a_ray_actor_both_ways_and_refuses_bad_cou
     assert bad.returncode == 2 and "--starts 0: must be at least 1" in bad.stderr
 
 
+def test_the_learning_rows_pin_their_base_and_the_default_row_follows_the_trainer():
+    """The ``shaderball`` row and every ``sb-*`` row keep their cues and batch whatever the
+    recipe's defaults are; ``default`` trains what ``trainer train`` trains by default, which is
+    ``sb-ambient-b4``'s settings."""
+    from benchmarks.learning import ROWS, SB
+    from trainer.training.config import RECIPES, TrainConfig
+
+    def config(name):
+        return TrainConfig(store=("s",), **ROWS[name][1]).to_dict()
+
+    assert config("default") == TrainConfig(store=("s",)).to_dict() == config("sb-ambient-b4")
+    base = config("shaderball")
+    assert (base["batch_size"], tuple(base["inputs"])) == (8, SB["inputs"])
+    assert base != config("default") and "ambient" in RECIPES["shaderball"]["inputs"]
+    for name in (n for n in ROWS if n.startswith("sb-")):
+        row = config(name)
+        changed = {k for k in row if row[k] != base[k]}
+        assert changed and changed <= {"batch_size", "lr", "inputs", "head", "loss", "width",
+                                       "decoder_convs", "seed"}, (name, changed)  # fmt: skip
+        assert set(row["inputs"]) >= set(base["inputs"]), name  # a cue added at most
+
+
 def test_the_learning_rows_rates_scale_with_the_batch_given_to_every_row(capsys):
     """``--lr-scale``: each row's own rate times the batch ratio or its root; refused in one
     line without ``--batch``, before any store is read or rendered."""
@@ -388,8 +410,8 @@ def test_the_cpu_training_forms_are_timed_in_turn_and_tabled(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     table = load(tmp_path / "cpu-train-16.json")
     forms = ["contiguous", "channels_last", "one thread"]
-    assert [(row[0], row[1]) for row in table.rows] == [
-        (recipe, form) for recipe in ("shaderball", "paper") for form in forms
+    assert [(row[0], row[1], row[2]) for row in table.rows] == [
+        (recipe, 2, form) for recipe in ("shaderball", "paper") for form in forms
     ]
-    assert all(row[2] > 0 for row in table.rows) and table.rows[0][3] == 1.0
-    assert table.rows[3][4] == 1.0  # the paper's contiguous step: the unit across recipes
+    assert all(row[3] > 0 for row in table.rows) and table.rows[0][4] == 1.0
+    assert table.rows[3][5] == 1.0  # the paper's contiguous step: the unit across recipes

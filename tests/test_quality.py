@@ -168,7 +168,7 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
         cluster.shutdown()
     text = doc.read_text()
     scale = SCALES["tiny"]
-    labels = ["ours (the default recipe)", "the paper's U-Net (L1)",
+    labels = ["ours (the shaderball recipe)", "the paper's U-Net (L1)",
               "the paper's U-Net without skips (L1)", "Zsolnai-Fehér",
               "ours, trained on the same fixed-sun data", "Cycles 2 spp + OIDN",
               f"ground truth vs {scale.reference_spp} spp, all"]  # fmt: skip
@@ -179,6 +179,7 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
         numbers = [float(v) for v in re.findall(r"\| (-?\d+\.\d+)", row)]
         assert numbers and all(np.isfinite(numbers)), row
     assert "VGG16" in text and "held-out materials only" in text
+    assert "with the settings its run recorded: `--recipe shaderball`, scene cues paint," in text
     assert "U-Nets 16 channels wide at their first level (the paper: 64)" in text
     for run, width in (("unet", 8), ("paper", 16), ("unet-noskips", 16), ("unet-fixed", 8)):
         config = json.loads((work / "runs" / run / "config.json").read_text())
@@ -188,14 +189,13 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
     # comparison with ours its paired difference with an interval; 2 fixed-sun test
     # materials: differences without intervals
     main, fixed = text.split("## Fixed sun")
-    for label in ["ours (the default recipe)", *(f"Cycles {spp} spp" for spp in scale.baselines)]:
+    ours = "ours (the shaderball recipe)"
+    for label in [ours, *(f"Cycles {spp} spp" for spp in scale.baselines)]:
         row = next(line for line in main.splitlines() if line.startswith(f"| {label} |"))
         psnr, ci = row.split(" | ")[1:3]
         low, high = map(float, re.fullmatch(r"\[(-?\d+\.\d\d), (-?\d+\.\d\d)\]", ci).groups())
         assert low <= float(psnr) <= high, row
-    assert (
-        "| ours (the default recipe) less | PSNR dB | SSIM | FLIP | ours higher PSNR on |" in main
-    )
+    assert f"| {ours} less | PSNR dB | SSIM | FLIP | ours higher PSNR on |" in main
     number, ci = r"[+-]\d+\.\d+", r"[+-]\d+\.\d+ \[[+-]\d+\.\d+, [+-]\d+\.\d+\]"
     for label in [
         "the paper's U-Net without skips \\(L1\\)",

@@ -35,13 +35,22 @@ NETWORK = (
 #: field given its own value keeps it
 RECIPES = {
     "shaderball": {
-        "batch_size": 8,
+        "batch_size": 4,
         "lr": 2e-3,
         "lr_schedule": "onecycle",
         "warmup_steps": 0,
         "loss": "l1+msssim",
         "width": 32,
-        "inputs": ("paint", "geometry", "light", "normal", "reflection", "shadow", "shade"),
+        "inputs": (
+            "paint",
+            "geometry",
+            "light",
+            "normal",
+            "reflection",
+            "shadow",
+            "ambient",
+            "shade",
+        ),
         "norm": "group",
         "head": False,
         "residual": False,
