@@ -356,7 +356,7 @@ class Loop:
         w.last_seen, w.current = now(), None
         if ref in self.recalled:  # skipped (revoked) or run all the same: dropped
             self.recalled.discard(ref)
-            self.pool.read_errors(ref, arrays)
+            read_errors((ref, arrays))
             self.sched.dropped(wid, m, now())
             self.settle(wid)
             return
@@ -372,7 +372,7 @@ class Loop:
             self.failed(wid, m, error)
             return
         except RayTaskError as exc:
-            self.pool.read_errors(arrays)
+            read_errors((arrays,))
             cause = exc.cause if getattr(exc, "cause", None) else exc
             self.failed(wid, m, f"{type(cause).__name__}: {str(cause).splitlines()[0]}")
             self.settle(wid)

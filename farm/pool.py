@@ -124,10 +124,6 @@ class WorkerPool:
         render = self.actors[wid].render.options(num_returns=2)
         return tuple(render.remote(task, timeout_s, ticket))
 
-    def read_errors(self, *refs) -> int:
-        """:func:`read_errors` of ``refs``, the results of one ended task in order."""
-        return read_errors(refs)
-
     def revoke(self, wid: str, ticket: int) -> None:
         """Have worker ``wid`` skip the task of ``ticket`` when it comes to it
         (:class:`farm.actor.Revocable`; answered while the worker renders). Not

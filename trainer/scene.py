@@ -163,6 +163,8 @@ class SceneInputs(nn.Module):
         sun = light[:, :3] @ self.camera_to_world  # camera space, (N, 3)
         shaded = {"normal", "reflection", "glossy", "ambient", "shade"} & set(self.cues)
         normal = self.shading_normal(maps, cov) if shaded else None
+        mirrored = {"reflection", "glossy", "ambient"} & set(self.cues)
+        refl = self.reflection(normal) if mirrored else None  # once, for every cue that uses it
         vis = self.visibility(light[:, :3]) if {"shadow", "shade"} & set(self.cues) else None
         for cue in self.cues:
             if cue == "geometry":
@@ -173,13 +175,13 @@ class SceneInputs(nn.Module):
             elif cue == "normal":
                 out.append(normal)
             elif cue == "reflection":
-                out.append(self.reflection(normal))
+                out.append(refl)
             elif cue == "shadow":
                 out.append(vis)
             elif cue == "glossy":
-                out.append(self.glossy(painted, normal, light))
+                out.append(self.glossy(painted, refl, light))
             elif cue == "ambient":
-                out.append(self.ambient(painted, normal, light))
+                out.append(self.ambient(painted, normal, refl, light))
             elif cue == "shade":
                 out.append(self.shade(painted, normal, vis, light))
         return torch.cat(out, 1)
@@ -246,11 +248,12 @@ class SceneInputs(nn.Module):
             blocked = blocked | _frustum_blocks(origin, d, f)
         return (~blocked).float()
 
-    def glossy(self, painted, normal, light) -> torch.Tensor:
-        """``(N, 3, H, W)`` tonemapped radiance of the sky and the floor in the specular lobe."""
-        return self.tonemap(self._glossy(painted, normal, light))
+    def glossy(self, painted, refl, light) -> torch.Tensor:
+        """``(N, 3, H, W)`` tonemapped radiance of the sky and the floor in the specular lobe,
+        along the world-space reflection ``refl``."""
+        return self.tonemap(self._glossy(painted, refl, *self._environment(light)))
 
-    def ambient(self, painted, normal, light) -> torch.Tensor:
+    def ambient(self, painted, normal, refl, light) -> torch.Tensor:
         """``(N, 3, H, W)`` tonemapped radiance of every surface lit by the sky and the sun-lit
         floor, not by the sun: Lambert under the sky above and the floor below, plus
         :meth:`glossy`'s term."""
@@ -260,7 +263,7 @@ class SceneInputs(nn.Module):
         below = (1 - up) / 2  # the share of the surface's hemisphere under the horizon
         irradiance = math.pi * (sky * (1 - below) + floor * below)
         radiance = diffuse / math.pi * irradiance * (1 - self.parts[PARTS.index("sky")])
-        return self.tonemap(radiance + self._glossy(painted, normal, light))
+        return self.tonemap(radiance + self._glossy(painted, refl, sky, floor))
 
     def _roughness(self, painted) -> torch.Tensor:
         """``(N, 1, H, W)``: Blender's roughness ``r`` of the painted maps."""
@@ -278,13 +281,13 @@ class SceneInputs(nn.Module):
         floor = floor_albedo / math.pi * (sun_irradiance(light) * sun_z + SKY_IRRADIANCE)
         return SKY_IRRADIANCE / math.pi, floor[:, :, None, None]
 
-    def _glossy(self, painted, normal, light) -> torch.Tensor:
-        """:meth:`glossy`'s linear radiance."""
+    def _glossy(self, painted, refl, sky, floor) -> torch.Tensor:
+        """:meth:`glossy`'s linear radiance, under the ``sky`` and ``floor`` of
+        :meth:`_environment`."""
         specular = srgb_decode(painted[:, 3:6].clamp(0, 1))
         rough = self._roughness(painted)
-        up = self.reflection(normal)[:, 2:3]
+        up = refl[:, 2:3]
         sky_weight = (0.5 + 0.5 * up / (rough * rough).clamp_min(HORIZON_BLEND)).clamp(0, 1)
-        sky, floor = self._environment(light)
         arriving = sky_weight * sky + (1 - sky_weight) * floor
         albedo = 1 - GLOSSY_LOSS * rough
         return specular * albedo * arriving * (1 - self.parts[PARTS.index("sky")])

@@ -283,15 +283,14 @@ def _resumed_notes(asked: TrainConfig, cfg: TrainConfig, state, found) -> list[s
     at another batch than its own."""
     if state is None:
         return []
-    notes = []
-    kept = TrainConfig.from_dict(state["config"])
+    notes, batch = [], state["config"]["batch_size"]
     if differ := [n for n in NETWORK if getattr(asked, n) != getattr(cfg, n)]:
         said = " ".join(a for n in differ for a in option_argv(n, getattr(cfg, n)))
         notes.append(f"resuming from {found}: its network goes on as it was trained ({said})")
-    if kept.batch_size != cfg.batch_size:
+    if batch != cfg.batch_size:
         notes.append(
-            f"resuming at batch {cfg.batch_size}; {found} trained at {kept.batch_size} "
-            f"(--batch-size {kept.batch_size} goes on as it was)"
+            f"resuming at batch {cfg.batch_size}; {found} trained at {batch} "
+            f"(--batch-size {batch} goes on as it was)"
         )
     return notes
 
