@@ -6,12 +6,12 @@ torch's threads.
 For the default recipe's network and the paper's at ``--resolution``, each at its own batch
 (or every one at ``--batch``), one training step (forward, the recipe's loss, backward,
 Adam) on a fixed synthetic batch, in each form:
-contiguous (NCHW, the trainer's CPU format), channels_last (its CUDA format),
-``torch.compile`` (Inductor's C++ backend), and with one torch thread instead of all. Every
-form is timed in turn, round after round (``--rounds``), so a drift of the machine falls on
-all alike; the table has the median images a second, each form's ratio to its recipe's
-contiguous one and to the paper's recipe's (at their own batches, what a training run of
-each goes at). The scene buffers are zeros (a step's time does not depend on them).
+channels_last (the trainer's format on every device: ``trainer.training.trainee.Rank.fmt``),
+contiguous (NCHW), ``torch.compile`` (Inductor's C++ backend) and one torch thread instead
+of all (both channels_last). Every form is timed in turn, round after round (``--rounds``),
+so a drift of the machine falls on all alike; the table has the median images a second, each
+form's ratio to its recipe's channels_last one and to the paper's recipe's (at their own
+batches, what a training run of each goes at). The scene buffers are zeros (a step's time does not depend on them).
 """
 
 from __future__ import annotations
@@ -49,12 +49,14 @@ def step_fn(cfg: ModelConfig, loss: str, batch: int, fmt, compiled: bool):
     return step
 
 
+#: name: (memory format, compiled, torch threads or None for all); the first is the trainer's
 FORMS = {
-    "contiguous": (torch.contiguous_format, False, None),
     "channels_last": (torch.channels_last, False, None),
-    "torch.compile": (torch.contiguous_format, True, None),
-    "one thread": (torch.contiguous_format, False, 1),
+    "contiguous": (torch.contiguous_format, False, None),
+    "torch.compile": (torch.channels_last, True, None),
+    "one thread": (torch.channels_last, False, 1),
 }
+BASE = next(iter(FORMS))
 
 
 def timed(step, threads: int | None, repeat: int = 2) -> float:
@@ -79,22 +81,22 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--forms",
         default=",".join(FORMS),
-        help="comma-separated forms to time (contiguous always runs: the ratios' base)",
+        help=f"comma-separated forms to time ({BASE} always runs: the ratios' base)",
     )
     args = ap.parse_args(argv)
     if args.rounds < 1 or (args.batch is not None and args.batch < 1):
         ap.error("--rounds and --batch must be at least 1")
-    forms = ["contiguous"] + [f for f in args.forms.split(",") if f and f != "contiguous"]
+    forms = [BASE] + [f for f in args.forms.split(",") if f and f != BASE]
     unknown = [f for f in forms if f not in FORMS]
     if unknown:
         ap.error(f"unknown form {unknown[0]!r} (forms: {', '.join(FORMS)})")
     table = Table(
         title=f"Training steps on the CPU (`python -m benchmarks.cpu_train`): "
         f"{args.resolution}², " + (f"batch {args.batch}" if args.batch else "each recipe's batch"),
-        columns=["recipe", "batch", "form", "images/s", "x contiguous", "x paper"],
+        columns=["recipe", "batch", "form", "images/s", f"x {BASE}", "x paper"],
         notes=[f"medians of {args.rounds} rounds, every recipe and form timed in turn; a "
                f"synthetic batch, torch's {torch.get_num_threads()} threads unless one; x paper: "
-               "against the paper's recipe, contiguous"],
+               f"against the paper's recipe, {BASE}"],
     )  # fmt: skip
     steps, batches = {}, {}
     for recipe in RECIPES:
@@ -113,7 +115,7 @@ def main(argv: list[str] | None = None) -> None:
             times[key].append(timed(step, threads))
     rate = {(r, n): batches[r] / statistics.median(ts) for (r, n), ts in times.items()}
     for (recipe, name), images in rate.items():
-        base, paper = rate[recipe, "contiguous"], rate["paper", "contiguous"]
+        base, paper = rate[recipe, BASE], rate["paper", BASE]
         row = [recipe, batches[recipe], name, round(images, 1), round(images / base, 2),
                round(images / paper, 2)]  # fmt: skip
         table.rows.append(row)

@@ -155,7 +155,9 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
     assert all(r["samples"] == result["samples"] for r in val)
     assert val[-1]["psnr"] == pytest.approx(result["overall"]["psnr"], abs=2e-3)
     assert val[-1]["ssim"] == pytest.approx(result["overall"]["ssim"], abs=2e-4)
-    assert val[-1]["psnr"] > val[0]["psnr"]
+    # each epoch's score is of that epoch's weights (whether 54 steps of a width-16 network
+    # raise the held-out score of 6 samples is chance: test_training_lowers_the_loss)
+    assert len({r["psnr"] for r in val}) == len(val)
     # val.png: the last score's first 3 samples, drawn as eval's grid (64² enlarged to 256²)
     assert Image.open(trained / "val.png").size == (3 * 256, 24 + 3 * 256)
     # checkpoints/best.pt: the checkpoint of the best score, whatever the rotation dropped

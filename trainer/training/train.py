@@ -13,7 +13,8 @@ same loop as one DDP job: NCCL on GPUs, gloo on CPU. Examples::
     trainer launch --store out/demo.zarr --epochs 1 --out runs/demo               # torchrun
     trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint head:29400 ...    # 2 nodes x 8
 
-On CUDA: bf16 autocast and channels_last (the U-Net and VGG16), cudnn.benchmark. Each rank
+The network (and VGG16) trains in channels_last on every device; on CUDA also with bf16
+autocast and cudnn.benchmark. Each rank
 reads its own disjoint part of every epoch (``trainer.training.data``); ranks that end an epoch one
 batch short are handled by DDP's ``join``.
 Rank 0 writes the progress bar, ``RUNDIR/log.jsonl``, TensorBoard events under ``RUNDIR/tb``
