@@ -48,7 +48,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from render_jobs import sun as sunlib
@@ -154,7 +153,7 @@ class SceneInputs(nn.Module):
     def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         """The cues in float32, outside any autocast; returned in ``maps``' dtype."""
         with torch.autocast(maps.device.type, enabled=False):
-            return self._cues(maps.float(), light.float()).to(maps.dtype)
+            return self._cues(maps.float().contiguous(), light.float()).to(maps.dtype)
 
     def _cues(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
         cov = self.material_coverage()
@@ -166,6 +165,8 @@ class SceneInputs(nn.Module):
         mirrored = {"reflection", "glossy", "ambient"} & set(self.cues)
         refl = self.reflection(normal) if mirrored else None  # once, for every cue that uses it
         vis = self.visibility(light[:, :3]) if {"shadow", "shade"} & set(self.cues) else None
+        lit = {"glossy", "ambient", "shade"} & set(self.cues)
+        surface = self.surface(painted) if lit else None  # decoded once for every such cue
         for cue in self.cues:
             if cue == "geometry":
                 out.append(self.geometry_planes().expand(maps.shape[0], -1, -1, -1))
@@ -179,11 +180,11 @@ class SceneInputs(nn.Module):
             elif cue == "shadow":
                 out.append(vis)
             elif cue == "glossy":
-                out.append(self.glossy(painted, refl, light))
+                out.append(self.glossy(surface, refl, light))
             elif cue == "ambient":
-                out.append(self.ambient(painted, normal, refl, light))
+                out.append(self.ambient(surface, normal, refl, light))
             elif cue == "shade":
-                out.append(self.shade(painted, normal, vis, light))
+                out.append(self.shade(surface, normal, vis, light))
         return torch.cat(out, 1)
 
     # ---- the cues ---------------------------------------------------------------------------
@@ -225,7 +226,7 @@ class SceneInputs(nn.Module):
         tb = (self.tangent, self.bitangent, self.normal)
         mapped = sum(nmap[:, i : i + 1] * v[None] for i, v in enumerate(tb))
         n = cov * mapped + (1 - cov) * self.normal[None]
-        return F.normalize(n, dim=1, eps=1e-6)
+        return _unit(n, 1, eps=1e-6)
 
     def reflection(self, normal: torch.Tensor) -> torch.Tensor:
         """``(N, 3, H, W)``: the view direction mirrored about ``normal``, in world space."""
@@ -237,10 +238,10 @@ class SceneInputs(nn.Module):
         """``(N, 1, H, W)``: 1 where the sun is seen from the pixel's surface, else 0."""
         surface = (1 - self.parts[PARTS.index("sky")]).clamp_min(1e-6)
         p_cam = self.position / surface  # the surface's own position
-        n_world = F.normalize(_mix(self.camera_to_world, self.normal), dim=0)
+        n_world = _unit(_mix(self.camera_to_world, self.normal), 0)
         p = _mix(self.camera_to_world, p_cam) + self.camera_location[:, None, None]
         origin = (p + RAY_OFFSET * n_world)[None]  # (1, 3, H, W)
-        d = F.normalize(sun_world, dim=1)[:, :, None, None]  # (N, 3, 1, 1)
+        d = _unit(sun_world, 1)[:, :, None, None]  # (N, 3, 1, 1)
         blocked = torch.zeros((d.shape[0], 1, *p.shape[-2:]), dtype=torch.bool, device=p.device)
         for s in self.spheres:
             blocked = blocked | _sphere_blocks(origin, d, s)
@@ -248,26 +249,29 @@ class SceneInputs(nn.Module):
             blocked = blocked | _frustum_blocks(origin, d, f)
         return (~blocked).float()
 
-    def glossy(self, painted, refl, light) -> torch.Tensor:
+    def surface(self, painted) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The painted maps' linear diffuse and specular ``(N, 3, H, W)`` and Blender's
+        roughness ``r`` ``(N, 1, H, W)``: what the shading cues read."""
+        colours = srgb_decode(painted[:, 0:6].clamp(0, 1))
+        rough = painted[:, 6:7] if self.r == 1 else painted[:, 6:9].mean(1, keepdim=True)
+        return colours[:, 0:3], colours[:, 3:6], rough
+
+    def glossy(self, surface, refl, light) -> torch.Tensor:
         """``(N, 3, H, W)`` tonemapped radiance of the sky and the floor in the specular lobe,
         along the world-space reflection ``refl``."""
-        return self.tonemap(self._glossy(painted, refl, *self._environment(light)))
+        return self.tonemap(self._glossy(surface, refl, *self._environment(light)))
 
-    def ambient(self, painted, normal, refl, light) -> torch.Tensor:
+    def ambient(self, surface, normal, refl, light) -> torch.Tensor:
         """``(N, 3, H, W)`` tonemapped radiance of every surface lit by the sky and the sun-lit
         floor, not by the sun: Lambert under the sky above and the floor below, plus
         :meth:`glossy`'s term."""
-        diffuse = srgb_decode(painted[:, 0:3].clamp(0, 1))
+        diffuse = surface[0]
         up = self._up(normal)
         sky, floor = self._environment(light)
         below = (1 - up) / 2  # the share of the surface's hemisphere under the horizon
         irradiance = math.pi * (sky * (1 - below) + floor * below)
         radiance = diffuse / math.pi * irradiance * (1 - self.parts[PARTS.index("sky")])
-        return self.tonemap(radiance + self._glossy(painted, refl, sky, floor))
-
-    def _roughness(self, painted) -> torch.Tensor:
-        """``(N, 1, H, W)``: Blender's roughness ``r`` of the painted maps."""
-        return painted[:, 6:7] if self.r == 1 else painted[:, 6:9].mean(1, keepdim=True)
+        return self.tonemap(radiance + self._glossy(surface, refl, sky, floor))
 
     def _up(self, normal) -> torch.Tensor:
         """``(N, 1, H, W)``: the world's z of camera-space ``normal``."""
@@ -277,32 +281,29 @@ class SceneInputs(nn.Module):
         """The radiance of the sky (a uniform one of ``SKY_IRRADIANCE``) and, ``(N, 3, 1,
         1)``, of the floor lit by the sun and that sky (Lambert, no shadows)."""
         floor_albedo = self.part_materials[PARTS.index("floor"), 0]
-        sun_z = F.normalize(light[:, :3], dim=1)[:, 2:3].clamp_min(0)
+        sun_z = _unit(light[:, :3], 1)[:, 2:3].clamp_min(0)
         floor = floor_albedo / math.pi * (sun_irradiance(light) * sun_z + SKY_IRRADIANCE)
         return SKY_IRRADIANCE / math.pi, floor[:, :, None, None]
 
-    def _glossy(self, painted, refl, sky, floor) -> torch.Tensor:
+    def _glossy(self, surface, refl, sky, floor) -> torch.Tensor:
         """:meth:`glossy`'s linear radiance, under the ``sky`` and ``floor`` of
         :meth:`_environment`."""
-        specular = srgb_decode(painted[:, 3:6].clamp(0, 1))
-        rough = self._roughness(painted)
+        _, specular, rough = surface
         up = refl[:, 2:3]
         sky_weight = (0.5 + 0.5 * up / (rough * rough).clamp_min(HORIZON_BLEND)).clamp(0, 1)
         arriving = sky_weight * sky + (1 - sky_weight) * floor
         albedo = 1 - GLOSSY_LOSS * rough
         return specular * albedo * arriving * (1 - self.parts[PARTS.index("sky")])
 
-    def shade(self, painted, normal, vis, light) -> torch.Tensor:
+    def shade(self, surface, normal, vis, light) -> torch.Tensor:
         """``(N, 3, H, W)`` tonemapped radiance of the sun and a sky term on every surface."""
-        diffuse = srgb_decode(painted[:, 0:3].clamp(0, 1))
-        specular = srgb_decode(painted[:, 3:6].clamp(0, 1))
-        rough = self._roughness(painted)
-        sun_cam = F.normalize(light[:, :3] @ self.camera_to_world, dim=1)[:, :, None, None]
+        diffuse, specular, rough = surface
+        sun_cam = _unit(light[:, :3] @ self.camera_to_world, 1)[:, :, None, None]
         view = -self.rays[None]
         nl = (normal * sun_cam).sum(1, keepdim=True)
         nv = (normal * view).sum(1, keepdim=True).clamp_min(1e-4)
         lit = nl.clamp_min(0) * vis
-        h = F.normalize(sun_cam + view, dim=1)
+        h = _unit(sun_cam + view, 1)
         nh = (normal * h).sum(1, keepdim=True).clamp(0, 1)
         alpha = (rough * rough).clamp_min(MIN_ALPHA)
         a2 = alpha * alpha
@@ -315,6 +316,13 @@ class SceneInputs(nn.Module):
         sky_cov = self.parts[PARTS.index("sky")]
         radiance = (brdf * sun_rgb * lit + sky) * (1 - sky_cov)
         return self.tonemap(radiance) + SKY_SHADE * sky_cov  # the sky itself is not shaded
+
+
+def _unit(x: torch.Tensor, dim: int, eps: float = 1e-12) -> torch.Tensor:
+    """``x`` scaled to unit length along ``dim``, as ``F.normalize(x, dim=dim, eps=eps)``.
+    Written out: torch's vector norm reduces a dimension other than the innermost about a
+    hundred times slower on the CPU than this sum of squares."""
+    return x / (x * x).sum(dim, keepdim=True).sqrt().clamp_min(eps)
 
 
 def _mix(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -379,7 +387,7 @@ def _frustum_blocks(o: torch.Tensor, d: torch.Tensor, f: torch.Tensor) -> torch.
 def sun_irradiance(light: torch.Tensor) -> torch.Tensor:
     """``(N, 3)`` linear RGB irradiance of the sun lamp for light vectors ``(N, 4)``: the
     torch form of :func:`render_jobs.sun.sun_lamp` (strength x colour)."""
-    z = F.normalize(light[:, :3], dim=1)[:, 2].clamp(-1, 1)
+    z = _unit(light[:, :3], 1)[:, 2].clamp(-1, 1)
     zenith = 90.0 - torch.asin(z) * (180.0 / math.pi)  # degrees
     cosz = torch.cos(zenith * (math.pi / 180.0))
     mass = 1.0 / (cosz + 0.50572 * (96.07995 - zenith).clamp_min(1e-3) ** -1.6364)
