@@ -639,6 +639,34 @@ def test_a_resumed_run_keeps_its_network_and_says_where_it_goes_on_otherwise(
     assert "resuming at batch 2; " in out and "trained at 4 (--batch-size 4 goes on" in out
 
 
+def test_weight_decay_shrinks_every_weight_apart_from_the_step_and_a_resume_takes_its_own(
+    tiny_store, tmp_path
+):
+    """``--weight-decay D`` is decoupled (AdamW): after one step at rate r from the same
+    start, a run with it differs from one without by exactly ``r x D x`` the initial weights;
+    a run resumed with another decay steps with that one."""
+    kw = {"lr": 1e-3, "lr_schedule": "constant", "max_steps": 1, "workers": 0}
+    train(config(tiny_store, tmp_path / "plain", **kw))
+    train(config(tiny_store, tmp_path / "decayed", weight_decay=100.0, **kw))
+    plain, decayed = checkpoint.load(tmp_path / "plain"), checkpoint.load(tmp_path / "decayed")
+    torch.manual_seed(0)  # the runs' initial weights
+    fresh = NeuralRenderer(ModelConfig(**plain["model_config"]))
+    start = fresh.state_dict()
+    for k, _ in fresh.named_parameters():  # p·(1 - r·D) - update against p - update: the update is the same
+        shrunk = plain["model"][k] - decayed["model"][k]
+        assert torch.allclose(shrunk, 1e-3 * 100.0 * start[k], rtol=1e-4, atol=1e-6), k
+    assert decayed["optimizer"]["param_groups"][0]["weight_decay"] == 100.0
+    train(config(tiny_store, tmp_path / "decayed", weight_decay=0.5, resume=True,
+                 **(kw | {"max_steps": 2})))  # fmt: skip
+    assert checkpoint.load(tmp_path / "decayed")["optimizer"]["param_groups"][0][
+        "weight_decay"
+    ] == 0.5
+    r = CliRunner().invoke(trainer_main, ["train", "--store", tiny_store.url, "--out",
+                                          str(tmp_path / "bad"), "--weight-decay", "-1"])  # fmt: skip
+    assert r.exit_code != 0 and "--weight-decay must be at least 0, not -1" in r.output
+    assert not (tmp_path / "bad").exists()
+
+
 def test_a_run_fine_tunes_another_runs_network_on_more_stores(tiny_store, tmp_path, capsys):
     """``--init``: the network (the average's weights, shape, here with two convolutions a
     decoder level, tonemap) of another run, a fresh optimizer at step 0, the first run's

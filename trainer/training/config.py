@@ -130,6 +130,7 @@ RULES = {
     "lr_schedule": _one_of(SCHEDULES),
     "warmup_steps": _at_least(0),
     "ema_decay": _UNIT,
+    "weight_decay": _at_least(0),
     "width": _at_least(1),
     "decoder_convs": _at_least(1),
     "roughness_channels": _one_of((1, 3)),
@@ -181,6 +182,11 @@ class TrainConfig:
     )
     beta1: float = _opt(0.9, "Adam β1")
     beta2: float = _opt(0.999, "Adam β2")
+    weight_decay: float = _opt(
+        0.0,
+        "decoupled weight decay (AdamW, Loshchilov & Hutter 2019): each step shrinks every "
+        "weight by rate x this (0: plain Adam)",
+    )
     clip: float = _opt(1.0, "clip the gradient norm to this (0: no clipping)")
     loss: str | None = _opt(
         None,

@@ -485,7 +485,10 @@ def _build(
     criterion = criterion.to(rk.device, memory_format=rk.fmt)
     if rk.cuda:
         torch.backends.cudnn.benchmark = True  # fixed shapes: let cuDNN pick its fastest convs
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
+    opt = torch.optim.Adam(
+        model.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2),
+        weight_decay=cfg.weight_decay, decoupled_weight_decay=True,
+    )  # fmt: skip
     bad = torch.zeros((), dtype=torch.bool, device=rk.device)
     t = Trainee(model, model, opt, criterion, model_cfg, tonemap, catalog, bad)
     if rk.master:
@@ -495,6 +498,8 @@ def _build(
     if state is not None:
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])  # train_step sets the rate: --lr may change
+        for group in opt.param_groups:  # and the decay is this run's
+            group["weight_decay"] = cfg.weight_decay
         t.step, t.epoch, t.position = state["step"], state["epoch"], state["position"]
         t.best = state.get("best")
     if rk.master and cfg.ema_decay > 0:  # from the weights as they are, or as it was kept
