@@ -127,6 +127,29 @@ def test_training_lowers_the_loss(tiny_store, trained):
     assert {r["lr"] for r in log} == {1e-3}  # the constant schedule
 
 
+def test_eval_scores_the_training_materials_when_asked(trained, tmp_path):
+    """``--trained``: every sample of the materials the run trained on, said so, and the run's
+    kept held-out scores (eval.json) left as they were; refused beside --on or a second
+    checkpoint."""
+    catalog = Catalog.from_dict(checkpoint.load(trained)["catalog"])
+    kept = trained / "eval.json"
+    before = kept.read_text() if kept.exists() else None
+    r = CliRunner().invoke(trainer_main, ["eval", "--checkpoint", str(trained), "--trained"])
+    assert r.exit_code == 0, r.output
+    n = len(catalog.split("train"))
+    assert n == 3 * (8 - len(catalog.heldout[0])) and f": {n} training samples of " in r.output
+    assert (kept.read_text() if kept.exists() else None) == before
+    r = CliRunner().invoke(
+        trainer_main, ["eval", "--checkpoint", str(trained), "--trained", "--json"]
+    )
+    result = json.loads(r.output[r.output.index("{") :])
+    assert result["split"] == "train" and result["samples"] == n
+    for extra in (["--on", str(tmp_path)], ["--checkpoint", str(trained)]):
+        args = ["eval", "--checkpoint", str(trained), "--trained", *extra]
+        r = CliRunner().invoke(trainer_main, args)
+        assert r.exit_code == 2 and "--trained" in r.output and "not with --on" in r.output
+
+
 def test_eval_and_render(tiny_store, trained, tmp_path):
     r = CliRunner().invoke(
         trainer_main,
@@ -652,17 +675,17 @@ def test_weight_decay_shrinks_every_weight_apart_from_the_step_and_a_resume_take
     torch.manual_seed(0)  # the runs' initial weights
     fresh = NeuralRenderer(ModelConfig(**plain["model_config"]))
     start = fresh.state_dict()
-    for k, _ in fresh.named_parameters():  # p·(1 - r·D) - update against p - update: the update is the same
+    # p·(1 - r·D) - update against p - update: the update is the same
+    for k, _ in fresh.named_parameters():
         shrunk = plain["model"][k] - decayed["model"][k]
         assert torch.allclose(shrunk, 1e-3 * 100.0 * start[k], rtol=1e-4, atol=1e-6), k
     assert decayed["optimizer"]["param_groups"][0]["weight_decay"] == 100.0
     train(config(tiny_store, tmp_path / "decayed", weight_decay=0.5, resume=True,
                  **(kw | {"max_steps": 2})))  # fmt: skip
-    assert checkpoint.load(tmp_path / "decayed")["optimizer"]["param_groups"][0][
-        "weight_decay"
-    ] == 0.5
-    r = CliRunner().invoke(trainer_main, ["train", "--store", tiny_store.url, "--out",
-                                          str(tmp_path / "bad"), "--weight-decay", "-1"])  # fmt: skip
+    groups = checkpoint.load(tmp_path / "decayed")["optimizer"]["param_groups"]
+    assert groups[0]["weight_decay"] == 0.5
+    bad = ["train", "--store", tiny_store.url, "--out", str(tmp_path / "bad")]
+    r = CliRunner().invoke(trainer_main, [*bad, "--weight-decay", "-1"])
     assert r.exit_code != 0 and "--weight-decay must be at least 0, not -1" in r.output
     assert not (tmp_path / "bad").exists()
 

@@ -237,8 +237,16 @@ def launch(
     default=None,
     help="a .csv file of every sample's scores, with its material and sun, for each checkpoint",
 )
+@click.option(
+    "--trained",
+    is_flag=True,
+    help="score one run's training materials instead of its held-out ones: how well it fits "
+    "what it saw, beside its held-out score (the difference is how much it overfits)",
+)
 @click.option("--json", "as_json", is_flag=True, help="print the metrics as JSON")
-def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, per_sample, as_json):
+def eval_(
+    ckpts, stores, batch_size, grid, grid_count, on, device, weights, per_sample, trained, as_json
+):
     """PSNR, SSIM and FLIP on held-out materials, overall and per kind, and a PNG grid
     (ground truth | prediction | error x4) of a few samples.
 
@@ -265,6 +273,7 @@ def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, per_
       trainer eval --checkpoint runs/ema --checkpoint runs/ema --weights trained --weights average
       trainer eval --checkpoint runs/a --per-sample runs/a/samples.csv   # which materials fail
       trainer eval --checkpoint runs/tuned --checkpoint runs/a   # what fine-tuning gained
+      trainer eval --checkpoint runs/a --trained --grid-count 0   # its training materials
     """
     check_picture_name(grid, "--grid")
     if per_sample is not None and per_sample.suffix.lower() != ".csv":
@@ -277,24 +286,34 @@ def eval_(ckpts, stores, batch_size, grid, grid_count, on, device, weights, per_
             "or once per --checkpoint in order",
             param_hint="--weights",
         )
+    if trained and (on or len(ckpts) > 1):
+        raise click.BadParameter(
+            "scores one checkpoint on its own run's training materials: not with --on or "
+            "several --checkpoint",
+            param_hint="--trained",
+        )
     weights = list(weights) * (len(ckpts) if len(weights) == 1 else 1) or ["auto"] * len(ckpts)
     args = (stores, batch_size, grid, grid_count, on, device, per_sample, as_json)
     if len(ckpts) > 1:
         _compare(list(ckpts), weights, *args)
         return
-    _eval_one(ckpts[0], weights[0], *args)
+    _eval_one(ckpts[0], weights[0], *args, trained=trained)
 
 
-def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, per_sample, as_json):
-    """One model's scores, kept beside its run when they are what the run renders."""
+def _eval_one(
+    ckpt, weights, stores, batch_size, grid, grid_count, on, device, per_sample, as_json,
+    trained=False,
+):  # fmt: skip
+    """One model's scores, kept beside its run when they are what the run renders (of its
+    held-out materials)."""
     from trainer.rendering.evaluate import evaluate
 
-    run_scores = Path(ckpt).is_dir() and not on and weights == "auto"  # what the run renders
+    run_scores = Path(ckpt).is_dir() and not on and not trained and weights == "auto"
     if grid is None and run_scores:
         grid = Path(ckpt) / runfiles.EVAL_GRID
     result = evaluate(
         ckpt, list(stores) or None, batch_size, grid, grid_count, device,
-        list(on) or None, weights, per_sample,
+        list(on) or None, weights, per_sample, trained,
     )  # fmt: skip
     if run_scores:  # beside the run's log, for the dashboard's runs page
         data = json.dumps(result, indent=1, default=str).encode()
@@ -307,7 +326,8 @@ def _eval_one(ckpt, weights, stores, batch_size, grid, grid_count, on, device, p
     runtime = "" if result["runtime"] == "torch" else f" in {result['runtime']}"
     kept = " (the run's moving average)" if result["weights"] == "average" else ""
     click.echo(
-        f"step {result['checkpoint_step']}{runtime}{kept}: {o['n']} held-out samples of "
+        f"step {result['checkpoint_step']}{runtime}{kept}: {o['n']} "
+        f"{'training' if trained else 'held-out'} samples of "
         f"{o['materials']} material{'s' if o['materials'] != 1 else ''}"
     )
     rows = [

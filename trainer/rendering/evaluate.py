@@ -36,11 +36,14 @@ class NoCatalog(EvalError):
     """The model names no stores of its run (``trainer export --no-catalog``)."""
 
 
-def test_split(renderer: MapsRenderer, stores: list[str] | None, on: list[str] | None):
+def test_split(
+    renderer: MapsRenderer, stores: list[str] | None, on: list[str] | None, trained: bool = False
+):
     """What a checkpoint is evaluated on: its run's held-out materials (in ``stores``, the
     run's stores at another address, when given), or every sample of the stores ``on``,
     which must not be stores the run trained on (unchecked for a model exported without
-    its run's catalog: :func:`trained_on_is_checked`)."""
+    its run's catalog: :func:`trained_on_is_checked`); with ``trained``, the run's training
+    materials instead of its held-out ones (how well it fits what it saw)."""
     if renderer.catalog is None and stores:
         raise NoCatalog("--store: the model names no stores of its run (exported --no-catalog)")
     if renderer.catalog is None and not on:
@@ -66,6 +69,8 @@ def test_split(renderer: MapsRenderer, stores: list[str] | None, on: list[str] |
         return Catalog.snapshot(list(on), 0, 0.0, None).split("all")
     catalog = _catalog(renderer, stores)
     _run_stores(catalog)  # one not where the run recorded it is named, with what to do
+    if trained:
+        return catalog.split("train")
     split = catalog.split("test")
     if len(split) == 0:
         raise EvalError(
@@ -141,16 +146,18 @@ def evaluate(
     on: list[str] | None = None,
     weights: str = "auto",
     per_sample: Path | None = None,
+    trained: bool = False,
 ) -> dict:
     """Metrics of checkpoint ``ckpt`` (or a model ``trainer export`` wrote, run in ONNX
     Runtime: :func:`trainer.rendering.infer.load_renderer`) on its run's held-out split, or on every
     sample of the stores ``on`` (:func:`test_split`); writes a ground truth | prediction |
     error PNG grid of ``grid_count`` samples spread over them to ``grid`` when given, and each
     sample's scores to the CSV file ``per_sample`` (:func:`write_sample_table`). ``weights``:
-    which of a checkpoint's (:func:`trainer.checkpoint.weights`)."""
+    which of a checkpoint's (:func:`trainer.checkpoint.weights`); ``trained``: on the run's
+    training materials instead (:func:`test_split`)."""
     renderer = load_renderer(ckpt, device, weights)
     try:
-        split = test_split(renderer, stores, on)
+        split = test_split(renderer, stores, on, trained)
     except NoCatalog as exc:
         raise NoCatalog(f"{ckpt}: {exc}") from None
     scored = score([renderer], split, batch_size, grid_count)
@@ -162,6 +169,7 @@ def evaluate(
         "on_checked_against_run": trained_on_is_checked(renderer) if on else None,
         "samples": len(split),
         "on": list(on) if on else None,
+        "split": "train" if trained else "test",
         **scored.summary(),
     }
     if grid is not None and scored.shown:
