@@ -109,6 +109,9 @@ ROWS = {
     "head": ("a full-resolution head", W32 | {"head": True}),
     "default": ("the default recipe (trainer.training.config.RECIPES; the sb-ambient-b4 row's "
                 "settings)", {}),
+    "default-wd": ("the default recipe with decoupled weight decay 0.1 (AdamW)",
+                   {"weight_decay": 0.1}),
+    "default-lr3e-3": ("the default recipe with a peak rate of 3e-3", {"lr": 3e-3}),
     "shaderball": ("the shaderball recipe with seven cues (no ambient) at batch 8: the sb-* "
                    "rows change one thing from it", SB),
     "sb-head": ("the shaderball row with a full-resolution head", SB | {"head": True}),
