@@ -11,7 +11,8 @@ contiguous (NCHW), ``torch.compile`` (Inductor's C++ backend) and one torch thre
 of all (both channels_last). Every form is timed in turn, round after round (``--rounds``),
 so a drift of the machine falls on all alike; the table has the median images a second, each
 form's ratio to its recipe's channels_last one and to the paper's recipe's (at their own
-batches, what a training run of each goes at). The scene buffers are zeros (a step's time does not depend on them).
+batches, what a training run of each goes at). The scene buffers are zeros (a step's time
+does not depend on them).
 """
 
 from __future__ import annotations
