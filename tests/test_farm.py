@@ -348,7 +348,9 @@ import gc, sys, time
 import ray
 from farm.pool import read_errors
 
-ray.init(num_cpus=1, include_dashboard=False, log_to_driver=False, _node_ip_address="127.0.0.1")
+# its own Ray ("local"), not a cluster another test started with `ray start`
+ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False,
+         _node_ip_address="127.0.0.1")
 
 
 @ray.remote
