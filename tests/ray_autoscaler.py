@@ -20,6 +20,7 @@ import contextlib
 import json
 import os
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -87,4 +88,15 @@ def autoscaling_cluster(
     args = ["--num-cpus", "0", "--autoscaling-config", temp / "autoscaler.json",
             "--node-ip-address", "127.0.0.1"]  # fmt: skip
     with ray_head(args, env, temp, port):
-        yield address, temp / "session_latest" / "logs" / "monitor.log"
+        yield address, monitor_log(temp / "session_latest" / "logs" / "monitor.log")
+
+
+def monitor_log(log: Path, timeout: float = 60) -> Path:
+    """``log`` once the autoscaler has made it: the head answers before its monitor process
+    has opened the file, and a test reading it at once found none."""
+    deadline = time.time() + timeout
+    while not log.exists():
+        if time.time() > deadline:
+            raise RuntimeError(f"the autoscaler wrote no {log} in {timeout:.0f} s")
+        time.sleep(0.2)
+    return log
