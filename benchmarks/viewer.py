@@ -2,11 +2,13 @@
 
     .venv/bin/python -m benchmarks.viewer [--resolutions 128,256,400] [--frames 12]
         [--texture 1024] [--device auto] [--runtimes torch,graph,onnx] [--library N]
+        [--recipes shaderball,paper]
 
 For each resolution: the screen UV layout rendered by Blender at the farm's sub-sampling
-(``render_jobs.screen_uv.default_supersample``; cached in ``benchmarks/.cache``), the paper's
-network (width 64, skips) with fresh weights (speed does not depend on them), and one
-procedural material with ``--texture``² maps, read as the viewer reads a folder material.
+(``render_jobs.screen_uv.default_supersample``; cached in ``benchmarks/.cache``), the network
+of each of ``--recipes`` (``shaderball``, the default, with the layout's scene buffers for
+its cues; ``paper``, width 64 with skips) with fresh weights (speed does not depend on them),
+and one procedural material with ``--texture``² maps, read as the viewer reads a folder material.
 Each **edit** frame changes the roughness scale, so it applies the edit to the looked-up
 sub-samples of that map and filters them again (``trainer.rendering.mapping``), runs the network
 (``trainer.rendering.infer.Renderer``'s inference path) and encodes a JPEG, exactly as ``trainer
@@ -40,13 +42,14 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.frame_times import recipe_network
 from benchmarks.materials import panel_png, peak_mb, resident_mb, write_apart
 from benchmarks.results import Table, save
 from benchmarks.train import device_name
 from render_jobs.process import RenderProcess
 from render_jobs.screen_uv import ScreenUV, default_supersample
 from render_jobs.specs import RenderSettings
-from trainer.model import ModelConfig, NeuralRenderer
+from trainer.networks import build_model
 from trainer.rendering.export import export
 from trainer.rendering.infer import Renderer, pick_device
 from trainer.rendering.mapping import ScreenMapper
@@ -54,6 +57,7 @@ from trainer.rendering.onnx_renderer import OnnxRenderer
 from trainer.rendering.viewer.engine import Engine, Light
 from trainer.rendering.viewer.materials import Edits, Library
 from trainer.targets import Tonemap, light_vector, model_inputs
+from trainer.training.config import RECIPES
 
 CACHE = Path(__file__).resolve().parent / ".cache"
 
@@ -72,13 +76,23 @@ def layout(resolution: int) -> ScreenUV:
     return suv
 
 
-def library(resolution: int, count: int, texture: int, device: torch.device, tmp: Path):
+def network(recipe: str, resolution: int):
+    """The network ``recipe`` trains at ``resolution``, fresh weights (seed 0), its scene
+    buffers from the layout when its cues need them."""
+    cfg = recipe_network(recipe, resolution)
+    torch.manual_seed(0)
+    return build_model(cfg, layout(resolution).geometry if cfg.needs_geometry else None)
+
+
+def library(
+    resolution: int, count: int, texture: int, device: torch.device, tmp: Path, recipe: str
+):
     """Per material of a ``count``-material folder: (gallery picture s, first frame s,
     resident MB after it, peak resident MB so far)."""
     from trainer.rendering.viewer.app import Viewer
 
     write_apart(tmp, texture, count)  # apart: the peak column is the viewer's own
-    renderer = Renderer(NeuralRenderer(ModelConfig(resolution)), Tonemap(), device)
+    renderer = Renderer(network(recipe, resolution), Tonemap(), device)
     library = Library([], [str(tmp)], tmp / "uploads")
     engine = Engine(renderer, ScreenMapper(layout(resolution), device), library, "fresh")
     viewer = Viewer(engine, tmp / "uploads", {})
@@ -95,14 +109,12 @@ def library(resolution: int, count: int, texture: int, device: torch.device, tmp
     return rows
 
 
-def renderer_for(resolution: int, device: torch.device, runtime: str, tmp: Path):
-    """The paper's network at ``resolution`` with the same fresh weights every call: torch's
+def renderer_for(resolution: int, device: torch.device, runtime: str, tmp: Path, recipe: str):
+    """``recipe``'s network at ``resolution`` with the same fresh weights every call: torch's
     :class:`Renderer` on ``device`` (``graph``: its frames through the CUDA graph, as
     ``trainer viewer --cuda-graph`` runs it), or (``onnx``) exported to ``tmp`` and run by
     ONNX Runtime."""
-    torch.manual_seed(0)
-    model = NeuralRenderer(ModelConfig(resolution))
-    renderer = Renderer(model, Tonemap(), device, graph=runtime == "graph")
+    renderer = Renderer(network(recipe, resolution), Tonemap(), device, graph=runtime == "graph")
     if runtime in ("torch", "graph"):
         return renderer
 
@@ -126,13 +138,14 @@ EDIT_KINDS = {
 
 
 def measure(
-    resolution: int, frames: int, texture: int, device: torch.device, tmp: Path, runtime: str
-):
+    resolution: int, frames: int, texture: int, device: torch.device, tmp: Path, runtime: str,
+    recipe: str,
+):  # fmt: skip
     """Median milliseconds of value-edit frames (mapping, network, encoding, frame), the
     mapping of tiling-edit frames, and drag frames."""
     suv = layout(resolution)
     (tmp / "model").mkdir()  # beside the material folder, not in it
-    renderer = renderer_for(resolution, device, runtime, tmp / "model")
+    renderer = renderer_for(resolution, device, runtime, tmp / "model", recipe)
     tmp = tmp / "material"
     tmp.mkdir()
     panel_png(tmp, texture)
@@ -189,13 +202,14 @@ def graph_diff(renderer: Renderer, maps: torch.Tensor) -> float:
     return (graphed - fp32).abs().max().item()
 
 
-def print_library(resolution: int, args, device: torch.device) -> None:
-    print(f"device: {device_name(device)}; {resolution}²; {args.library} materials, "
+def print_library(resolution: int, args, device: torch.device, recipe: str) -> None:
+    print(f"device: {device_name(device)}; {resolution}², {recipe}'s network; "
+          f"{args.library} materials, "
           f"{args.texture}² maps (5-panel PNGs)")  # fmt: skip
     print("| material | gallery picture s | first frame s | resident MB after | peak MB so far |")
     print("|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
-        rows = library(resolution, args.library, args.texture, device, Path(tmp))
+        rows = library(resolution, args.library, args.texture, device, Path(tmp), recipe)
         for i, (pic, first, mb, peak) in enumerate(rows):
             print(f"| {i + 1} | {pic:.2f} | {first:.2f} | {mb:,.0f} | {peak:,.0f} |", flush=True)
 
@@ -212,12 +226,18 @@ def main() -> None:
                     "torch,graph on CUDA")  # fmt: skip
     ap.add_argument("--library", type=int, default=0, metavar="N",
                     help="time a gallery of N --texture² materials (see above)")  # fmt: skip
+    ap.add_argument("--recipes", default="shaderball,paper",
+                    help="whose networks to time, one or more of "
+                    f"{','.join(RECIPES)} (the first for --library)")  # fmt: skip
     args = ap.parse_args()
     if args.frames < 1:
         ap.error("--frames must be at least 1")
     if args.library < 0:
         ap.error("--library must be 0 or more")
     runtimes = args.runtimes.split(",")
+    recipes = args.recipes.split(",")
+    if not set(recipes) <= set(RECIPES):
+        ap.error(f"--recipes {args.recipes!r}: one or more of {', '.join(RECIPES)}")
     if not set(runtimes) <= {"torch", "graph", "onnx"}:
         ap.error(f"--runtimes {args.runtimes!r}: one or more of torch, graph, onnx")
     device = pick_device(args.device)
@@ -226,31 +246,39 @@ def main() -> None:
     if "graph" in runtimes and device.type != "cuda":
         ap.error("--runtimes graph runs on CUDA: add --device cuda")
     if args.library:
-        return print_library(int(args.resolutions.split(",")[0]), args, device)
+        return print_library(int(args.resolutions.split(",")[0]), args, device, recipes[0])
     print(f"device: {device_name(device)}; torch threads {torch.get_num_threads()}; "
           f"texture {args.texture}²; medians of {args.frames} frames")  # fmt: skip
     print(
-        "| resolution | runtime | sub-samples | mapping ms | network ms | encoding ms "
+        "| resolution | network | runtime | sub-samples | mapping ms | network ms | encoding ms "
         "| edit frame ms | outside the network | tiling edit: mapping ms | outside the network "
         "| drag frame ms |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     table = Table(
         title=f"The viewer: an edit's time (`make bench-viewer`), texture {args.texture}², "
         f"medians of {args.frames} frames",
-        columns=["resolution", "runtime", "sub-samples", "mapping ms", "network ms",
+        columns=["resolution", "network", "runtime", "sub-samples", "mapping ms", "network ms",
                  "encoding ms", "edit frame ms", "outside the network", "drag frame ms"],
         machine=device_name(device),
+        notes=[
+            "networks with fresh weights: shaderball is the default recipe's (its width, its "
+            "scene cues computed every frame), paper the paper's (width 64); an edit frame "
+            "changes a map's scale (mapping from the kept sub-samples, the network, the JPEG); "
+            "a drag frame moves the sun"
+        ],
     )  # fmt: skip
     by_kind = []
     with tempfile.TemporaryDirectory() as tmp:
-        for r, runtime in ((int(v), t) for v in args.resolutions.split(",") for t in runtimes):
-            sub = Path(tmp) / f"{r}-{runtime}"
+        for r, recipe, runtime in (
+            (int(v), n, t) for v in args.resolutions.split(",") for n in recipes for t in runtimes
+        ):
+            sub = Path(tmp) / f"{r}-{recipe}-{runtime}"
             sub.mkdir()
-            m = measure(r, args.frames, args.texture, device, sub, runtime)
-            by_kind.append((r, runtime, m))
+            m = measure(r, args.frames, args.texture, device, sub, runtime, recipe)
+            by_kind.append((r, f"{recipe}, {runtime}", m))
             print(
-                f"| {r}² | {runtime} | {m['supersample']}² ({m['hits']:,} hits) | "
+                f"| {r}² | {recipe} | {runtime} | {m['supersample']}² ({m['hits']:,} hits) | "
                 f"{m['mapping']:.1f} | "
                 f"{m['network']:.2f} | {m['encoding']:.2f} | {m['frame']:.1f} | "
                 f"{100 * m['outside']:.1f} % | {m['tiling']:.1f} | "
@@ -258,14 +286,15 @@ def main() -> None:
                 flush=True,
             )
             table.rows.append([
-                f"{r}²", runtime, f"{m['supersample']}²", round(m["mapping"], 1),
+                f"{r}²", recipe, runtime, f"{m['supersample']}²", round(m["mapping"], 1),
                 round(m["network"], 2), round(m["encoding"], 2), round(m["frame"], 1),
                 f"{100 * m['outside']:.1f} %", round(m["drag"], 1),
             ])  # fmt: skip
-    for r, _, m in by_kind:
+    for r, kind, m in by_kind:
         if m["graph_diff"] is not None:
-            print(f"{r}², CUDA graph: max |diff| from fp32 {m['graph_diff']:.4f}")
-            table.notes.append(f"{r}², CUDA graph: max |diff| from fp32 {m['graph_diff']:.4f}")
+            line = f"{r}², {kind}: max |diff| from fp32 {m['graph_diff']:.4f}"
+            print(line)
+            table.notes.append(line)
     print_kinds(by_kind)
     save(f"viewer-{device.type}", table)
 
@@ -274,7 +303,7 @@ def print_kinds(rows) -> None:
     """Each kind of value edit's mapping ms and share outside the network (mapping +
     encoding, against the network and encoding of the edit frames above)."""
     print("\nvalue edits by what moves: mapping ms (outside the network)")
-    print("| resolution | runtime | " + " | ".join(EDIT_KINDS) + " |")
+    print("| resolution | network, runtime | " + " | ".join(EDIT_KINDS) + " |")
     print("|---|---|" + "---|" * len(EDIT_KINDS))
     for r, runtime, m in rows:
         rest = m["network"] + m["encoding"]
