@@ -112,6 +112,8 @@ ROWS = {
     "default-wd": ("the default recipe with decoupled weight decay 0.1 (AdamW)",
                    {"weight_decay": 0.1}),
     "default-lr3e-3": ("the default recipe with a peak rate of 3e-3", {"lr": 3e-3}),
+    "default-w48": ("the default recipe at width 48", {"width": 48}),
+    "default-w64": ("the default recipe at width 64", {"width": 64}),
     "shaderball": ("the shaderball recipe with seven cues (no ambient) at batch 8: the sb-* "
                    "rows change one thing from it", SB),
     "sb-head": ("the shaderball row with a full-resolution head", SB | {"head": True}),
