@@ -121,13 +121,14 @@ gpu-stores: bench-store
 # every row at 16k image passes; at 64k the paper's network, the default, the shaderball row and
 # its one-change rows: the cue and batch the default takes from it, the widths that learnt the
 # most per pass at 16k, a head and a deeper decoder, batch 32 at three rates, and the default
-# with weight decay and with a higher rate (each 64k row is 10-85 min on 2 cores)
-LEARNING_64K := onecycle,default,default-wd,default-lr3e-3,default-w48,default-w64,shaderball,sb-batch4,sb-batch4-lr1e-3,sb-ambient,sb-ambient-b4,sb-ambient-b2,sb-w48,sb-w48-b4,sb-w64-b4,sb-w64-b2,sb-w64-b4-seed1,sb-w80-b4,sb-w80-b4-seed1,sb-head,sb-dec2,sb-batch32,sb-batch32-lr4e-3,sb-batch32-lr8e-3
+# in fp32, at widths 32 and 48, and at width 32 with weight decay and with a higher rate (each
+# 64k row is 10-85 min on 2 cores)
+LEARNING_64K := onecycle,default,default-fp32,default-w32,default-wd,default-lr3e-3,default-w48,shaderball,sb-batch4,sb-batch4-lr1e-3,sb-ambient,sb-ambient-b4,sb-ambient-b2,sb-w48,sb-w48-b4,sb-w64-b4,sb-w64-b2,sb-w64-b4-seed1,sb-w80-b4,sb-w80-b4-seed1,sb-head,sb-dec2,sb-batch32,sb-batch32-lr4e-3,sb-batch32-lr8e-3
 bench-learning: $(BIN)/.installed
 	$(BIN)/python -m benchmarks.learning --budget 16000
 	$(BIN)/python -m benchmarks.learning --budget 64000 --rows $(LEARNING_64K) --grid-rows onecycle,default,sb-w80-b4
 	$(BIN)/python -m benchmarks.truth_noise --budget 64000 --rows $(LEARNING_64K)
-	$(BIN)/python -m benchmarks.learning --resolution 128 --budget 8000 --rows onecycle,shaderball,default --grid-rows onecycle,default
+	$(BIN)/python -m benchmarks.learning --resolution 128 --budget 8000 --rows onecycle,shaderball,default-w32,default --grid-rows onecycle,default-w32,default
 
 # docs/benchmarks.md from every table in benchmarks/results/
 bench-report: $(BIN)/.installed

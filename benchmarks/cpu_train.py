@@ -1,18 +1,19 @@
-"""Training steps on the CPU in each form the trainer could run them: memory format, Inductor,
-torch's threads.
+"""Training steps on the CPU in each form the trainer could run them: memory format, precision,
+Inductor, torch's threads.
 
     python -m benchmarks.cpu_train [--resolution 128] [--batch N] [--rounds 5] [--forms ...]
 
 For the default recipe's network and the paper's at ``--resolution``, each at its own batch
 (or every one at ``--batch``), one training step (forward, the recipe's loss, backward,
 Adam) on a fixed synthetic batch, in each form:
-channels_last (the trainer's format on every device: ``trainer.training.trainee.Rank.fmt``),
+channels_last in fp32 (the trainer's format on every device: ``trainer.training.trainee.Rank.fmt``),
+channels_last in bf16 autocast (what the trainer runs on a CPU with AMX: ``trainer.precision``),
 contiguous (NCHW), ``torch.compile`` (Inductor's C++ backend) and one torch thread instead
-of all (both channels_last). Every form is timed in turn, round after round (``--rounds``),
+of all (channels_last, fp32). Every form is timed in turn, round after round (``--rounds``),
 so a drift of the machine falls on all alike; the table has the median images a second, each
-form's ratio to its recipe's channels_last one and to the paper's recipe's (at their own
-batches, what a training run of each goes at). The scene buffers are zeros (a step's time
-does not depend on them).
+form's ratio to its recipe's channels_last one and to the paper's recipe's in the same form
+(at their own batches, what a training run of each goes at). The scene buffers are zeros (a
+step's time does not depend on them).
 """
 
 from __future__ import annotations
@@ -26,13 +27,15 @@ import torch
 from benchmarks.results import Table, save
 from trainer.model import ModelConfig
 from trainer.networks import build_model
+from trainer.precision import cpu_has_bf16_units
 from trainer.training.config import RECIPES, TrainConfig
 from trainer.training.losses import RendererLoss, mixed_term
 from trainer.training.train import network_config
 
 
-def step_fn(cfg: ModelConfig, loss: str, batch: int, fmt, compiled: bool):
-    """One training step of a fresh network of ``cfg`` on a fixed batch, as a function."""
+def step_fn(cfg: ModelConfig, loss: str, batch: int, fmt, compiled: bool, autocast=None):
+    """One training step of a fresh network of ``cfg`` on a fixed batch, as a function;
+    ``autocast``: the dtype of its forward pass (None: fp32)."""
     torch.manual_seed(0)
     model = build_model(cfg).to(memory_format=fmt)
     opt = torch.optim.Adam(model.parameters(), 1e-4)
@@ -43,19 +46,23 @@ def step_fn(cfg: ModelConfig, loss: str, batch: int, fmt, compiled: bool):
     net = torch.compile(model) if compiled else model
 
     def step():
-        crit(net(x, light), target).backward()
+        with torch.autocast("cpu", dtype=autocast, enabled=autocast is not None):
+            loss = crit(net(x, light), target)
+        loss.backward()
         opt.step()
         opt.zero_grad(set_to_none=True)
 
     return step
 
 
-#: name: (memory format, compiled, torch threads or None for all); the first is the trainer's
+#: name: (memory format, compiled, torch threads or None for all, autocast dtype or None); the
+#: first is the unit of the ratios
 FORMS = {
-    "channels_last": (torch.channels_last, False, None),
-    "contiguous": (torch.contiguous_format, False, None),
-    "torch.compile": (torch.channels_last, True, None),
-    "one thread": (torch.channels_last, False, 1),
+    "channels_last": (torch.channels_last, False, None, None),
+    "bf16 autocast": (torch.channels_last, False, None, torch.bfloat16),
+    "contiguous": (torch.contiguous_format, False, None, None),
+    "torch.compile": (torch.channels_last, True, None, None),
+    "one thread": (torch.channels_last, False, 1, None),
 }
 BASE = next(iter(FORMS))
 
@@ -97,7 +104,9 @@ def main(argv: list[str] | None = None) -> None:
         columns=["recipe", "batch", "form", "images/s", f"x {BASE}", "x paper"],
         notes=[f"medians of {args.rounds} rounds, every recipe and form timed in turn; a "
                f"synthetic batch, torch's {torch.get_num_threads()} threads unless one; x paper: "
-               f"against the paper's recipe, {BASE}"],
+               "against the paper's recipe in the same form",
+               "the trainer trains in channels_last, in bf16 autocast on a CPU with AMX tiles "
+               f"(`--precision auto`; this one: {'yes' if cpu_has_bf16_units() else 'no'})"],
     )  # fmt: skip
     steps, batches = {}, {}
     for recipe in RECIPES:
@@ -106,8 +115,8 @@ def main(argv: list[str] | None = None) -> None:
         cfg = network_config(train, args.resolution)
         loss = "l1" if train.loss == "l1+vgg" else train.loss  # no VGG16 weights here
         for name in forms:
-            fmt, compiled, threads = FORMS[name]
-            steps[recipe, name] = (step_fn(cfg, loss, batch, fmt, compiled), threads)
+            fmt, compiled, threads, autocast = FORMS[name]
+            steps[recipe, name] = (step_fn(cfg, loss, batch, fmt, compiled, autocast), threads)
             for _ in range(2):  # warm-up (and the compile)
                 timed(*steps[recipe, name], repeat=1)
     times = {key: [] for key in steps}
@@ -116,7 +125,7 @@ def main(argv: list[str] | None = None) -> None:
             times[key].append(timed(step, threads))
     rate = {(r, n): batches[r] / statistics.median(ts) for (r, n), ts in times.items()}
     for (recipe, name), images in rate.items():
-        base, paper = rate[recipe, BASE], rate["paper", BASE]
+        base, paper = rate[recipe, BASE], rate["paper", name]
         row = [recipe, batches[recipe], name, round(images, 1), round(images / base, 2),
                round(images / paper, 2)]  # fmt: skip
         table.rows.append(row)

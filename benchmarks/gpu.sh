@@ -26,9 +26,10 @@
 # 64000 --batch 128 --lr-scale sqrt|linear --rows shaderball) sqrt learnt more than linear, whose
 # peak of 3.2e-2 trained but less well. The default's batch of 4 gives it a peak of 1.13e-2 at
 # batch 128, which trained as well there as the shaderball row's 8e-3 (--rows sb-ambient-b4).
-# ROWS picks other rows of benchmarks.learning, each at batch BATCH: ROWS=default-w64 trains the
-# default at width 64, which learnt the most per pass on the CPU (+0.70 dB over the default at 64k
-# passes; its time on a GPU is not measured: run it after the two default rows, not in their call).
+# ROWS picks other rows of benchmarks.learning, each at batch BATCH (the rows pinned to fp32, as
+# default-w32 and the sb-* ones are, train in fp32 there too): ROWS=default-w32 trains the default
+# at width 32, which trains twice the passes a second on the CPU and learnt 0.7 dB less at 64k
+# passes (run it after the two default rows, not in their call).
 # Tried here first, on the CPU with a few steps: DEVICE=cpu PASSES=64 BATCH=8 PYTHON=.venv/bin/python
 # LEARN_STORE=benchmarks/.cache/learning-64.zarr OUT=/tmp/learn bash benchmarks/gpu.sh learn
 #

@@ -47,6 +47,8 @@ from farm.plan import JobConfig
 from storage.reader import Store
 from trainer import runfiles
 from trainer.cues import ordered
+from trainer.devices import pick_device
+from trainer.precision import autocast_dtype
 from trainer.training.config import TrainConfig, to_argv
 
 BIN = Path(sys.executable).parent
@@ -61,18 +63,23 @@ BUDGETS = (16_000, 64_000)
 #: held-out samples shown in each grid
 GRID_COUNT = 6
 
+#: the paper's recipe (L1: no VGG16 weights here), in the trainer's default precision, as
+#: ``gpu.sh learn`` trains it beside the default
+PAPER = {"recipe": "paper", "loss": "l1"}
 #: the width-32 paper recipe the one-change rows start from (L1: no VGG16 weights here)
-W32 = {"recipe": "paper", "loss": "l1", "width": 32}
+W32 = {"recipe": "paper", "loss": "l1", "width": 32, "precision": "fp32"}
+#: the default recipe at its former width, and in fp32 as the CPU trained before bf16
+W32_FP32 = {"width": 32, "precision": "fp32"}
 #: the sb-* rows' widest settings, each also run with another seed
 W64_B4 = {"width": 64, "batch_size": 4}
 W80_B4 = {"width": 80, "batch_size": 4}
 
 
 #: the base of the ``sb-*`` rows (the ``shaderball`` row): the shaderball recipe with seven cues
-#: (no ``ambient``) at batch 8, pinned here so that those rows keep what they trained when the
-#: recipe's defaults move
+#: (no ``ambient``) at batch 8 and width 32, in fp32, pinned here so that those rows keep what
+#: they trained when the recipe's defaults move
 SB = {
-    "recipe": "shaderball", "batch_size": 8,
+    "recipe": "shaderball", "batch_size": 8, "width": 32, "precision": "fp32",
     "inputs": ("paint", "geometry", "light", "normal", "reflection", "shadow", "shade"),
 }  # fmt: skip
 
@@ -85,9 +92,8 @@ def with_cue(cue: str) -> dict:
 #: name: (what it changes, TrainConfig settings)
 ROWS = {
     "paper": ("the paper's recipe: width 64, batch 6, Adam 1e-3 (the authors'), L1",
-              {"recipe": "paper", "loss": "l1"}),
-    "paper-lr1e-2": ("the paper's recipe with its printed rate, 1e-2",
-                     {"recipe": "paper", "loss": "l1", "lr": 1e-2}),
+              PAPER),
+    "paper-lr1e-2": ("the paper's recipe with its printed rate, 1e-2", PAPER | {"lr": 1e-2}),
     "w32": ("the paper's recipe at width 32: the rows below change one thing from it", W32),
     "w32-seed1": ("the w32 row with another seed: how far a row moves by chance",
                   W32 | {"seed": 1}),
@@ -107,13 +113,15 @@ ROWS = {
     "residual": ("output: a correction of the analytic shading",
                  W32 | {"inputs": "shade", "residual": True}),
     "head": ("a full-resolution head", W32 | {"head": True}),
-    "default": ("the default recipe (trainer.training.config.RECIPES; the sb-ambient-b4 row's "
-                "settings)", {}),
-    "default-wd": ("the default recipe with decoupled weight decay 0.1 (AdamW)",
-                   {"weight_decay": 0.1}),
-    "default-lr3e-3": ("the default recipe with a peak rate of 3e-3", {"lr": 3e-3}),
-    "default-w48": ("the default recipe at width 48", {"width": 48}),
-    "default-w64": ("the default recipe at width 64", {"width": 64}),
+    "default": ("the default recipe (trainer.training.config.RECIPES: the sb-ambient-b4 row's "
+                "settings at width 64), in the trainer's default precision", {}),
+    "default-fp32": ("the default recipe in fp32", {"precision": "fp32"}),
+    "default-w32": ("the default recipe at width 32, in fp32", W32_FP32),
+    "default-wd": ("the default-w32 row with decoupled weight decay 0.1 (AdamW)",
+                   W32_FP32 | {"weight_decay": 0.1}),
+    "default-lr3e-3": ("the default-w32 row with a peak rate of 3e-3", W32_FP32 | {"lr": 3e-3}),
+    "default-w48": ("the default recipe at width 48, in fp32",
+                    {"width": 48, "precision": "fp32"}),
     "shaderball": ("the shaderball recipe with seven cues (no ambient) at batch 8: the sb-* "
                    "rows change one thing from it", SB),
     "sb-head": ("the shaderball row with a full-resolution head", SB | {"head": True}),
@@ -206,9 +214,10 @@ class OtherSettings(ValueError):
 
 
 #: the settings of how and where a run goes, not what it learns: a kept run may differ in them
+#: (the precision a row trained in is in its result and its table)
 HOW_IT_RUNS = frozenset((
     "store", "out", "resume", "device", "workers", "preload", "log_every", "checkpoint_every",
-    "keep", "log_samples", "val_every", "val_samples", "epochs",
+    "keep", "log_samples", "val_every", "val_samples", "epochs", "precision",
 ))  # fmt: skip
 
 
@@ -293,7 +302,8 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
         return json.loads(done.read_text())
     cfg = row_config(name, store, run, budget, **run_as)
     print(f"{name} ({budget:,} passes, {cfg.max_steps} steps of {cfg.batch_size})", flush=True)
-    result = {"row": name, "budget": budget, "batch": cfg.batch_size, "lr": cfg.lr}
+    result = {"row": name, "budget": budget, "batch": cfg.batch_size, "lr": cfg.lr,
+              "precision": precision_of(cfg)}  # fmt: skip
     try:
         speed = train_row(cfg)
     except Diverged as exc:  # a row's result too: this setting does not train
@@ -308,6 +318,11 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
     return result
 
 
+def precision_of(cfg: TrainConfig) -> str:
+    """``bf16`` or ``fp32``: what the trainer autocasts ``cfg``'s steps to on this machine."""
+    return "bf16" if autocast_dtype(cfg.precision, pick_device(cfg.device).type) else "fp32"
+
+
 def batch_of(result: dict) -> int:
     """A row's batch: as its result says, else as its settings make it (for the results
     written before they kept it)."""
@@ -315,20 +330,27 @@ def batch_of(result: dict) -> int:
     return result.get("batch") or TrainConfig(store=("-",), **settings).batch_size
 
 
+def precision(result: dict) -> str:
+    """The precision a row trained in; a result kept without one trained in fp32 (every run
+    before bf16 autocast on the CPU was a CPU run)."""
+    return result.get("precision", "fp32")
+
+
 def table(resolution: int, budget: int, results: list[dict], about: str) -> Table:
     t = Table(
         title=f"Learning per image pass: {resolution}², {budget:,} passes, held-out materials",
-        columns=["row", "what changes", "batch", "PSNR dB", "95 % interval", "SSIM", "FLIP",
-                 "passes / CPU-s"],
+        columns=["row", "what changes", "batch", "precision", "PSNR dB", "95 % interval", "SSIM",
+                 "FLIP", "passes / CPU-s"],
         notes=[about, "passes / CPU-s: of a run trained in one go (— for a resumed one); rows "
                "trained at different times met different loads on a shared machine"],
     )  # fmt: skip
     for r in results:
         if "diverged" in r:
-            t.rows.append([r["row"], ROWS[r["row"]][0], batch_of(r), "diverged", *[None] * 4])
+            t.rows.append([r["row"], ROWS[r["row"]][0], batch_of(r), precision(r), "diverged",
+                           *[None] * 4])  # fmt: skip
             continue
         t.rows.append([
-            r["row"], ROWS[r["row"]][0], batch_of(r), round(r["psnr"], 2),
+            r["row"], ROWS[r["row"]][0], batch_of(r), precision(r), round(r["psnr"], 2),
             f"{r['psnr_low']:.2f}-{r['psnr_high']:.2f}" if r.get("psnr_low") else None,
             round(r["ssim"], 4), round(r["flip"], 4),
             None if r["passes_per_cpu_second"] is None else round(r["passes_per_cpu_second"], 1),

@@ -294,16 +294,21 @@ def test_worker_start_times_blender_in_a_ray_actor_both_ways_and_refuses_bad_cou
 
 
 def test_the_learning_rows_pin_their_base_and_the_default_row_follows_the_trainer():
-    """The ``shaderball`` row and every ``sb-*`` row keep their cues and batch whatever the
-    recipe's defaults are; ``default`` trains what ``trainer train`` trains by default, which is
-    ``sb-ambient-b4``'s settings."""
+    """The ``shaderball`` row and every ``sb-*`` row keep their cues, batch, width and
+    precision whatever the recipe's defaults are; ``default`` trains what ``trainer train``
+    trains by default, which is ``sb-ambient-b4``'s settings at width 64; ``default-w32`` is
+    ``sb-ambient-b4`` itself and ``default-fp32`` the default in fp32."""
     from benchmarks.learning import ROWS, SB
     from trainer.training.config import RECIPES, TrainConfig
 
     def config(name):
         return TrainConfig(store=("s",), **ROWS[name][1]).to_dict()
 
-    assert config("default") == TrainConfig(store=("s",)).to_dict() == config("sb-ambient-b4")
+    default = config("default")
+    assert default == TrainConfig(store=("s",)).to_dict()
+    assert default == config("sb-ambient-b4") | {"width": 64, "precision": "auto"}
+    assert config("default-w32") == config("sb-ambient-b4")
+    assert config("default-fp32") == default | {"precision": "fp32"}
     base = config("shaderball")
     assert (base["batch_size"], tuple(base["inputs"])) == (8, SB["inputs"])
     assert base != config("default") and "ambient" in RECIPES["shaderball"]["inputs"]
@@ -339,7 +344,9 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     rows with and without the truth's noise, under its ceiling, with the noise's own FLIP."""
     import json
 
+    from benchmarks.learning import precision_of
     from benchmarks.results import load
+    from trainer.training.config import TrainConfig
 
     cmd = [sys.executable, "-m", "benchmarks.learning", "--store", tiny_store.url,
            "--budget", "8", "--rows", "paper,shaderball", "--work", str(tmp_path / "work"),
@@ -349,7 +356,8 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     table = load(tmp_path / "t.json")
     assert [row[0] for row in table.rows] == ["paper", "shaderball"]
     assert [row[2] for row in table.rows] == [6, 8]  # the recipes' batches
-    assert all(5 < row[3] < 60 for row in table.rows)  # held-out PSNR dB
+    assert [row[3] for row in table.rows] == [precision_of(TrainConfig(store=("-",))), "fp32"]
+    assert all(5 < row[4] < 60 for row in table.rows)  # held-out PSNR dB
     assert table.command.startswith("python -m benchmarks.learning --store")
     assert (tmp_path / "t.png").stat().st_size > 0
     result = json.loads((tmp_path / "work" / "64" / "8" / "shaderball" / "result.json").read_text())
@@ -399,21 +407,21 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
 def test_the_cpu_training_forms_are_timed_in_turn_and_tabled(tmp_path):
     """``benchmarks.cpu_train`` at a tiny size: a row for each recipe and form asked for,
     positive rates, channels_last (the trainer's format) the unit of a recipe, the paper's
-    channels_last step the unit of all.
+    step in each form the unit of that form.
     Inductor's form is left out: compiling two networks' training steps takes minutes on 2
     cores (the renderer's tests compile the network's operators)."""
     from benchmarks.results import load
 
     env = {**os.environ, "SHADERBALL_BENCH_RESULTS": str(tmp_path)}
     cmd = [sys.executable, "-m", "benchmarks.cpu_train", "--resolution", "16", "--batch", "2",
-           "--rounds", "1", "--forms", "contiguous,one thread"]  # fmt: skip
+           "--rounds", "1", "--forms", "bf16 autocast,contiguous,one thread"]  # fmt: skip
     r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     table = load(tmp_path / "cpu-train-16.json")
-    forms = ["channels_last", "contiguous", "one thread"]
+    forms = ["channels_last", "bf16 autocast", "contiguous", "one thread"]
     assert [(row[0], row[1], row[2]) for row in table.rows] == [
         (recipe, 2, form) for recipe in ("shaderball", "paper") for form in forms
     ]
     assert all(row[3] > 0 for row in table.rows) and table.rows[0][4] == 1.0
-    assert table.rows[3][5] == 1.0  # the paper's channels_last step: the unit across recipes
+    assert [row[5] for row in table.rows[4:]] == [1.0] * 4  # the paper's: the unit of its form
     assert table.columns[4] == "x channels_last"

@@ -690,6 +690,27 @@ def test_weight_decay_shrinks_every_weight_apart_from_the_step_and_a_resume_take
     assert not (tmp_path / "bad").exists()
 
 
+def test_a_bf16_run_on_the_cpu_autocasts_its_steps_and_keeps_fp32_weights(
+    tiny_store, tmp_path, capsys
+):
+    """``--precision bf16`` on the CPU: the run says so as it starts, its steps take another
+    path than fp32's from the same start (so autocast ran), and its checkpoint names the
+    precision and keeps fp32 weights and optimizer state, close to the fp32 run's."""
+    kw = {"lr": 1e-3, "lr_schedule": "constant", "max_steps": 2, "workers": 0, "device": "cpu"}
+    train(config(tiny_store, tmp_path / "fp32", precision="fp32", **kw))
+    assert " on cpu in fp32, " in capsys.readouterr().out
+    train(config(tiny_store, tmp_path / "bf16", precision="bf16", **kw))
+    assert " on cpu in bf16, " in capsys.readouterr().out
+    full, half = checkpoint.load(tmp_path / "fp32"), checkpoint.load(tmp_path / "bf16")
+    assert (full["precision"], half["precision"]) == ("fp32", "bf16")
+    weights = [k for k, v in half["model"].items() if v.is_floating_point()]
+    assert all(half["model"][k].dtype == torch.float32 for k in weights)
+    moments = [v["exp_avg"] for v in half["optimizer"]["state"].values()]
+    assert moments and all(m.dtype == torch.float32 for m in moments)
+    apart = max((half["model"][k] - full["model"][k]).abs().max().item() for k in weights)
+    assert 0 < apart < 0.05
+
+
 def test_a_run_fine_tunes_another_runs_network_on_more_stores(tiny_store, tmp_path, capsys):
     """``--init``: the network (the average's weights, shape, here with two convolutions a
     decoder level, tonemap) of another run, a fresh optimizer at step 0, the first run's

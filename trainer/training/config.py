@@ -4,7 +4,7 @@ A *recipe* (:data:`RECIPES`, ``--recipe``) gives the defaults of the settings th
 how much the network learns per image: its inputs and shape, the loss, the batch, the
 learning rate and its schedule, the weight average. Any of them given on its own wins over
 the recipe. ``shaderball`` (the default) is the recipe ``benchmarks/learning.py`` chose for what
-it learns per image pass and per second (docs/training.md, "Recipes"); ``paper`` is the paper's
+it learns per image pass (docs/training.md, "Recipes"); ``paper`` is the paper's
 network and settings (batch 6, Adam β 0.9/0.999, L1 + VGG16 relu3_3, 30 epochs) with the
 authors' code's rate (1e-3; the paper prints 1e-2). ``trainer train`` and ``trainer launch``
 share these options; ``launch`` turns a config back into the exact ``trainer train``
@@ -19,6 +19,7 @@ from dataclasses import MISSING, asdict, dataclass, field, fields
 import click
 
 from trainer.cues import CUES, check_cues, ordered
+from trainer.precision import PRECISIONS
 from trainer.training.schedule import SCHEDULES
 
 LOSSES = ("l1+vgg", "l1", "l1+msssim", "l1+flip")
@@ -40,7 +41,7 @@ RECIPES = {
         "lr_schedule": "onecycle",
         "warmup_steps": 0,
         "loss": "l1+msssim",
-        "width": 32,
+        "width": 64,
         "inputs": (
             "paint",
             "geometry",
@@ -156,7 +157,7 @@ class TrainConfig:
     recipe: str = _opt(
         DEFAULT_RECIPE,
         "the defaults of the settings marked 'the recipe's': shaderball (learns the most per "
-        "image and second, docs/training.md) or paper (the paper's network and settings)",
+        "image pass, docs/training.md) or paper (the paper's network and settings)",
         choices=tuple(RECIPES),
     )
     out: str = _opt("runs/latest", "run folder: checkpoints/, log.jsonl, tb/ (TensorBoard)")
@@ -267,6 +268,12 @@ class TrainConfig:
     resume: bool = _opt(False, "continue from the run folder's latest checkpoint")
     device: str = _opt(
         "auto", "auto (CUDA if present), cuda or cpu", choices=("auto", "cuda", "cpu")
+    )
+    precision: str = _opt(
+        "auto",
+        "auto: bf16 autocast where the device has bf16 arithmetic (CUDA, a CPU with AMX), "
+        "else fp32; bf16; fp32 (the weights and the optimizer are fp32 in every case)",
+        choices=PRECISIONS,
     )
     log_samples: bool = _opt(False, "record each rank's sample ids in samples/rank-R.txt")
 

@@ -13,8 +13,9 @@ same loop as one DDP job: NCCL on GPUs, gloo on CPU. Examples::
     trainer launch --store out/demo.zarr --epochs 1 --out runs/demo               # torchrun
     trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint head:29400 ...    # 2 nodes x 8
 
-The network (and VGG16) trains in channels_last on every device; on CUDA also with bf16
-autocast and cudnn.benchmark. Each rank
+The network (and VGG16) trains in channels_last on every device, in bf16 autocast where the
+device has bf16 arithmetic (``--precision``: CUDA, a CPU with AMX), and on CUDA with
+cudnn.benchmark. Each rank
 reads its own disjoint part of every epoch (``trainer.training.data``); ranks that end an epoch one
 batch short are handled by DDP's ``join``.
 Rank 0 writes the progress bar, ``RUNDIR/log.jsonl``, TensorBoard events under ``RUNDIR/tb``
@@ -46,6 +47,7 @@ from trainer import checkpoint
 from trainer.devices import NoCuda
 from trainer.model import ModelConfig
 from trainer.networks import build_model
+from trainer.precision import autocast_dtype
 from trainer.targets import Tonemap, model_inputs
 from trainer.training import faults, finetune, shm
 from trainer.training.config import NETWORK, TrainConfig, absolute_store, option_argv
@@ -93,7 +95,8 @@ def train(cfg: TrainConfig) -> dict:
     if distributed:
         _init_process_group("nccl" if use_cuda else "gloo", rank, world)
     try:
-        return _train(cfg, Rank(rank, world, device, distributed))
+        rk = Rank(rank, world, device, distributed, autocast_dtype(cfg.precision, device.type))
+        return _train(cfg, rk)
     except RuntimeError as exc:  # torch raises it wherever the loop is when a worker dies
         if not str(exc).startswith("DataLoader worker"):
             raise
@@ -222,7 +225,8 @@ def _start_log(
     log.start(
         f"training on {samples} samples (held-out materials: "
         f"{sum(map(len, catalog.heldout))}), {rk.world} rank(s) x batch {cfg.batch_size} "
-        f"on {rk.device.type}, {t.model_cfg.resolution}², loss {cfg.loss}; from step {t.step}"
+        f"on {rk.device.type} in {rk.precision}, {t.model_cfg.resolution}², loss {cfg.loss}; "
+        f"from step {t.step}"
     )
     return log
 
@@ -557,14 +561,14 @@ def _screen_uv(catalog: Catalog, state: dict | None, init: dict | None = None) -
 def train_step(cfg: TrainConfig, rk: Rank, t: Trainee, batch: dict) -> torch.Tensor:
     """One optimizer step on ``batch``; returns the loss (a detached tensor, not synced).
 
-    On CUDA the U-Net and VGG run in bf16 autocast, the L1 and feature MSE in fp32. A NaN or
+    Under bf16 autocast (``rk.autocast``) the U-Net and VGG run in bf16, the L1, feature MSE,
+    MS-SSIM and FLIP in fp32. A NaN or
     infinite gradient norm is raised as :class:`TrainingDiverged` at the next check."""
     maps = batch["maps"].to(rk.device, non_blocking=True)
     x = model_inputs(maps, t.model_cfg.roughness_channels).contiguous(memory_format=rk.fmt)
     light = batch["light"].to(rk.device, non_blocking=True)
     target = t.tonemap(batch["render"].to(rk.device, non_blocking=True))
-    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if rk.cuda else contextlib.nullcontext()
-    with autocast:
+    with rk.autocasting():
         loss = t.criterion(t.net(x, light), target)
     t.opt.zero_grad(set_to_none=True)
     loss.backward()
@@ -624,6 +628,7 @@ def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None
             "epoch": t.epoch,
             "position": t.position,
             "config": cfg.to_dict(),
+            "precision": rk.precision,  # what --precision auto resolved to on this device
             "model_config": t.model_cfg.to_dict(),
             "tonemap": t.tonemap.to_dict(),
             "catalog": t.catalog.to_dict(),

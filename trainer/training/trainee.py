@@ -4,6 +4,7 @@ with everything its checkpoints keep (:class:`Trainee`). Plain data, shared by t
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import torch
@@ -18,12 +19,14 @@ from trainer.training.schedule import Knee
 
 @dataclass(frozen=True)
 class Rank:
-    """Where this process trains: its rank among ``world``, its device, whether under DDP."""
+    """Where this process trains: its rank among ``world``, its device, whether under DDP,
+    and the dtype its steps autocast to (None: fp32; ``trainer.precision``)."""
 
     rank: int
     world: int
     device: torch.device
     distributed: bool
+    autocast: torch.dtype | None = None
 
     @property
     def master(self) -> bool:
@@ -39,6 +42,17 @@ class Rank:
         device (on the CPU, oneDNN's convolutions and GroupNorm run faster in it than in
         NCHW: ``benchmarks.cpu_train``)."""
         return torch.channels_last
+
+    @property
+    def precision(self) -> str:
+        """``bf16`` or ``fp32``, as the run's log names it."""
+        return "fp32" if self.autocast is None else "bf16"
+
+    def autocasting(self):
+        """The context a training step's forward pass runs in."""
+        if self.autocast is None:
+            return contextlib.nullcontext()
+        return torch.autocast(self.device.type, dtype=self.autocast)
 
 
 @dataclass
