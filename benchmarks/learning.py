@@ -47,7 +47,6 @@ from farm.plan import JobConfig
 from storage.reader import Store
 from trainer import runfiles
 from trainer.cues import ordered
-from trainer.devices import pick_device
 from trainer.precision import autocast_dtype
 from trainer.training.config import TrainConfig, to_argv
 
@@ -320,6 +319,8 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
 
 def precision_of(cfg: TrainConfig) -> str:
     """``bf16`` or ``fp32``: what the trainer autocasts ``cfg``'s steps to on this machine."""
+    from trainer.devices import pick_device  # torch: the train extra
+
     return "bf16" if autocast_dtype(cfg.precision, pick_device(cfg.device).type) else "fp32"
 
 
