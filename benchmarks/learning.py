@@ -68,7 +68,7 @@ PAPER = {"recipe": "paper", "loss": "l1"}
 #: the width-32 paper recipe the one-change rows start from (L1: no VGG16 weights here)
 W32 = {"recipe": "paper", "loss": "l1", "width": 32, "precision": "fp32"}
 #: the default recipe at its former width, and in fp32 as the CPU trained before bf16
-W32_FP32 = {"width": 32, "precision": "fp32"}
+DEFAULT_W32 = {"width": 32, "precision": "fp32"}
 #: the sb-* rows' widest settings, each also run with another seed
 W64_B4 = {"width": 64, "batch_size": 4}
 W80_B4 = {"width": 80, "batch_size": 4}
@@ -115,10 +115,10 @@ ROWS = {
     "default": ("the default recipe (trainer.training.config.RECIPES: the sb-ambient-b4 row's "
                 "settings at width 64), in the trainer's default precision", {}),
     "default-fp32": ("the default recipe in fp32", {"precision": "fp32"}),
-    "default-w32": ("the default recipe at width 32, in fp32", W32_FP32),
+    "default-w32": ("the default recipe at width 32, in fp32", DEFAULT_W32),
     "default-wd": ("the default-w32 row with decoupled weight decay 0.1 (AdamW)",
-                   W32_FP32 | {"weight_decay": 0.1}),
-    "default-lr3e-3": ("the default-w32 row with a peak rate of 3e-3", W32_FP32 | {"lr": 3e-3}),
+                   DEFAULT_W32 | {"weight_decay": 0.1}),
+    "default-lr3e-3": ("the default-w32 row with a peak rate of 3e-3", DEFAULT_W32 | {"lr": 3e-3}),
     "default-w48": ("the default recipe at width 48, in fp32",
                     {"width": 48, "precision": "fp32"}),
     "shaderball": ("the shaderball recipe with seven cues (no ambient) at batch 8: the sb-* "

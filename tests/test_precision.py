@@ -32,3 +32,7 @@ def test_this_cpu_is_asked_when_nothing_says_and_a_bad_precision_is_refused_in_o
     ):
         autocast_dtype("fp16", "cpu")
     assert TrainConfig(store=("s",)).precision == "auto" and PRECISIONS[0] == "auto"
+    with pytest.raises(
+        ValueError, match=r"^--precision must be one of auto, bf16, fp32, not 'fp16'$"
+    ):
+        TrainConfig(store=("s",), precision="fp16")  # refused as the run's config is made

@@ -148,6 +148,7 @@ RULES = {
     "holdout_fraction": _UNIT,
     "max_steps": (lambda v: v is None or v >= 1, "at least 1"),
     "loss": _one_of(LOSSES),
+    "precision": _one_of(PRECISIONS),
 }
 
 
