@@ -59,7 +59,7 @@ lint: $(BIN)/.installed
 	$(BIN)/ruff format --check .
 
 # The paper's Table 1 here: renders, trainings, scores, docs/quality.md (hours; resumes).
-quality: $(BIN)/.installed
+quality: $(BIN)/.installed chromium
 	$(BIN)/python -m benchmarks.quality
 
 # The quality table's frame times, re-timed side by side in one run (about a minute).

@@ -18,6 +18,9 @@ the runs are trainer runs):
 4. **evaluation**: PSNR, SSIM, FLIP per material kind, all against the test set's renders
    (``trainer.rendering.evaluate.Tally``); ms per frame of every method on this machine.
 5. **report**: ``--doc`` (markdown tables) and ``--img`` (a labelled picture grid).
+6. **picture**: ``--picture``, the viewer on the main network with a held-out material beside
+   its Cycles render, in headless Chromium (``benchmarks.viewer_picture``: the procedural
+   sample of median PSNR, not the best); its sample and scores beside it as JSON.
 """
 
 from __future__ import annotations
@@ -33,10 +36,12 @@ from dataclasses import asdict
 from pathlib import Path
 
 from benchmarks import quality_report as report
+from benchmarks import viewer_picture
 from benchmarks.quality_plan import SCALES, Plan, load_json, save_json
 from trainer import checkpoint
 
 BIN = Path(sys.executable).parent
+STEPS = ("renders", "reference", "train", "report", "picture")
 
 
 def sh(cmd: list[str], log: Path | None = None) -> None:
@@ -83,13 +88,28 @@ def train_all(plan: Plan) -> None:
         save_json(plan.work / "train-seconds.json", times)
 
 
+def picture(plan: Plan, out: Path) -> None:
+    """The viewer on the main network and a held-out material (needs the report's scores)."""
+    scores = plan.work / "scores" / "unet--test.csv"
+    if not scores.exists():
+        raise SystemExit(f"{scores}: no scores of the main network yet: run the report step")
+    info = viewer_picture.make_picture(plan.run("unet"), plan.store("test"), scores, out)
+    print(viewer_picture.describe(info), flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scale", default="full", choices=sorted(SCALES))
     ap.add_argument("--work", type=Path, default=None, help="default: out/quality (tiny: -tiny)")
     ap.add_argument("--doc", type=Path, default=Path("docs/quality.md"))
     ap.add_argument("--img", type=Path, default=None, help="default: beside --doc, img/")
-    ap.add_argument("--steps", default="renders,reference,train,report",
+    ap.add_argument(
+        "--picture",
+        type=Path,
+        default=None,
+        help="the viewer's picture (default: beside --doc, img/viewer.png)",
+    )
+    ap.add_argument("--steps", default=",".join(STEPS),
                     help="comma-separated steps to run")  # fmt: skip
     args = ap.parse_args()
     scale = SCALES[args.scale]
@@ -97,7 +117,7 @@ def main() -> None:
     plan = Plan(scale, work.absolute())
     plan.work.mkdir(parents=True, exist_ok=True)
     steps = set(args.steps.split(","))
-    unknown = steps - {"renders", "reference", "train", "report"}
+    unknown = steps - set(STEPS)
     if unknown:
         ap.error(f"unknown step(s): {', '.join(sorted(unknown))}")
     print(f"quality: scale {args.scale} {json.dumps(asdict(scale))}; work {plan.work}", flush=True)
@@ -110,6 +130,8 @@ def main() -> None:
     if "report" in steps:
         img = args.img or args.doc.parent / "img" / "quality-grid.png"
         report.write(plan, args.scale, args.doc, img)
+    if "picture" in steps:
+        picture(plan, args.picture or args.doc.parent / "img" / "viewer.png")
 
 
 if __name__ == "__main__":

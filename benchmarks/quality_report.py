@@ -35,7 +35,7 @@ from benchmarks.store_renders import render_again, store_settings
 from render_jobs.tonemap import to_uint8
 from storage.backend import write_atomic
 from storage.reader import Store
-from trainer import runfiles
+from trainer import checkpoint, runfiles
 from trainer.intervals import (
     LEVEL,
     MIN_MATERIALS,
@@ -345,9 +345,19 @@ def _recipe(plan) -> str:
     c = json.loads((plan.run("unet") / runfiles.CONFIG).read_text())
     cues = ", ".join(c["inputs"]) or "none"
     average = f"a weight average ({c['ema_decay']})" if c["ema_decay"] else "no weight average"
-    return (f"`--recipe {c['recipe']}`, scene cues {cues}, {c['norm']} norm, loss "
-            f"{c['loss']}, batch {c['batch_size']}, Adam {c['lr']:g} {c['lr_schedule']}, "
-            f"{average}")  # fmt: skip
+    return (f"`--recipe {c['recipe']}`, width {c['width']}, scene cues {cues}, {c['norm']} "
+            f"norm, loss {c['loss']}, batch {c['batch_size']}, Adam {c['lr']:g} "
+            f"{c['lr_schedule']}, {average}")  # fmt: skip
+
+
+def _precisions(plan) -> str:
+    """How the runs multiplied, from their last checkpoints (``--precision auto`` resolves
+    to bf16 on a CPU with bf16 units, fp32 on one without)."""
+    got: dict[str, list[str]] = {}
+    for name, _, _ in plan.trainings():
+        last = checkpoint.load(checkpoint.latest(plan.run(name)))
+        got.setdefault(last.get("precision") or "fp32", []).append(name)
+    return "; ".join(f"{p} ({', '.join(names)})" for p, names in got.items())
 
 
 def _data_section(plan, rows: dict, cpu: str) -> list[str]:
@@ -378,7 +388,7 @@ def _data_section(plan, rows: dict, cpu: str) -> list[str]:
             f"{n} {steps.get(n, '?')} steps / {seconds.get(n, 0) / 60:.0f} min"
             for n in ("unet", "paper", "unet-noskips", "unet-fixed", "zf-fixed")
         )
-        + ".",  # fmt: skip
+        + f". Precision (`--precision auto`; weights and losses fp32): {_precisions(plan)}.",
         "- these are short runs, what one session on 2 CPU cores fits, far from the paper's "
         "training; the pictures show how far from converged. Raise the scale's epochs in "
         "`benchmarks/quality_plan.py` and rerun: training resumes from the last checkpoint.",

@@ -1,5 +1,6 @@
 """The quality comparison (``benchmarks.quality``): baselines must pair with the ground
-truth sample by sample, and (slow) the whole command end to end at the tiny scale."""
+truth sample by sample, the viewer's picture shows the median sample, and (slow) the whole
+command end to end at the tiny scale."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from benchmarks.quality_report import (
     per_sample,
     read_sample_table,
 )
+from benchmarks.viewer_picture import Pick, median_sample
 from storage.reader import Store
 from storage.schema import Layout
 from storage.writer import create_store, write_shard
@@ -139,6 +141,17 @@ def test_per_sample_scores_are_kept_in_sample_order_from_an_eval_table(tmp_path)
 
 
 @pytest.mark.slow
+def test_the_viewer_picture_shows_the_median_sample_of_its_kind_not_the_best():
+    scores = {"sample": [0, 1, 2, 3, 4, 5, 6, 7], "material": [0, 0, 1, 1, 2, 2, 3, 3],
+              "psnr": [30.0, 40.0, 20.0, 35.0, 50.0, 25.0, 33.0, 31.0]}  # fmt: skip
+    kinds = {0: "procedural", 1: "uniform", 2: "procedural", 3: "procedural"}
+    # procedural PSNRs sorted: 25 (5), 30 (0), 31 (7), 33 (6), 40 (1), 50 (4): the lower middle
+    assert median_sample(scores, kinds, 2, "procedural") == Pick(7, 3, 1, 31.0)
+    assert median_sample(scores, kinds, 2, "uniform") == Pick(2, 1, 0, 20.0)
+    with pytest.raises(ValueError, match="no svbrdf material among the scored samples"):
+        median_sample(scores, kinds, 2, "svbrdf")
+
+
 def test_a_work_record_write_that_fails_leaves_the_old_record_and_no_part(tmp_path):
     path = tmp_path / "timings.json"
     assert load_json(path) == {}
@@ -179,7 +192,14 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
         numbers = [float(v) for v in re.findall(r"\| (-?\d+\.\d+)", row)]
         assert numbers and all(np.isfinite(numbers)), row
     assert "VGG16" in text and "held-out materials only" in text
-    assert "with the settings its run recorded: `--recipe shaderball`, scene cues paint," in text
+    assert (
+        "with the settings its run recorded: `--recipe shaderball`, width 8, scene cues paint,"
+        in text
+    )
+    assert re.search(
+        r"Precision \(`--precision auto`; weights and losses fp32\): (bf16|fp32) \(unet, paper, ",
+        text,
+    )
     assert "U-Nets 16 channels wide at their first level (the paper: 64)" in text
     for run, width in (("unet", 8), ("paper", 16), ("unet-noskips", 16), ("unet-fixed", 8)):
         config = json.loads((work / "runs" / run / "config.json").read_text())
@@ -205,6 +225,12 @@ def test_the_quality_command_end_to_end_at_the_tiny_scale(tmp_path):
     assert "bootstrap that resamples whole materials" in main
     assert re.search(rf"^\| Zsolnai-Fehér [^|]*\| {number} \| {number} \| {number} \| \d+% \|$",
                      fixed, re.M), fixed  # fmt: skip
+    # the viewer's picture: the median procedural sample beside its Cycles render, and the
+    # page's PSNR the same as eval's
+    picture = json.loads((doc.parent / "img" / "viewer.json").read_text())
+    assert picture["kind"] == "procedural" and picture["page_psnr"] is not None, picture
+    assert abs(picture["page_psnr"] - picture["psnr"]) < 0.1, picture
+    assert Image.open(doc.parent / "img" / "viewer.png").size[0] >= 1000
     grid = Image.open(doc.parent / "img" / "quality-grid.png")
     rows = scale.fixed[1] + scale.test[1]  # fixed-sun uniform rows, then procedural ones
     assert grid.size == (5 * 256, 26 + rows * 256)
