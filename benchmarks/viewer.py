@@ -2,7 +2,7 @@
 
     .venv/bin/python -m benchmarks.viewer [--resolutions 128,256,400] [--frames 12]
         [--texture 1024] [--device auto] [--runtimes torch,graph,onnx] [--library N]
-        [--recipes shaderball,paper]
+        [--recipes shaderball,paper] [--cache benchmarks/.cache]
 
 For each resolution: the screen UV layout rendered by Blender at the farm's sub-sampling
 (``render_jobs.screen_uv.default_supersample``; cached in ``benchmarks/.cache``), the network
@@ -62,39 +62,37 @@ from trainer.training.config import RECIPES
 CACHE = Path(__file__).resolve().parent / ".cache"
 
 
-def layout(resolution: int) -> ScreenUV:
-    """The scene's screen UV layout at ``resolution`` (rendered once, then cached)."""
+def layout(resolution: int, cache: Path = CACHE) -> ScreenUV:
+    """The scene's screen UV layout at ``resolution`` (rendered once, then kept in ``cache``)."""
     s = default_supersample(resolution)
-    path = CACHE / f"screen_uv-{resolution}-{s}.npz"
+    path = cache / f"screen_uv-{resolution}-{s}.npz"
     if path.exists():
         return ScreenUV.from_bytes(path.read_bytes(), str(path))
 
     with RenderProcess(RenderSettings(resolution=resolution, samples=1)) as worker:
         suv = worker.screen_uv(s)
-    CACHE.mkdir(parents=True, exist_ok=True)
+    cache.mkdir(parents=True, exist_ok=True)
     path.write_bytes(suv.to_bytes())
     return suv
 
 
-def network(recipe: str, resolution: int):
-    """The network ``recipe`` trains at ``resolution``, fresh weights (seed 0), its scene
-    buffers from the layout when its cues need them."""
-    cfg = recipe_network(recipe, resolution)
+def network(recipe: str, suv: ScreenUV):
+    """The network ``recipe`` trains at the layout's resolution, fresh weights (seed 0), its
+    scene buffers from the layout when its cues need them."""
+    cfg = recipe_network(recipe, suv.resolution)
     torch.manual_seed(0)
-    return build_model(cfg, layout(resolution).geometry if cfg.needs_geometry else None)
+    return build_model(cfg, suv.geometry if cfg.needs_geometry else None)
 
 
-def library(
-    resolution: int, count: int, texture: int, device: torch.device, tmp: Path, recipe: str
-):
+def library(suv: ScreenUV, count: int, texture: int, device: torch.device, tmp: Path, recipe: str):
     """Per material of a ``count``-material folder: (gallery picture s, first frame s,
     resident MB after it, peak resident MB so far)."""
     from trainer.rendering.viewer.app import Viewer
 
     write_apart(tmp, texture, count)  # apart: the peak column is the viewer's own
-    renderer = Renderer(network(recipe, resolution), Tonemap(), device)
+    renderer = Renderer(network(recipe, suv), Tonemap(), device)
     library = Library([], [str(tmp)], tmp / "uploads")
-    engine = Engine(renderer, ScreenMapper(layout(resolution), device), library, "fresh")
+    engine = Engine(renderer, ScreenMapper(suv, device), library, "fresh")
     viewer = Viewer(engine, tmp / "uploads", {})
     rows = []
     try:
@@ -109,12 +107,12 @@ def library(
     return rows
 
 
-def renderer_for(resolution: int, device: torch.device, runtime: str, tmp: Path, recipe: str):
-    """``recipe``'s network at ``resolution`` with the same fresh weights every call: torch's
-    :class:`Renderer` on ``device`` (``graph``: its frames through the CUDA graph, as
+def renderer_for(suv: ScreenUV, device: torch.device, runtime: str, tmp: Path, recipe: str):
+    """``recipe``'s network at the layout's resolution with the same fresh weights every call:
+    torch's :class:`Renderer` on ``device`` (``graph``: its frames through the CUDA graph, as
     ``trainer viewer --cuda-graph`` runs it), or (``onnx``) exported to ``tmp`` and run by
     ONNX Runtime."""
-    renderer = Renderer(network(recipe, resolution), Tonemap(), device, graph=runtime == "graph")
+    renderer = Renderer(network(recipe, suv), Tonemap(), device, graph=runtime == "graph")
     if runtime in ("torch", "graph"):
         return renderer
 
@@ -138,14 +136,13 @@ EDIT_KINDS = {
 
 
 def measure(
-    resolution: int, frames: int, texture: int, device: torch.device, tmp: Path, runtime: str,
+    suv: ScreenUV, frames: int, texture: int, device: torch.device, tmp: Path, runtime: str,
     recipe: str,
 ):  # fmt: skip
     """Median milliseconds of value-edit frames (mapping, network, encoding, frame), the
     mapping of tiling-edit frames, and drag frames."""
-    suv = layout(resolution)
     (tmp / "model").mkdir()  # beside the material folder, not in it
-    renderer = renderer_for(resolution, device, runtime, tmp / "model", recipe)
+    renderer = renderer_for(suv, device, runtime, tmp / "model", recipe)
     tmp = tmp / "material"
     tmp.mkdir()
     panel_png(tmp, texture)
@@ -202,14 +199,15 @@ def graph_diff(renderer: Renderer, maps: torch.Tensor) -> float:
     return (graphed - fp32).abs().max().item()
 
 
-def print_library(resolution: int, args, device: torch.device, recipe: str) -> None:
+def print_library(suv: ScreenUV, args, device: torch.device, recipe: str) -> None:
+    resolution = suv.resolution
     print(f"device: {device_name(device)}; {resolution}², {recipe}'s network; "
           f"{args.library} materials, "
           f"{args.texture}² maps (5-panel PNGs)")  # fmt: skip
     print("| material | gallery picture s | first frame s | resident MB after | peak MB so far |")
     print("|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
-        rows = library(resolution, args.library, args.texture, device, Path(tmp), recipe)
+        rows = library(suv, args.library, args.texture, device, Path(tmp), recipe)
         for i, (pic, first, mb, peak) in enumerate(rows):
             print(f"| {i + 1} | {pic:.2f} | {first:.2f} | {mb:,.0f} | {peak:,.0f} |", flush=True)
 
@@ -226,6 +224,8 @@ def main() -> None:
                     "torch,graph on CUDA")  # fmt: skip
     ap.add_argument("--library", type=int, default=0, metavar="N",
                     help="time a gallery of N --texture² materials (see above)")  # fmt: skip
+    ap.add_argument("--cache", type=Path, default=CACHE,
+                    help="where the screen UV layouts Blender renders are kept")  # fmt: skip
     ap.add_argument("--recipes", default="shaderball,paper",
                     help="whose networks to time, one or more of "
                     f"{','.join(RECIPES)} (the first for --library)")  # fmt: skip
@@ -246,7 +246,8 @@ def main() -> None:
     if "graph" in runtimes and device.type != "cuda":
         ap.error("--runtimes graph runs on CUDA: add --device cuda")
     if args.library:
-        return print_library(int(args.resolutions.split(",")[0]), args, device, recipes[0])
+        first = layout(int(args.resolutions.split(",")[0]), args.cache)
+        return print_library(first, args, device, recipes[0])
     print(f"device: {device_name(device)}; torch threads {torch.get_num_threads()}; "
           f"texture {args.texture}²; medians of {args.frames} frames")  # fmt: skip
     print(
@@ -275,7 +276,9 @@ def main() -> None:
         ):
             sub = Path(tmp) / f"{r}-{recipe}-{runtime}"
             sub.mkdir()
-            m = measure(r, args.frames, args.texture, device, sub, runtime, recipe)
+            m = measure(
+                layout(r, args.cache), args.frames, args.texture, device, sub, runtime, recipe
+            )
             by_kind.append((r, f"{recipe}, {runtime}", m))
             print(
                 f"| {r}² | {recipe} | {runtime} | {m['supersample']}² ({m['hits']:,} hits) | "

@@ -425,3 +425,33 @@ def test_the_cpu_training_forms_are_timed_in_turn_and_tabled(tmp_path):
     assert all(row[3] > 0 for row in table.rows) and table.rows[0][4] == 1.0
     assert [row[5] for row in table.rows[4:]] == [1.0] * 4  # the paper's: the unit of its form
     assert table.columns[4] == "x channels_last"
+
+
+def test_the_viewer_benchmark_times_each_network_and_runtime_and_a_gallery(tmp_path):
+    """``benchmarks.viewer`` at 16² on a layout Blender renders into ``--cache``: a row for
+    each network and runtime with a frame made of its parts, and the gallery's rows."""
+    from benchmarks.results import load
+
+    env = {**os.environ, "SHADERBALL_BENCH_RESULTS": str(tmp_path)}
+    common = [sys.executable, "-m", "benchmarks.viewer", "--resolutions", "16", "--frames", "2",
+              "--texture", "32", "--device", "cpu", "--cache", str(tmp_path / "cache")]  # fmt: skip
+    r = subprocess.run([*common, "--runtimes", "torch,onnx"], capture_output=True, text=True,
+                       env=env, timeout=600)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert len(list((tmp_path / "cache").glob("screen_uv-16-*.npz"))) == 1
+    table = load(tmp_path / "viewer-cpu.json")
+    assert [(row[1], row[2]) for row in table.rows] == [
+        (recipe, runtime) for recipe in ("shaderball", "paper") for runtime in ("torch", "onnx")
+    ]
+    for row in table.rows:
+        mapping, network, encoding, frame = row[4:8]
+        assert min(mapping, network, encoding) > 0 and frame > network, row
+        assert 0 < float(row[8].rstrip(" %")) < 100, row
+    r = subprocess.run([*common, "--library", "2"], capture_output=True, text=True, env=env,
+                       timeout=600)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert re.search(r"^\| 2 \| \d+\.\d\d \| \d+\.\d\d \| [\d,]+ \| [\d,]+ \|$", r.stdout, re.M), (
+        r.stdout
+    )
+    bad = subprocess.run([*common, "--runtimes", "graph"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "--runtimes graph runs on CUDA" in bad.stderr
