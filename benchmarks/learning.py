@@ -268,12 +268,12 @@ def train_row(cfg: TrainConfig) -> dict:
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     lines = [json.loads(x) for x in (Path(cfg.out) / runfiles.LOG).read_text().splitlines()]
-    steps = [x for x in lines if "images_per_second" in x and x.get("images_per_second")]
+    steps = runfiles.kept_lines(lines)
     images = sum(x["images"] for x in steps)
-    loop_seconds = sum(x["images"] / x["images_per_second"] for x in steps)
+    loop = runfiles.loop_seconds(steps)
     return {
         "images": images,
-        "passes_per_second": images / loop_seconds if loop_seconds else None,
+        "passes_per_second": images / loop if loop else None,
         "passes_per_cpu_second": images / cpu if cpu and not resumed else None,
         "wall_seconds": time.perf_counter() - started,
     }

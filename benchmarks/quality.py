@@ -31,13 +31,12 @@ import os
 import shlex
 import subprocess
 import sys
-import time
 from dataclasses import asdict
 from pathlib import Path
 
 from benchmarks import quality_report as report
 from benchmarks import viewer_picture
-from benchmarks.quality_plan import SCALES, Plan, load_json, save_json
+from benchmarks.quality_plan import SCALES, Plan
 from trainer import checkpoint
 
 BIN = Path(sys.executable).parent
@@ -67,9 +66,8 @@ def render_all(plan: Plan) -> None:
 
 
 def train_all(plan: Plan) -> None:
-    """Every run to its last epoch (resumed from its latest checkpoint); wall time kept."""
+    """Every run to its last epoch (resumed from its latest checkpoint)."""
     s = plan.scale
-    times = load_json(plan.work / "train-seconds.json")
     for name, store, extra in plan.trainings():
         run = plan.run(name)
         last = checkpoint.latest(run)
@@ -82,10 +80,7 @@ def train_all(plan: Plan) -> None:
                "--log-every", "20", *extra,
                *(["--resume"] if last is not None else [])]  # fmt: skip
         run.parent.mkdir(parents=True, exist_ok=True)
-        t0 = time.perf_counter()
         sh(cmd, plan.work / "logs" / f"train-{name}.log")
-        times[name] = times.get(name, 0.0) + time.perf_counter() - t0
-        save_json(plan.work / "train-seconds.json", times)
 
 
 def picture(plan: Plan, out: Path) -> None:

@@ -360,10 +360,16 @@ def _precisions(plan) -> str:
     return "; ".join(f"{p} ({', '.join(names)})" for p, names in got.items())
 
 
+def _log(run: Path) -> list[dict]:
+    """The run's log lines (none for a run not trained)."""
+    path = run / runfiles.LOG
+    return [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
+
+
 def _data_section(plan, rows: dict, cpu: str) -> list[str]:
     s = plan.scale
     train, test = Store(plan.store("train")), Store(plan.store("test"))
-    seconds = load_json(plan.work / "train-seconds.json")
+    seconds = {n: runfiles.loop_seconds(_log(plan.run(n))) for n, _, _ in plan.trainings()}
     steps = {n: rows[n].get("checkpoint_step") for n in rows if "checkpoint_step" in rows[n]}
     return [
         "## Data and training",
@@ -383,7 +389,7 @@ def _data_section(plan, rows: dict, cpu: str) -> list[str]:
         f"the paper's U-Net (`--recipe paper` with its L1 loss: Adam lr 1e-3, batch {s.batch}, "
         f"U-Nets {s.width} channels wide at their first level"
         f"{'' if s.width == 64 else ' (the paper: 64)'}) {s.paper_epochs} epochs, and "
-        f"Zsolnai-Fehér {s.fixed_epochs}. Steps and wall time: "
+        f"Zsolnai-Fehér {s.fixed_epochs}. Steps and time in the step loop (from each run's log): "
         + ", ".join(
             f"{n} {steps.get(n, '?')} steps / {seconds.get(n, 0) / 60:.0f} min"
             for n in ("unet", "paper", "unet-noskips", "unet-fixed", "zf-fixed")

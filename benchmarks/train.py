@@ -131,7 +131,7 @@ def print_table(args, load: float, step_ms: float, ends: dict, log: list[dict]) 
     """Print the loader's rate, the epoch-end rows and the trainer's rate and data wait after
     ``--warmup`` steps; the same as a :class:`Table`."""
     timed = [r for r in log if r["step"] - r["steps"] >= args.warmup]
-    seconds = sum(r["images"] / r["images_per_second"] for r in timed)
+    seconds = runfiles.loop_seconds(timed)
     wait = sum(r["data_wait"] * r["images"] / r["images_per_second"] for r in timed) / seconds
     print(f"{'row':<50}{'images/s':>10}{'data wait':>11}{'longest wait':>14}")
     print(f"{'loader only':<50}{load:>10.1f}{'-':>11}{'-':>14}")

@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from render_jobs.tonemap import tonemap as numpy_tonemap
+from trainer import runfiles
 from trainer.model import ModelConfig, NeuralRenderer, count_parameters, fold_batchnorm
 from trainer.targets import Tonemap, light_vector, model_inputs
 from trainer.training.data import epoch_order, rank_batches, steps_left, worker_batches
@@ -753,3 +754,19 @@ def test_a_held_out_score_line_counts_its_materials_in_words_and_gives_an_interv
     )
     rec.update(materials=5, psnr_low=19.0, psnr_high=20.25)
     assert "dB [19.00, 20.25] over 5 materials, SSIM" in _score_line(rec, "")
+
+
+def test_a_runs_time_counts_the_log_lines_of_the_steps_it_kept():
+    """A run cut after its checkpoint at step 4 and resumed from it logs steps 5-6 again:
+    the cut process's line at step 6 is dropped, so its time is not counted twice."""
+
+    def line(step, steps, seconds):
+        return {"step": step, "steps": steps, "images": 4 * steps,
+                "images_per_second": 4 * steps / seconds}  # fmt: skip
+
+    first = [line(2, 2, 1.0), line(4, 2, 1.0), line(6, 2, 9.0)]  # cut after step 6's line
+    again = [line(6, 2, 2.0), line(8, 2, 2.0)]
+    kept = runfiles.kept_lines([*first, {"step": 7, "steps": 0, "images_per_second": 0}, *again])
+    assert [x["step"] for x in kept] == [2, 4, 6, 8] and kept[2] is again[0]
+    assert runfiles.loop_seconds([*first, *again]) == pytest.approx(6.0)
+    assert runfiles.loop_seconds(first) == pytest.approx(11.0)

@@ -28,7 +28,7 @@ from storage.writer import create_store, write_shard
 from tests.flaky_proxy import FlakyProxy
 from tests.storage_helpers import synthetic_payload
 from tests.test_trainer import vgg_weights_file
-from trainer import checkpoint
+from trainer import checkpoint, runfiles
 from trainer.cli import main as trainer_main
 from trainer.model import ModelConfig, NeuralRenderer
 from trainer.rendering.evaluate import evaluate
@@ -606,6 +606,10 @@ def test_killed_run_resumes_with_exactly_the_remaining_order(tiny_store, tmp_pat
     assert a["ema"]["updates"] == b["ema"]["updates"] == a["step"]  # and the average, exactly
     assert all(torch.equal(a["ema"]["weights"][k], b["ema"]["weights"][k]) for k in a["model"])
     assert checkpoint.load(run / "checkpoints" / "best.pt")["step"] == a["best"]["step"]
+    kept = runfiles.kept_lines([json.loads(x) for x in (run / runfiles.LOG).open()])
+    steps = [x["step"] for x in kept]  # the cut process's lines past the checkpoint are gone
+    assert steps == sorted(set(steps)) and steps[-1] == a["step"]
+    assert a["step"] - 2 < sum(x["steps"] for x in kept) <= a["step"]  # log_every 2
 
 
 def test_a_cosine_resumed_for_more_epochs_goes_on_from_its_rate(tiny_store, tmp_path, capsys):

@@ -27,6 +27,27 @@ EVAL_GRID = "eval.png"
 SAMPLES = "samples"
 
 
+def kept_lines(records: list[dict]) -> list[dict]:
+    """The :data:`LOG` lines of the steps a run kept, in order. A run resumed from a
+    checkpoint logs again the steps after it: its first line's window starts at the
+    checkpoint's step, and the lines of the cut process past that step are dropped."""
+    kept: list[dict] = []
+    for r in records:
+        if not r.get("images_per_second"):
+            continue
+        while kept and kept[-1]["step"] > r["step"] - r["steps"]:
+            kept.pop()
+        kept.append(r)
+    return kept
+
+
+def loop_seconds(records: list[dict]) -> float:
+    """Seconds the trainer spent in its step loop, from its :data:`LOG` lines: each kept
+    line's images over its images/s (held-out scoring left out), so a run's time is that of
+    the steps it kept, however often it was cut and resumed."""
+    return sum(r["images"] / r["images_per_second"] for r in kept_lines(records))
+
+
 def samples_file(rank: int) -> str:
     """Rank ``rank``'s sample-id file, under :data:`SAMPLES`."""
     return f"rank-{rank}.txt"
