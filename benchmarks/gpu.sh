@@ -19,6 +19,9 @@
 # images), the split held in the GPU's memory (trainer train --preload), each row scored on its
 # held-out materials; the table (learning-gpu.json), the side-by-side grid and each run's
 # result and grid are written under $OUT (a row finished is kept if a later one is cut off).
+# Each row trains for at most ROW_SECONDS (default 230: two rows, their scoring and the set-up
+# fit a 600-second call); a row stopped there is scored where it stopped and the table says
+# after how many passes (benchmarks.learning --row-seconds).
 # Each row's (peak) rate is scaled to BATCH by LR_SCALE (sqrt, the default: the rate times the
 # square root of BATCH over the row's own batch; linear; none): on the CPU at 64k passes, batch 32
 # instead of 8 lost the most at the default's rate and the least scaled linearly (the sb-batch32
@@ -91,6 +94,7 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
         learn) "$py" -m benchmarks.learning --store "$store" --device "${DEVICE:-cuda}" --preload \
                    --budget "${PASSES:-1470000}" --batch "${BATCH:-128}" \
                    --lr-scale "${LR_SCALE:-sqrt}" --rows "${ROWS:-default,paper}" \
+                   --row-seconds "${ROW_SECONDS:-230}" \
                    --work "$out/learning" --results "$out" --name learning-gpu ;;
     esac
 } 2>&1 | tee -a "$log"

@@ -216,7 +216,7 @@ class OtherSettings(ValueError):
 #: (the precision a row trained in is in its result and its table)
 HOW_IT_RUNS = frozenset((
     "store", "out", "resume", "device", "workers", "preload", "log_every", "checkpoint_every",
-    "keep", "log_samples", "val_every", "val_samples", "epochs", "precision",
+    "keep", "log_samples", "val_every", "val_samples", "epochs", "precision", "time_limit",
 ))  # fmt: skip
 
 
@@ -294,7 +294,9 @@ def score_run(run: Path, grid: Path | None = None, device: str = "cpu") -> dict:
 
 
 def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
-    """Row ``name`` at ``budget`` passes: trained and scored once, then read from its file."""
+    """Row ``name`` at ``budget`` passes: trained and scored once, then read from its file. A
+    row stopped by its time limit (``time_limit`` in ``run_as``) is scored where it stopped
+    (``cut``) and not kept as done: the next call resumes it."""
     run = work / str(budget) / name
     done = run / "result.json"
     if done.exists():
@@ -312,7 +314,11 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
         return result
     scores = score_run(run, run / "grid.png", run_as.get("device", "cpu"))
     result |= {**speed, **scores}
-    done.write_text(json.dumps(result, indent=1))
+    if speed["images"] < cfg.max_steps * cfg.batch_size:
+        result["cut"] = True
+        print(f"  stopped by its time limit at {speed['images']:,} passes", flush=True)
+    else:
+        done.write_text(json.dumps(result, indent=1))
     print(f"  {result['psnr']:.2f} dB, {result['passes_per_second']:.1f} passes/s", flush=True)
     return result
 
@@ -356,6 +362,9 @@ def table(resolution: int, budget: int, results: list[dict], about: str) -> Tabl
             round(r["ssim"], 4), round(r["flip"], 4),
             None if r["passes_per_cpu_second"] is None else round(r["passes_per_cpu_second"], 1),
         ])  # fmt: skip
+        if r.get("cut"):
+            t.notes.append(f"{r['row']}: stopped by --row-seconds after {r['images']:,} of "
+                           f"{budget:,} passes, at a rate not yet annealed")  # fmt: skip
     return t
 
 
@@ -388,6 +397,9 @@ def main(argv: list[str] | None = None) -> None:
                    help="with --batch: scale each row's (peak) rate by the ratio of --batch to "
                    "its own batch (linear) or by its square root (sqrt)")  # fmt: skip
     p.add_argument("--preload", action="store_true", help="trainer train --preload")
+    p.add_argument("--row-seconds", type=float, default=None,
+                   help="stop each row's training after this many seconds (trainer train "
+                   "--time-limit) and score it there; the next call resumes it")  # fmt: skip
     p.add_argument("--note", action="append", default=[], help="a note for the table (repeatable)")
     args = p.parse_args(argv)
     if args.lr_scale != "none" and args.batch is None:
@@ -398,7 +410,7 @@ def main(argv: list[str] | None = None) -> None:
     store = args.store or ensure_store(args.resolution)
     layout = Store(store).layout
     work = args.work / str(layout.resolution)
-    run_as = {"device": args.device, "preload": args.preload}
+    run_as = {"device": args.device, "preload": args.preload, "time_limit": args.row_seconds}
     if args.batch is not None:
         run_as["batch_size"] = args.batch
     about = (

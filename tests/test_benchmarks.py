@@ -335,6 +335,21 @@ def test_the_learning_rows_rates_scale_with_the_batch_given_to_every_row(capsys)
     assert "--lr-scale scales the rates to --batch: give --batch" in capsys.readouterr().err
 
 
+def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_kept(
+    tiny_store, tmp_path
+):
+    """``--row-seconds``: a row stopped short of its budget is scored where it stopped, the
+    table says after how many passes, and it is not kept as done (the next call resumes)."""
+    from benchmarks.learning import run_row, table
+
+    work = tmp_path / "work"
+    cut = run_row("paper", tiny_store.url, work, 400, time_limit=1e-6, workers=0)
+    assert cut["cut"] and cut["images"] == 6 and 5 < cut["psnr"] < 60  # one step of 6
+    assert not (work / "400" / "paper" / "result.json").exists()
+    said = "paper: stopped by --row-seconds after 6 of 400 passes, at a rate not yet annealed"
+    assert said in table(32, 400, [cut], "about").notes
+
+
 @pytest.mark.slow
 def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_store, tmp_path):
     """``benchmarks.learning`` on the tiny real store: each row trained for the budget and

@@ -1222,6 +1222,35 @@ def steps_per_epoch(n: int, world: int, batch: int) -> int:
     return -(-n // (world * batch))
 
 
+def test_a_time_limit_stops_the_run_with_a_checkpoint_and_resume_goes_on(tiny_store, tmp_path):
+    """``--time-limit``: on one process the run stops after the step where its time is up
+    (here the first), with a checkpoint mid-epoch and the CLI's line saying so; ``--resume``
+    trains the rest, in the order of a run never stopped. Under torchrun both ranks stop at
+    the first epoch's end."""
+    kw = {"epochs": 2, "lr_schedule": "constant", "log_samples": True}
+    ref = tmp_path / "ref"
+    train(config(tiny_store, ref, **kw))
+    run = tmp_path / "cut"
+    r = CliRunner().invoke(trainer_main, ["train", *argv(tiny_store, run, **kw, time_limit=1e-6)])
+    assert r.exit_code == 0, r.output
+    assert "stopped by --time-limit 1e-06: --resume goes on from here" in r.output
+    state = checkpoint.load(run)
+    assert (state["step"], state["epoch"], state["position"]) == (1, 0, 2)
+    summary = train(config(tiny_store, run, **kw, resume=True))
+    assert not summary["timed_out"] and summary["steps"] == checkpoint.load(ref)["step"]
+    assert sample_lines(run)[-1] == sample_lines(ref)[-1]  # the same weights at the end
+
+    out = tmp_path / "ddp"
+    cmd = [sys.executable, "-m", "trainer.cli", "launch", "--nproc-per-node", "2"]
+    cmd += [*argv(tiny_store, out, epochs=3), "--time-limit", "1e-6"]
+    r = run_group(cmd, timeout=300)
+    assert r.returncode == 0 and "stopped by --time-limit" in r.stdout, r.stderr[-3000:]
+    state = checkpoint.load(out)
+    split = Catalog.from_dict(state["catalog"]).split("train")
+    assert (state["epoch"], state["position"]) == (1, 0)
+    assert state["step"] == steps_per_epoch(len(split), 2, 2)
+
+
 def test_launch_checks_inputs_before_torchrun_and_a_failed_rank_is_one_line(tiny_store, tmp_path):
     """Bad input stops ``trainer launch`` before any rank starts; a rank that dies later
     (here rank 0 at step 1, no restarts) ends it with one line naming the rank, not torchrun's

@@ -106,6 +106,8 @@ def train(**kwargs) -> None:
             f"done: {summary['steps']} steps, {summary['images_per_second']} images/s, "
             f"{summary['seconds']:.1f} s{held}; checkpoint {summary['checkpoint']}"
         )
+        if summary["timed_out"]:
+            click.echo(f"stopped by --time-limit {cfg.time_limit:g}: --resume goes on from here")
         if best:
             path = Path(cfg.out) / runfiles.CHECKPOINTS / runfiles.BEST
             click.echo(f"best:  {path} (step {best['step']}, held-out {best['psnr']:.2f} dB)")

@@ -147,6 +147,7 @@ RULES = {
     "shuffle_buffer": _at_least(1),
     "holdout_fraction": _UNIT,
     "max_steps": (lambda v: v is None or v >= 1, "at least 1"),
+    "time_limit": (lambda v: v is None or v > 0, "above 0"),
     "loss": _one_of(LOSSES),
     "precision": _one_of(PRECISIONS),
 }
@@ -266,6 +267,11 @@ class TrainConfig:
         "training and those it held out stay held out",
     )
     max_steps: int | None = _opt(None, "stop (with a checkpoint) after this many steps in all")
+    time_limit: float | None = _opt(
+        None,
+        "stop (with a checkpoint; --resume goes on) once this process has trained this many "
+        "seconds: checked after every step on one process, at each epoch's end under torchrun",
+    )
     resume: bool = _opt(False, "continue from the run folder's latest checkpoint")
     device: str = _opt(
         "auto", "auto (CUDA if present), cuda or cpu", choices=("auto", "cuda", "cpu")

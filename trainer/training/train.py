@@ -196,6 +196,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
     notes += _start_notes(cfg, t, catalog, init, found, was)
     log = _start_log(cfg, rk, out, t, catalog, len(split), notes)
     started = time.perf_counter()
+    t.deadline = None if cfg.time_limit is None else time.monotonic() + cfg.time_limit
     images = _epochs(cfg, rk, t, stream, reader, log, out)
     log.close(t.model)
     seconds = time.perf_counter() - started
@@ -208,6 +209,7 @@ def _train(cfg: TrainConfig, rk: Rank) -> dict:
         "checkpoint": str(log.last_checkpoint or checkpoint.latest(out) or ""),
         "val": log.last_val,
         "best": t.best,
+        "timed_out": t.timed_out,
     }
 
 
@@ -239,7 +241,7 @@ def _epochs(
     images = 0
     batches = None  # one iteration for the whole run: the workers read across epoch ends
     with contextlib.ExitStack() as workers:
-        while t.epoch < cfg.epochs and not _at_max_steps(cfg, t):
+        while t.epoch < cfg.epochs and not _stopped(cfg, t):
             if batches is None:
                 stream.set_position(t.epoch, t.position)
                 batches = iter(reader)
@@ -254,9 +256,10 @@ def _epochs(
                 images += _epoch(cfg, rk, t, itertools.islice(batches, mine), samples, log, bar)
             _check_epoch_whole(cfg, t, t.step - start, mine)
             log.validate(t, bar)  # the epoch's weights, unless the last step just scored them
-            if not _at_max_steps(cfg, t):
+            if not _stopped(cfg, t):
                 t.epoch, t.position = t.epoch + 1, 0
             save(cfg, rk, t, out, log)
+            _check_time(rk, t, epoch_end=True)
     return images
 
 
@@ -274,8 +277,8 @@ def _join_workers(batches) -> None:
 
 def _check_epoch_whole(cfg: TrainConfig, t: Trainee, trained: int, mine: int) -> None:
     """Raise :class:`LoaderError` when the epoch ended on fewer of this rank's batches than
-    it has, short of ``--max-steps``."""
-    if trained < mine and not _at_max_steps(cfg, t):
+    it has, short of ``--max-steps`` or ``--time-limit``."""
+    if trained < mine and not _stopped(cfg, t):
         raise LoaderError(
             f"the data loader ended epoch {t.epoch + 1} after {trained} of this rank's "
             f"{mine} batches: a worker lost the others ({WORKER_ERROR})"
@@ -370,7 +373,8 @@ def _epoch(cfg: TrainConfig, rk: Rank, t: Trainee, batches, split_size: int, log
                 log.validate(t, bar)
             if t.step % cfg.checkpoint_every == 0 or _new_best(t, log):
                 save(cfg, rk, t, out, log)
-            if _at_max_steps(cfg, t):
+            _check_time(rk, t, epoch_end=False)
+            if _stopped(cfg, t):
                 break
         if log.window["n"]:  # the steps since the last log line: every step is logged
             log.flush(t, bar)
@@ -379,6 +383,25 @@ def _epoch(cfg: TrainConfig, rk: Rank, t: Trainee, batches, split_size: int, log
 
 def _at_max_steps(cfg: TrainConfig, t: Trainee) -> bool:
     return cfg.max_steps is not None and t.step >= cfg.max_steps
+
+
+def _stopped(cfg: TrainConfig, t: Trainee) -> bool:
+    """The run stops here: at ``--max-steps``, or past ``--time-limit``."""
+    return t.timed_out or _at_max_steps(cfg, t)
+
+
+def _check_time(rk: Rank, t: Trainee, epoch_end: bool) -> None:
+    """Set ``t.timed_out`` once ``--time-limit`` has passed: after any step on one process;
+    under torchrun only at an epoch's end, where every rank is (its ranks may have one batch
+    more or less mid-epoch), and for all ranks at once if any rank's time is up."""
+    if t.deadline is None or t.timed_out or (rk.distributed and not epoch_end):
+        return
+    over = time.monotonic() >= t.deadline
+    if rk.distributed:
+        flag = torch.tensor([float(over)], device=rk.device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+        over = bool(flag.item())
+    t.timed_out = over
 
 
 def _timed(batches):

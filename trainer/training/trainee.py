@@ -76,6 +76,8 @@ class Trainee:
     step: int = 0
     epoch: int = 0
     position: int = 0
+    deadline: float | None = None  # the time.monotonic() at which --time-limit stops the run
+    timed_out: bool = False  # --time-limit stopped the run
 
     @property
     def rendering(self) -> torch.nn.Module:
