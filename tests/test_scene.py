@@ -335,7 +335,7 @@ def test_the_cli_rebuilds_a_config_from_its_argv():
     def fake(cfg):  # what `trainer train` would train
         seen["cfg"] = cfg
         return {"steps": 0, "images_per_second": 0, "seconds": 0, "checkpoint": "",
-                "val": None, "best": None}  # fmt: skip
+                "val": None, "best": None, "timed_out": False}  # fmt: skip
 
     import trainer.training.train
 
