@@ -267,8 +267,7 @@ def train_row(cfg: TrainConfig) -> dict:
         r.check_returncode()
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    lines = [json.loads(x) for x in (Path(cfg.out) / runfiles.LOG).read_text().splitlines()]
-    steps = runfiles.kept_lines(lines)
+    steps = runfiles.kept_lines(runfiles.read_log(Path(cfg.out)))
     images = sum(x["images"] for x in steps)
     loop = runfiles.loop_seconds(steps)
     return {

@@ -360,16 +360,11 @@ def _precisions(plan) -> str:
     return "; ".join(f"{p} ({', '.join(names)})" for p, names in got.items())
 
 
-def _log(run: Path) -> list[dict]:
-    """The run's log lines (none for a run not trained)."""
-    path = run / runfiles.LOG
-    return [json.loads(x) for x in path.read_text().splitlines()] if path.exists() else []
-
-
 def _data_section(plan, rows: dict, cpu: str) -> list[str]:
     s = plan.scale
     train, test = Store(plan.store("train")), Store(plan.store("test"))
-    seconds = {n: runfiles.loop_seconds(_log(plan.run(n))) for n, _, _ in plan.trainings()}
+    runs = [name for name, _, _ in plan.trainings()]
+    seconds = {n: runfiles.loop_seconds(runfiles.read_log(plan.run(n))) for n in runs}
     steps = {n: rows[n].get("checkpoint_step") for n in rows if "checkpoint_step" in rows[n]}
     return [
         "## Data and training",

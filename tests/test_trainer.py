@@ -705,6 +705,7 @@ def test_shared_memory_need_and_the_one_line_when_it_is_short(tmp_path):
         ("holdout_fraction", 1.0, r"--holdout-fraction must be in \[0, 1\), not 1.0"),
         ("roughness_channels", 2, "--roughness-channels must be one of 1, 3, not 2"),
         ("max_steps", 0, "--max-steps must be at least 1, not 0"),
+        ("time_limit", 0.0, "--time-limit must be above 0, not 0.0"),
         ("loss", "l2", "--loss must be one of l1\\+vgg, l1, l1\\+msssim, l1\\+flip, not 'l2'"),
     ],
 )

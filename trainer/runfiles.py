@@ -1,6 +1,7 @@
 """The files of a training run's folder (``trainer train --out RUN``), named once here: what
 the trainer writes, and what ``trainer eval``, the farm dashboard and the benchmarks read.
-Plain names, free of torch (the dashboard reads runs without the train extra).
+Plain names and the readers of its log lines, free of torch (the dashboard reads runs
+without the train extra).
 
 - ``config.json``: the run's :class:`trainer.training.config.TrainConfig`;
 - ``log.jsonl``: a line every ``--log-every`` steps (loss, images/s, data wait, rate);
@@ -14,6 +15,9 @@ Plain names, free of torch (the dashboard reads runs without the train extra).
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 CONFIG = "config.json"
 LOG = "log.jsonl"
 VAL = "val.jsonl"
@@ -25,6 +29,21 @@ BEST = "best.pt"
 EVAL = "eval.json"
 EVAL_GRID = "eval.png"
 SAMPLES = "samples"
+
+
+def read_log(run: Path, name: str = LOG) -> list[dict]:
+    """The run's log lines, or those of its ``name`` (none for a file not written yet; a
+    torn last line, while it is written, is skipped)."""
+    path = Path(run) / name
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return out
 
 
 def kept_lines(records: list[dict]) -> list[dict]:

@@ -58,21 +58,6 @@ def find_runs(base: Path) -> list[str]:
     return [c.name for c in sorted(base.iterdir()) if c.is_dir() and is_run(c)]
 
 
-def read_log(run: Path, name: str = runfiles.LOG) -> list[dict]:
-    """The run's log lines, or those of its ``name`` (a torn last line, while it is written,
-    is skipped)."""
-    path = run / name
-    if not path.exists():
-        return []
-    out = []
-    for line in path.read_text().splitlines():
-        try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    return out
-
-
 def read_config(run: Path) -> dict:
     """The run's ``config.json`` (``{}`` when it has none, or one being written)."""
     try:
@@ -170,9 +155,9 @@ def thin(rows: list, limit: int = CURVE_POINTS) -> list:
 def run_summary(name: str, run: Path, label: str | None = None) -> dict:
     """What the runs page and the metrics show of ``run``: ``name`` is its key in URLs,
     ``label`` its name on the page and in the metrics (``name`` when not given)."""
-    log = read_log(run)
+    log = runfiles.read_log(run)
     last = log[-1] if log else {}
-    val = read_log(run, runfiles.VAL)
+    val = runfiles.read_log(run, runfiles.VAL)
     ckpts = sorted((run / runfiles.CHECKPOINTS).glob("*.pt"))
     ev = None
     if (run / runfiles.EVAL).exists():
