@@ -13,7 +13,8 @@ every held-out sample (PSNR with its 95 % interval over materials, SSIM, FLIP;
 ``trainer.rendering.evaluate``). Throughput is the training loop's image passes per second (from the
 run's log) and per CPU-second of the whole run (the trainer and its loader, from the
 operating system's accounting, so a busy machine changes it little, unless two runs'
-threads contend for the same cores: waiting threads spin and count).
+threads contend for the same cores: waiting threads spin and count); the table shows the
+second on the CPU and the first on a GPU, where the host's CPU time is its wall time.
 
 The rows change one thing at a time from the paper's recipe (``--recipe paper``) at width 32
 (the ``w32`` row; the ``paper`` rows keep the paper's width 64), then the project's recipe
@@ -342,13 +343,26 @@ def precision(result: dict) -> str:
     return result.get("precision", "fp32")
 
 
-def table(resolution: int, budget: int, results: list[dict], about: str) -> Table:
+#: the speed column on each device: its title, the result's key and what the table says of it
+SPEED = {
+    "cpu": ("passes / CPU-s", "passes_per_cpu_second",
+            "passes / CPU-s: of a run trained in one go (— for a resumed one); rows trained at "
+            "different times met different loads on a shared machine"),
+    # a GPU run's host process spins while it waits on the device: its CPU time is its wall
+    "cuda": ("passes / s", "passes_per_second",
+             "passes / s: the training loop's image passes a second on the GPU (from the run's "
+             "log), without the set-up and the scoring"),
+}  # fmt: skip
+
+
+def table(resolution: int, budget: int, results: list[dict], about: str, device: str = "cpu"):
+    """The rows' :class:`Table`; its speed column is the ``device``'s (:data:`SPEED`)."""
+    speed, key, said = SPEED[device]
     t = Table(
         title=f"Learning per image pass: {resolution}², {budget:,} passes, held-out materials",
         columns=["row", "what changes", "batch", "precision", "PSNR dB", "95 % interval", "SSIM",
-                 "FLIP", "passes / CPU-s"],
-        notes=[about, "passes / CPU-s: of a run trained in one go (— for a resumed one); rows "
-               "trained at different times met different loads on a shared machine"],
+                 "FLIP", speed],
+        notes=[about, said],
     )  # fmt: skip
     for r in results:
         if "diverged" in r:
@@ -359,7 +373,7 @@ def table(resolution: int, budget: int, results: list[dict], about: str) -> Tabl
             r["row"], ROWS[r["row"]][0], batch_of(r), precision(r), round(r["psnr"], 2),
             f"{r['psnr_low']:.2f}-{r['psnr_high']:.2f}" if r.get("psnr_low") else None,
             round(r["ssim"], 4), round(r["flip"], 4),
-            None if r["passes_per_cpu_second"] is None else round(r["passes_per_cpu_second"], 1),
+            None if r.get(key) is None else round(r[key], 1),
         ])  # fmt: skip
         if r.get("cut"):
             t.notes.append(f"{r['row']}: stopped by --row-seconds after {r['images']:,} of "
@@ -435,7 +449,7 @@ def main(argv: list[str] | None = None) -> None:
         p.error(str(exc))
     for budget in budgets:
         results = [run_row(n, store, work, budget, **run_as, **rates[n]) for n in names]
-        t = table(layout.resolution, budget, results, about)
+        t = table(layout.resolution, budget, results, about, args.device)
         t.notes += args.note
         name = args.name or f"learning-{layout.resolution}-{budget // 1000}k"
         trained = {r["row"] for r in results if "diverged" not in r}

@@ -348,6 +348,10 @@ def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_
     assert not (work / "400" / "paper" / "result.json").exists()
     said = "paper: stopped by --row-seconds after 6 of 400 passes, at a rate not yet annealed"
     assert said in table(32, 400, [cut], "about").notes
+    # on a GPU the speed column is the training loop's passes a second, not per CPU-second
+    on_gpu = table(32, 400, [cut], "about", device="cuda")
+    assert on_gpu.columns[-1] == "passes / s"
+    assert on_gpu.rows[0][-1] == round(cut["passes_per_second"], 1) > 0
 
 
 @pytest.mark.slow
