@@ -110,7 +110,7 @@ gpu-wheels: $(BIN)/.installed
 		'zstandard>=0.22' 'google-crc32c>=1.5' tenacity flip-evaluator
 
 # The stores the GPU benchmarks read, made here by the farm (once): out/bench-400.zarr (train,
-# infer) and out/gpu-learn-64.zarr (learn: 500 materials x 5 suns at 64², 32 spp, about 50 MB,
+# infer) and out/gpu-learn-64.zarr (learn: 500 materials x 5 suns at 64², 32 spp, 53 MiB,
 # so that it and .whl/ fit one device call's 64 MiB)
 gpu-stores: bench-store
 	test -f out/gpu-learn-64.zarr/zarr.json || $(BIN)/farm submit -m uniform:250 \
