@@ -250,8 +250,9 @@ class Diverged(RuntimeError):
 
 
 def train_row(cfg: TrainConfig) -> dict:
-    """Run ``trainer train`` for ``cfg`` (resuming a run it left); its throughput. A resumed
-    run's CPU time is this call's only, so it has no passes per CPU-second. Raises
+    """Run ``trainer train`` for ``cfg`` (resuming a run it left); the step it stopped at and
+    its throughput. A resumed run's CPU time is this call's only, so it has no passes per
+    CPU-second. Raises
     :class:`Diverged` for a run that diverged, ``CalledProcessError`` for any other end."""
     argv = [sys.executable, "-m", "trainer.cli", "train", *to_argv(cfg)]  # no installed script
     resumed = (Path(cfg.out) / runfiles.CHECKPOINTS).exists()
@@ -272,6 +273,7 @@ def train_row(cfg: TrainConfig) -> dict:
     images = sum(x["images"] for x in steps)
     loop = runfiles.loop_seconds(steps)
     return {
+        "steps": steps[-1]["step"] if steps else 0,
         "images": images,
         "passes_per_second": images / loop if loop else None,
         "passes_per_cpu_second": images / cpu if cpu and not resumed else None,
@@ -314,7 +316,9 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
         return result
     scores = score_run(run, run / "grid.png", run_as.get("device", "cpu"))
     result |= {**speed, **scores}
-    if speed["images"] < cfg.max_steps * cfg.batch_size:
+    # steps, not passes: an epoch's last batch may be short, so a run at its last step may
+    # have trained a few passes under max_steps x batch
+    if speed["steps"] < cfg.max_steps:
         result["cut"] = True
         print(f"  stopped by its time limit at {speed['images']:,} passes", flush=True)
     else:

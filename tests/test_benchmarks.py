@@ -339,7 +339,8 @@ def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_
     tiny_store, tmp_path
 ):
     """``--row-seconds``: a row stopped short of its budget is scored where it stopped, the
-    table says after how many passes, and it is not kept as done (the next call resumes)."""
+    table says after how many passes, and it is not kept as done (the next call resumes). A
+    row that ran all its steps is done though its epochs end in short batches."""
     from benchmarks.learning import run_row, table
 
     work = tmp_path / "work"
@@ -352,6 +353,10 @@ def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_
     on_gpu = table(32, 400, [cut], "about", device="cuda")
     assert on_gpu.columns[-1] == "passes / s"
     assert on_gpu.rows[0][-1] == round(cut["passes_per_second"], 1) > 0
+    # 21 training samples (7 materials x 3 suns) at batch 6: 4 steps train 6 + 6 + 6 + 3 passes
+    full = run_row("paper", tiny_store.url, work, 24, workers=0)
+    assert (full["steps"], full["images"]) == (4, 21) and "cut" not in full
+    assert (work / "24" / "paper" / "result.json").exists()
 
 
 @pytest.mark.slow
