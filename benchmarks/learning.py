@@ -189,6 +189,42 @@ def ensure_store(resolution: int, cache: Path = CACHE) -> str:
 LR_SCALES = {"none": lambda k: 1.0, "sqrt": lambda k: k**0.5, "linear": lambda k: k}
 
 
+#: how a row's rate follows the batch given to every row, in the table's words
+SCALED = {
+    "none": "not scaled",
+    "sqrt": "scaled by the square root of the ratio of that batch to its own",
+    "linear": "scaled by the ratio of that batch to its own",
+}
+
+
+class BadScale(ValueError):
+    """An ``--lr-scale`` value that names no rule or no row (its one-line error)."""
+
+
+def scale_rules(values: list[str], names: list[str]) -> dict[str, str]:
+    """Each of the rows ``names``' ``LR_SCALES`` rule from ``--lr-scale`` values: ``RULE`` for
+    every row, ``ROW=RULE`` for that row (a later value wins; a row not among ``names`` is
+    left alone, so one command's rules may name rows it does not train); ``none`` where none
+    is given."""
+    rules = dict.fromkeys(names, "none")
+    for value in values:
+        row, _, rule = value.rpartition("=")
+        if rule not in LR_SCALES:
+            raise BadScale(f"--lr-scale {value}: {rule!r} is not one of {', '.join(LR_SCALES)}")
+        if row and row not in ROWS:
+            raise BadScale(f"--lr-scale {value}: {row!r} is not a row (one of {', '.join(ROWS)})")
+        rules |= dict.fromkeys([row] if row in names else [] if row else names, rule)
+    return rules
+
+
+def said_rules(rules: dict[str, str]) -> str:
+    """The table's words for ``rules``: one rule for every row, or each row's."""
+    if len(set(rules.values())) == 1:
+        rule = next(iter(rules.values()))
+        return "" if rule == "none" else f", each row's rate {SCALED[rule]}"
+    return ", the rate of " + ", of ".join(f"{row} {SCALED[rule]}" for row, rule in rules.items())
+
+
 def scaled_lr(name: str, store: str, batch: int, rule: str) -> float:
     """Row ``name``'s (peak) rate at ``batch``: its own rate times ``rule`` of the ratio of
     ``batch`` to its own batch (``linear``: Goyal et al. 2017's rule)."""
@@ -410,20 +446,26 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--name", default=None, help="the table's name (default learning-R-Bk)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.add_argument("--batch", type=int, default=None, help="every row's batch size")
-    p.add_argument("--lr-scale", default="none", choices=list(LR_SCALES),
+    p.add_argument("--lr-scale", action="append", default=[], metavar="[ROW=]RULE",
                    help="with --batch: scale each row's (peak) rate by the ratio of --batch to "
-                   "its own batch (linear) or by its square root (sqrt)")  # fmt: skip
+                   "its own batch (linear), by its square root (sqrt) or not (none, the "
+                   "default); ROW=RULE for one row (repeatable, e.g. --lr-scale sqrt "
+                   "--lr-scale paper=none)")  # fmt: skip
     p.add_argument("--preload", action="store_true", help="trainer train --preload")
     p.add_argument("--row-seconds", type=float, default=None,
                    help="stop each row's training after this many seconds (trainer train "
                    "--time-limit) and score it there; the next call resumes it")  # fmt: skip
     p.add_argument("--note", action="append", default=[], help="a note for the table (repeatable)")
     args = p.parse_args(argv)
-    if args.lr_scale != "none" and args.batch is None:
-        p.error("--lr-scale scales the rates to --batch: give --batch")
     names = args.rows.split(",") if args.rows else list(ROWS)
     if unknown := [n for n in names if n not in ROWS]:
         p.error(f"unknown row {unknown[0]!r}: one of {', '.join(ROWS)}")
+    try:
+        rules = scale_rules(args.lr_scale, names)
+    except BadScale as exc:
+        p.error(str(exc))
+    if set(rules.values()) != {"none"} and args.batch is None:
+        p.error("--lr-scale scales the rates to --batch: give --batch")
     store = args.store or ensure_store(args.resolution)
     layout = Store(store).layout
     work = args.work / str(layout.resolution)
@@ -437,12 +479,10 @@ def main(argv: list[str] | None = None) -> None:
         + (", the split in its memory" if args.preload else
            ", one loader worker" if args.device == "cpu" else "")
         + ("" if args.batch is None else f", batch {args.batch} for every row")
-        + {"none": "", "sqrt": ", each row's rate scaled by the square root of the ratio of "
-           "that batch to its own", "linear": ", each row's rate scaled by the ratio of that "
-           "batch to its own"}[args.lr_scale]
+        + said_rules(rules)
     )  # fmt: skip
     os.environ.setdefault("OMP_NUM_THREADS", str(len(os.sched_getaffinity(0))))
-    rates = {n: {"lr": scaled_lr(n, store, args.batch, args.lr_scale)} if args.batch else {}
+    rates = {n: {"lr": scaled_lr(n, store, args.batch, rules[n])} if args.batch else {}
              for n in names}  # fmt: skip
     budgets = args.budget or BUDGETS
     try:  # every kept run, finished or not, before any row trains
@@ -454,6 +494,9 @@ def main(argv: list[str] | None = None) -> None:
     for budget in budgets:
         results = [run_row(n, store, work, budget, **run_as, **rates[n]) for n in names]
         t = table(layout.resolution, budget, results, about, args.device)
+        if args.batch is not None:
+            t.notes.append(f"(peak) rates at batch {args.batch}: " + ", ".join(
+                f"{n} {rates[n]['lr']:.3g}" for n in names))  # fmt: skip
         t.notes += args.note
         name = args.name or f"learning-{layout.resolution}-{budget // 1000}k"
         trained = {r["row"] for r in results if "diverged" not in r}

@@ -335,6 +335,32 @@ def test_the_learning_rows_rates_scale_with_the_batch_given_to_every_row(capsys)
     assert "--lr-scale scales the rates to --batch: give --batch" in capsys.readouterr().err
 
 
+def test_the_learning_rows_rate_rules_are_given_for_every_row_or_one(capsys):
+    """``--lr-scale RULE`` for every row, ``ROW=RULE`` for one (the later wins; a row not
+    trained is left alone), named in the table's note; a rule or row that is not one is
+    refused in one line naming it."""
+    from benchmarks.learning import BadScale, main, said_rules, scale_rules
+
+    rows = ["default", "paper"]
+    assert scale_rules([], rows) == {"default": "none", "paper": "none"}
+    assert scale_rules(["sqrt", "paper=none"], rows) == {"default": "sqrt", "paper": "none"}
+    assert scale_rules(["paper=linear", "sqrt"], rows) == {"default": "sqrt", "paper": "sqrt"}
+    assert scale_rules(["sqrt", "paper=none"], ["default"]) == {"default": "sqrt"}
+    assert said_rules({"default": "none", "paper": "none"}) == ""
+    assert said_rules({"default": "sqrt", "paper": "sqrt"}) == (
+        ", each row's rate scaled by the square root of the ratio of that batch to its own"
+    )
+    assert said_rules({"default": "sqrt", "paper": "none"}) == (
+        ", the rate of default scaled by the square root of the ratio of that batch to its own"
+        ", of paper not scaled")  # fmt: skip
+    with pytest.raises(BadScale, match=r"^--lr-scale paper=cube: 'cube' is not one of none, "):
+        scale_rules(["paper=cube"], rows)
+    with pytest.raises(SystemExit) as stop:  # before any store is read or rendered
+        main(["--rows", "default,paper", "--batch", "8", "--lr-scale", "papr=sqrt"])
+    assert stop.value.code == 2
+    assert "--lr-scale papr=sqrt: 'papr' is not a row (one of paper, " in capsys.readouterr().err
+
+
 def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_kept(
     tiny_store, tmp_path
 ):

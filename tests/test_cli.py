@@ -271,6 +271,28 @@ def test_gpu_benchmark_script_runs_the_viewer_benchmark_on_cuda(tmp_path):
         assert f"args {['--device', 'cuda', *extra]}" in log
 
 
+def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path):
+    """``gpu.sh learn`` runs ``benchmarks.learning`` on the carried store at the paper's length,
+    the default's rate scaled by the root of the batch ratio and the paper's at its own;
+    ``LR_SCALE`` replaces those rules."""
+    script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
+    (tmp_path / "benchmarks").mkdir()
+    (tmp_path / "benchmarks" / "gpu.sh").write_text(script.read_text())
+    (tmp_path / "benchmarks" / "learning.py").write_text("import sys; print('args', sys.argv[1:])")
+    (tmp_path / "benchmarks" / "__init__.py").touch()
+    (tmp_path / "out" / "gpu-learn-64.zarr").mkdir(parents=True)
+    (tmp_path / "out" / "gpu-learn-64.zarr" / "zarr.json").write_text("{}")
+    env = {**os.environ, "PYTHON": sys.executable, "OUT": str(tmp_path / "device-out")}
+    for extra, rules in (({}, ["sqrt", "paper=none"]), ({"LR_SCALE": "linear"}, ["linear"])):
+        r = subprocess.run(["bash", "benchmarks/gpu.sh", "learn"], cwd=tmp_path,
+                           env=env | extra, capture_output=True, text=True)  # fmt: skip
+        assert r.returncode == 0, r.stderr
+        scales = [x for rule in rules for x in ("--lr-scale", rule)]
+        said = ["--store", "out/gpu-learn-64.zarr", "--device", "cuda", "--preload", "--budget",
+                "1470000", "--batch", "128", *scales, "--rows", "default,paper"]  # fmt: skip
+        assert f"args {said}"[:-1] in r.stdout, r.stdout
+
+
 # stands in for benchmarks.infer: says whether an earlier call's tuning is there, tunes "one
 # operation" into Inductor's cache, then outlasts the budget as a long autotuning run does
 SLOW_INFER = """
