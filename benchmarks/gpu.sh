@@ -30,9 +30,11 @@
 # steps on the CPU: benchmarks.learning --budget 64000 --batch 128 --lr-scale sqrt|linear --rows
 # shaderball) sqrt learnt more than linear, whose peak of 3.2e-2 trained but less well. The
 # default's batch of 4 gives it a peak of 1.13e-2 at batch 128, which trained as well there as
-# the shaderball row's 8e-3 (--rows sb-ambient-b4). The paper's constant rate does not take the
-# root: on this store at batch 128 and 64k passes its own 1e-3 reached 28.7 dB, the root's
-# 4.6e-3 2.1 dB less (tables learning-64-b128-paper-none and -sqrt, docs/benchmarks.md).
+# the shaderball row's 8e-3 (--rows sb-ambient-b4). On this store at batch 128 and 64k passes
+# the default reached 34.1 dB at the root's peak and 0.8 dB less at its own 2e-3, but the
+# paper's constant rate does not take the root: its own 1e-3 reached 28.7 dB, the root's 4.6e-3
+# 2.1 dB less (tables learning-64-b128-default-* and learning-64-b128-paper-*,
+# docs/benchmarks.md).
 # ROWS picks other rows of benchmarks.learning, each at batch BATCH (the rows pinned to fp32, as
 # default-w32 and the sb-* ones are, train in fp32 there too): ROWS=default-w32 trains the default
 # at width 32, which trains twice the passes a second on the CPU and learnt 0.7 dB less at 64k
