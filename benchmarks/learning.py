@@ -7,8 +7,10 @@ passes on one store, scored on the same held-out materials.
 
 The store (``benchmarks/.cache/learning-R.zarr``) is rendered once by the farm: 100 uniform
 and 100 procedural materials x 5 suns at 32 spp; the trainer's seeded split holds 15 % of the
-materials out. Each row of :data:`ROWS` runs ``trainer train`` with its settings for
-``budget / batch`` steps (one CPU process, one loader worker), then its network is scored on
+materials out. Each row of :data:`ROWS` runs ``trainer train`` with its settings for the
+fewest steps that make at least ``budget`` image passes (:func:`steps_for`: an epoch ends in a
+short batch where the batch does not divide the training split), on one CPU process with
+one loader worker, then its network is scored on
 every held-out sample (PSNR with its 95 % interval over materials, SSIM, FLIP;
 ``trainer.rendering.evaluate``). Throughput is the training loop's image passes per second (from the
 run's log) and per CPU-second of the whole run (the trainer and its loader, from the
@@ -34,6 +36,7 @@ run, and a grid of ``--grid-rows`` side by side to ``docs/img/learning-R.png``.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import resource
@@ -45,6 +48,7 @@ from pathlib import Path
 from benchmarks.results import Table, save
 from farm.driver import submit
 from farm.plan import JobConfig
+from storage.catalog import Catalog
 from storage.reader import Store
 from trainer import runfiles
 from trainer.cues import ordered
@@ -232,14 +236,30 @@ def scaled_lr(name: str, store: str, batch: int, rule: str) -> float:
     return own.lr * LR_SCALES[rule](batch / own.batch_size)
 
 
+def steps_for(budget: int, batch: int, samples: int) -> int:
+    """The fewest steps at ``batch`` that make at least ``budget`` image passes over a
+    training split of ``samples``, each epoch's last batch short where ``batch`` does not
+    divide ``samples`` (``budget // batch`` steps would fall short by those)."""
+    epochs, rest = divmod(budget, samples)
+    return max(1, epochs * -(-samples // batch) + -(-rest // batch))
+
+
+@functools.cache
+def training_samples(store: str, holdout_seed: int) -> int:
+    """How many samples the trainer's split of ``store`` trains on (:data:`HOLDOUT` held out)."""
+    return len(Catalog.snapshot([store], holdout_seed, HOLDOUT, None).split("train"))
+
+
 def row_config(name: str, store: str, run: Path, budget: int, **run_as) -> TrainConfig:
-    """The training run of row ``name`` for ``budget`` image passes; ``run_as``: settings of
-    how it runs (``device``, ``preload``, ``workers``, ``batch_size`` for every row, ...)."""
+    """The training run of row ``name`` for at least ``budget`` image passes; ``run_as``:
+    settings of how it runs (``device``, ``preload``, ``workers``, ``batch_size`` for every
+    row, ...)."""
     settings = ROWS[name][1] | run_as
     probe = TrainConfig(store=(store,), **settings)
     defaults = {"workers": 1, "log_every": 50}
     return TrainConfig(
-        store=(store,), out=str(run), max_steps=max(1, budget // probe.batch_size),
+        store=(store,), out=str(run),
+        max_steps=steps_for(budget, probe.batch_size, training_samples(store, probe.holdout_seed)),
         epochs=100_000, holdout_fraction=HOLDOUT, val_samples=0, checkpoint_every=1_000_000,
         keep=1, **(defaults | settings),
     )  # fmt: skip

@@ -380,9 +380,25 @@ def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_
     assert on_gpu.columns[-1] == "passes / s"
     assert on_gpu.rows[0][-1] == round(cut["passes_per_second"], 1) > 0
     # 21 training samples (7 materials x 3 suns) at batch 6: 4 steps train 6 + 6 + 6 + 3 passes
-    full = run_row("paper", tiny_store.url, work, 24, workers=0)
+    full = run_row("paper", tiny_store.url, work, 21, workers=0)
     assert (full["steps"], full["images"]) == (4, 21) and "cut" not in full
-    assert (work / "24" / "paper" / "result.json").exists()
+    assert (work / "21" / "paper" / "result.json").exists()
+
+
+def test_a_learning_budget_is_trained_in_the_fewest_whole_steps_that_reach_it():
+    """``steps_for``: an epoch's last batch is short where the batch does not divide the
+    split, so the steps for a budget of passes count whole epochs and then the rest."""
+    from benchmarks.learning import steps_for
+
+    assert steps_for(21, 6, 21) == 4  # 6 + 6 + 6 + 3
+    assert steps_for(24, 6, 21) == 5  # an epoch, then 3 passes in a batch of 6
+    assert steps_for(8, 6, 21) == 2 and steps_for(6, 6, 21) == 1 and steps_for(1, 6, 21) == 1
+    assert steps_for(64_000, 4, 800) == 16_000  # a batch that divides the split: budget // batch
+    # the GPU call's store: 2,125 training samples at batch 128, 17 steps (16 full) an epoch
+    steps = steps_for(1_470_000, 128, 2125)
+    epochs, rest = divmod(steps, 17)
+    passes = epochs * 2125 + min(rest * 128, 2125)
+    assert passes >= 1_470_000 > passes - 128 and steps > 1_470_000 // 128
 
 
 @pytest.mark.slow
@@ -418,8 +434,8 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     other = subprocess.run([*cmd, "--batch", "4", "--lr-scale", "linear"], capture_output=True,
                            text=True, timeout=600)  # fmt: skip
     assert other.returncode == 2 and " steps of " not in other.stdout
-    assert ("paper was trained with batch_size=6, lr=0.001, max_steps=1, not batch_size=4, "
-            "lr=0.000666667, max_steps=2: give another --work") in other.stderr  # fmt: skip
+    assert ("paper was trained with batch_size=6, lr=0.001, not batch_size=4, "
+            "lr=0.000666667: give another --work") in other.stderr  # fmt: skip
     done = tmp_path / "work" / "64" / "8" / "shaderball" / "result.json"
     done.rename(done.with_suffix(".kept"))  # a run left unfinished is checked too
     other = subprocess.run([*cmd, "--rows", "shaderball", "--batch", "4"], capture_output=True,
