@@ -17,8 +17,12 @@
 # learn: benchmarks.learning's rows default and paper, at batch BATCH (128: the paper's 6
 # would take hours of steps) for PASSES image passes (1470000, the paper's 30 epochs of 49,000
 # images), the split held in the GPU's memory (trainer train --preload), each row scored on its
-# held-out materials; the table (learning-gpu.json), the side-by-side grid and each run's
-# result and grid are written under $OUT (a row finished is kept if a later one is cut off).
+# held-out materials. The runs (checkpoints of 140-190 MB each) go to WORK (default: a new
+# temporary folder; a row finished there is kept if a later one is cut off, and a WORK given
+# again resumes its rows), and $OUT gets what a device call brings back (8 files at most, none
+# over 16 MiB): the table (learning-gpu.json), the side-by-side grid (learning-gpu.png), the
+# log gpu-bench.txt and each row's grid and training log (learning-ROW-grid.png,
+# learning-ROW-log.jsonl).
 # Each row trains for at most ROW_SECONDS (default 230: two rows, their scoring and the set-up
 # fit a 600-second call); a row stopped there is scored where it stopped and the table says
 # after how many passes (benchmarks.learning --row-seconds).
@@ -80,6 +84,8 @@ log=$out/gpu-bench.txt
 mkdir -p "$out" .gpucache
 export TORCHINDUCTOR_CACHE_DIR=$PWD/.gpucache/inductor TRITON_CACHE_DIR=$PWD/.gpucache/triton
 budget=(timeout --signal=INT --kill-after=20 "${BUDGET:-540}")
+work=${WORK:-}
+[[ $part != learn || -n $work ]] || work=$(mktemp -d)
 scales=()
 for rule in ${LR_SCALE:-sqrt paper=none}; do scales+=(--lr-scale "$rule"); done
 train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 10)
@@ -103,9 +109,17 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
                    --budget "${PASSES:-1470000}" --batch "${BATCH:-128}" \
                    "${scales[@]}" --rows "${ROWS:-default,paper}" \
                    --row-seconds "${ROW_SECONDS:-230}" \
-                   --work "$out/learning" --results "$out" --name learning-gpu ;;
+                   --work "$work" --results "$out" --name learning-gpu \
+                   || echo "benchmarks.learning ended with status $?" ;;
     esac
 } 2>&1 | tee -a "$log"
+if [[ $part == learn ]]; then  # each row's grid and log, flat: a call brings back 2 levels
+    for run in "$work"/*/*/*/; do
+        row=$(basename "$run")
+        [[ ! -f $run/grid.png ]] || cp "$run/grid.png" "$out/learning-$row-grid.png"
+        [[ ! -f $run/log.jsonl ]] || cp "$run/log.jsonl" "$out/learning-$row-log.jsonl"
+    done
+fi
 [[ $part == infer ]] || exit 0
 tar -czf "$out/gpucache.tgz" -C .gpucache .
 held="Inductor's and Triton's caches"

@@ -271,26 +271,57 @@ def test_gpu_benchmark_script_runs_the_viewer_benchmark_on_cuda(tmp_path):
         assert f"args {['--device', 'cuda', *extra]}" in log
 
 
+# stands in for benchmarks.learning: says its arguments, writes a run folder for each row (a
+# checkpoint too) under --work and the table and its grid under --results
+FAKE_LEARNING = """
+import argparse, pathlib, sys
+print("args", sys.argv[1:], flush=True)
+p = argparse.ArgumentParser()
+for name in ("--rows", "--work", "--budget", "--results", "--name"):
+    p.add_argument(name)
+arg, _ = p.parse_known_args()
+for row in arg.rows.split(","):
+    run = pathlib.Path(arg.work, "64", arg.budget, row)
+    (run / "checkpoints").mkdir(parents=True)
+    for name in ("grid.png", "log.jsonl", "result.json", "checkpoints/step-1.pt"):
+        (run / name).write_text(row + " " + name)
+for ext in ("json", "png"):
+    pathlib.Path(arg.results, arg.name + "." + ext).write_text("table")
+"""
+
+
 def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path):
     """``gpu.sh learn`` runs ``benchmarks.learning`` on the carried store at the paper's length,
-    the default's rate scaled by the root of the batch ratio and the paper's at its own;
-    ``LR_SCALE`` replaces those rules."""
+    the default's rate scaled by the root of the batch ratio and the paper's at its own
+    (``LR_SCALE`` replaces those rules); the runs go to a folder of their own and ``$OUT``
+    gets only what a device call brings back: at most 8 files, 2 folders down at most."""
     script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
     (tmp_path / "benchmarks").mkdir()
     (tmp_path / "benchmarks" / "gpu.sh").write_text(script.read_text())
-    (tmp_path / "benchmarks" / "learning.py").write_text("import sys; print('args', sys.argv[1:])")
+    (tmp_path / "benchmarks" / "learning.py").write_text(FAKE_LEARNING)
     (tmp_path / "benchmarks" / "__init__.py").touch()
     (tmp_path / "out" / "gpu-learn-64.zarr").mkdir(parents=True)
     (tmp_path / "out" / "gpu-learn-64.zarr" / "zarr.json").write_text("{}")
-    env = {**os.environ, "PYTHON": sys.executable, "OUT": str(tmp_path / "device-out")}
-    for extra, rules in (({}, ["sqrt", "paper=none"]), ({"LR_SCALE": "linear"}, ["linear"])):
-        r = subprocess.run(["bash", "benchmarks/gpu.sh", "learn"], cwd=tmp_path,
-                           env=env | extra, capture_output=True, text=True)  # fmt: skip
+    for call, (extra, rules) in enumerate(
+        (({}, ["sqrt", "paper=none"]), ({"LR_SCALE": "linear"}, ["linear"]))
+    ):
+        out = tmp_path / f"device-out-{call}"
+        # TMPDIR: where gpu.sh makes the runs' folder
+        env = {**os.environ, "PYTHON": sys.executable, "OUT": str(out), "TMPDIR": str(tmp_path)}
+        env |= extra
+        r = subprocess.run(["bash", "benchmarks/gpu.sh", "learn"], cwd=tmp_path, env=env,
+                           capture_output=True, text=True)  # fmt: skip
         assert r.returncode == 0, r.stderr
         scales = [x for rule in rules for x in ("--lr-scale", rule)]
         said = ["--store", "out/gpu-learn-64.zarr", "--device", "cuda", "--preload", "--budget",
                 "1470000", "--batch", "128", *scales, "--rows", "default,paper"]  # fmt: skip
         assert f"args {said}"[:-1] in r.stdout, r.stdout
+        back = sorted(p.name for p in out.rglob("*"))
+        assert back == ["gpu-bench.txt", "learning-default-grid.png", "learning-default-log.jsonl",
+                        "learning-gpu.json", "learning-gpu.png", "learning-paper-grid.png",
+                        "learning-paper-log.jsonl"]  # fmt: skip
+        assert (out / "learning-paper-log.jsonl").read_text() == "paper log.jsonl"
+    assert len(list(tmp_path.glob("tmp.*/64/1470000/paper/checkpoints/step-1.pt"))) == 2
 
 
 # stands in for benchmarks.infer: says whether an earlier call's tuning is there, tunes "one
