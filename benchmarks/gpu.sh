@@ -35,10 +35,11 @@
 # shaderball) sqrt learnt more than linear, whose peak of 3.2e-2 trained but less well. The
 # default's batch of 4 gives it a peak of 1.13e-2 at batch 128, which trained as well there as
 # the shaderball row's 8e-3 (--rows sb-ambient-b4). On this store at batch 128 and 64k passes
-# the default reached 34.1 dB at the root's peak and 0.8 dB less at its own 2e-3, but the
-# paper's constant rate does not take the root: its own 1e-3 reached 28.7 dB, the root's 4.6e-3
-# 2.1 dB less (tables learning-64-b128-default-* and learning-64-b128-paper-*,
-# docs/benchmarks.md).
+# the default reached 34.2 dB at the root's peak and 0.75 dB less at its own 2e-3. The paper's
+# constant rate keeps its own 1e-3: 28.2 dB, the root's 4.6e-3 0.4 dB less, and at a constant
+# rate the score is where the last steps land, which moved the root's far more (2.1 dB less
+# at 500 steps; 22.4 dB on another machine) than its own (tables learning-64-b128-default-*
+# and learning-64-b128-paper-*, docs/benchmarks.md).
 # ROWS picks other rows of benchmarks.learning, each at batch BATCH (the rows pinned to fp32, as
 # default-w32 and the sb-* ones are, train in fp32 there too): ROWS=default-w32 trains the default
 # at width 32, which trains twice the passes a second on the CPU and learnt 0.7 dB less at 64k
