@@ -292,8 +292,13 @@ class Loop:
         return tasks_over and not self.whole and not self.commits and self.uv_ref is None
 
     def start(self, workers: int, t_start: float) -> None:
+        """Start the workers and save the job's state at once: ``farm status`` and the
+        dashboard see a running job (and a driver killed before its next save is called
+        lost) from its first moment, before any shard is committed."""
         self.t_start = t_start
         self.first = {self.pool.start() for _ in range(workers)}
+        self.state.save(self.job.store.backend)
+        self.last_save = now()
 
     def dispatch(self) -> None:
         if self.cancelled:

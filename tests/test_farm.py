@@ -1092,6 +1092,26 @@ def test_killed_driver_resumes_where_it_stopped(tmp_path):
     assert_exactly_once(out, 10)
 
 
+def test_a_job_state_is_saved_as_the_job_starts_before_any_shard_is_committed(tmp_path):
+    """``farm status`` sees a running job from its start: its state is written as the workers
+    start, not at the loop's first periodic save, so it is there when the first task starts
+    (a tiny job's shards can be committed within that period) and a driver killed before
+    any save after its commits still leaves a state that ``farm status`` can call lost."""
+    out, hold = tmp_path / "set.zarr", tmp_path / "hold"
+    hold.touch()  # every task waits while it exists, after saying so in hold.held
+    proc = farm("submit", "-m", "uniform:2", *TINY, "-o", out, faults={"hold_while": str(hold)},
+                wait=False)  # fmt: skip
+    try:
+        wait_until(Path(f"{hold}.held").exists, 120, "no task started")
+        assert job(out)["status"] == "running" and job(out)["shards_total"] == 1
+        assert not list((out / "commits").glob("*.json"))
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=90)
+    finally:
+        proc.kill()
+    assert job(out)["status"] == "interrupted"
+
+
 def test_sigterm_stops_the_job_cleanly_and_the_same_command_resumes(tmp_path):
     """What a deleted pod, ``timeout`` or ``docker stop`` sends: the driver stops its workers
     and Ray, says how to resume and exits 143; the job state says interrupted, not running."""
