@@ -308,8 +308,8 @@ class Diverged(RuntimeError):
 def train_row(cfg: TrainConfig) -> dict:
     """Run ``trainer train`` for ``cfg`` (resuming a run it left); the step it stopped at and
     its throughput. A resumed run's CPU time is this call's only, so it has no passes per
-    CPU-second. Raises
-    :class:`Diverged` for a run that diverged, ``CalledProcessError`` for any other end."""
+    CPU-second. Raises :class:`Diverged` for a run that diverged, ``CalledProcessError`` for
+    any other end."""
     argv = [sys.executable, "-m", "trainer.cli", "train", *to_argv(cfg)]  # no installed script
     resumed = (Path(cfg.out) / runfiles.CHECKPOINTS).exists()
     if resumed:
