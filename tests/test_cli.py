@@ -253,14 +253,24 @@ def test_gpu_benchmark_script_refuses_bad_use(tmp_path):
         assert len(r.stderr.splitlines()) == 1 and not (tmp_path / "out").exists()
 
 
+def gpu_checkout(root: Path, module: str, source: str, store: str | None = None) -> None:
+    """A checkout at ``root`` as a device call gets it: ``benchmarks/gpu.sh``, a stand-in
+    ``benchmarks.<module>`` (``source``) and, where a part reads one, an empty carried store."""
+    script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
+    (root / "benchmarks").mkdir(exist_ok=True)
+    (root / "benchmarks" / "gpu.sh").write_text(script.read_text())
+    (root / "benchmarks" / f"{module}.py").write_text(source)
+    (root / "benchmarks" / "__init__.py").touch()
+    if store is not None:
+        (root / "out" / store).mkdir(parents=True)
+        (root / "out" / store / "zarr.json").write_text("{}")
+
+
 def test_gpu_benchmark_script_runs_the_viewer_benchmark_on_cuda(tmp_path):
     """``gpu.sh viewer [ARGS]`` runs ``benchmarks.viewer --device cuda [ARGS]`` on the carried
     layouts."""
-    script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
-    (tmp_path / "benchmarks" / ".cache").mkdir(parents=True)
-    (tmp_path / "benchmarks" / "gpu.sh").write_text(script.read_text())
-    (tmp_path / "benchmarks" / "viewer.py").write_text("import sys; print('args', sys.argv[1:])")
-    (tmp_path / "benchmarks" / "__init__.py").touch()
+    gpu_checkout(tmp_path, "viewer", "import sys; print('args', sys.argv[1:])")
+    (tmp_path / "benchmarks" / ".cache").mkdir()
     (tmp_path / "benchmarks" / ".cache" / "screen_uv-128-4.npz").touch()
     env = {**os.environ, "PYTHON": sys.executable, "OUT": str(tmp_path / "device-out")}
     for extra in ([], ["--runtimes", "torch,graph"]):
@@ -295,13 +305,7 @@ def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path)
     the default's rate scaled by the root of the batch ratio and the paper's at its own
     (``LR_SCALE`` replaces those rules); the runs go to a folder of their own and ``$OUT``
     gets only what a device call brings back: at most 8 files, 2 folders down at most."""
-    script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
-    (tmp_path / "benchmarks").mkdir()
-    (tmp_path / "benchmarks" / "gpu.sh").write_text(script.read_text())
-    (tmp_path / "benchmarks" / "learning.py").write_text(FAKE_LEARNING)
-    (tmp_path / "benchmarks" / "__init__.py").touch()
-    (tmp_path / "out" / "gpu-learn-64.zarr").mkdir(parents=True)
-    (tmp_path / "out" / "gpu-learn-64.zarr" / "zarr.json").write_text("{}")
+    gpu_checkout(tmp_path, "learning", FAKE_LEARNING, "gpu-learn-64.zarr")
     for call, (extra, rules) in enumerate(
         (({}, ["sqrt", "paper=none"]), ({"LR_SCALE": "linear"}, ["linear"]))
     ):
@@ -340,13 +344,7 @@ def test_gpu_benchmark_script_carries_autotuning_over_calls(tmp_path):
     """``gpu.sh infer`` stops the benchmark after ``BUDGET`` seconds, still packs Inductor's
     cache into ``$OUT/gpucache.tgz``, and a call given that cache in ``.gpucache/`` starts from
     it: a long autotuning run spreads over several device calls."""
-    script = Path(__file__).parents[1] / "benchmarks" / "gpu.sh"
-    (tmp_path / "benchmarks").mkdir()
-    (tmp_path / "benchmarks" / "gpu.sh").write_text(script.read_text())
-    (tmp_path / "benchmarks" / "infer.py").write_text(SLOW_INFER)
-    (tmp_path / "benchmarks" / "__init__.py").touch()
-    (tmp_path / "out" / "bench-400.zarr").mkdir(parents=True)
-    (tmp_path / "out" / "bench-400.zarr" / "zarr.json").write_text("{}")
+    gpu_checkout(tmp_path, "infer", SLOW_INFER, "bench-400.zarr")
     env = {**os.environ, "PYTHON": sys.executable, "BUDGET": "6"}
     for call, before in enumerate([[], ["op0"]]):
         out = tmp_path / f"device-out-{call}"
