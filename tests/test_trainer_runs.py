@@ -156,6 +156,7 @@ def test_eval_and_render(tiny_store, trained, tmp_path):
         ["eval", "--checkpoint", str(trained), "--json", "--grid", str(tmp_path / "g.png")],
     )
     assert r.exit_code == 0, r.output
+    assert "batch/s" not in r.output  # no progress bar where stderr is not a terminal
     result = json.loads(r.output[r.output.index("{") :])
     held = Catalog.from_dict(checkpoint.load(trained)["catalog"]).heldout[0]
     assert result["samples"] == 3 * len(held) == result["overall"]["n"]

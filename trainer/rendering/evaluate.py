@@ -225,7 +225,8 @@ def score(renderers: list[MapsRenderer], split, batch_size: int, grid_count: int
     out = Scored([Tally() for _ in renderers], [], [], reader.stores, [])
     ids = np.arange(len(split))
     show = set(spread(len(split), grid_count).tolist())
-    for lo in tqdm(range(0, len(ids), batch_size), desc="eval", unit="batch"):
+    batches = range(0, len(ids), batch_size)
+    for lo in tqdm(batches, desc="eval", unit="batch", disable=None):  # no bar in a log file
         batch = reader.batch(ids[lo : lo + batch_size])
         mats = []
         for i in batch["id"].tolist():
