@@ -14,7 +14,7 @@
 #     bash benchmarks/gpu.sh viewer [ARGS]  # benchmarks.viewer --device cuda (carry benchmarks/.cache
 #                                           # too: the screen UV layouts `make bench-viewer` renders)
 #
-# learn: benchmarks.learning's rows default and paper, at batch BATCH (128: the paper's 6
+# learn: benchmarks.learning's rows paper and default, at batch BATCH (128: the paper's 6
 # would take hours of steps) for PASSES image passes (1470000, the paper's 30 epochs of 49,000
 # images), the split held in the GPU's memory (trainer train --preload), each row scored on its
 # held-out materials. The runs (checkpoints of 140-190 MB each) go to WORK (default: a new
@@ -23,9 +23,13 @@
 # over 16 MiB): the table (learning-gpu.json), the side-by-side grid (learning-gpu.png), the
 # log gpu-bench.txt and each row's grid and training log (learning-ROW-grid.png,
 # learning-ROW-log.jsonl).
-# Each row trains for at most ROW_SECONDS (default 230: two rows, their scoring and the set-up
-# fit a 600-second call); a row stopped there is scored where it stopped and the table says
-# after how many passes (benchmarks.learning --row-seconds).
+# The rows share LEARN_SECONDS (default 530: with the set-up, the rows, their scoring and the
+# copies fit a 600-second call; give less when the call has less) by benchmarks.learning
+# --seconds: the paper's row first, for at most ROW_SECONDS ("paper=200", space-separated
+# SECONDS or ROW=SECONDS: --row-seconds), then the default in what is left of the call; a row
+# stopped by its limit is scored where it stopped and the table says after how many passes.
+# Each row's scores are in the log as soon as it is scored, so a call killed later still
+# brings them back.
 # Each row's (peak) rate is scaled to BATCH by the rules in LR_SCALE (benchmarks.learning
 # --lr-scale, space-separated: RULE for every row, ROW=RULE for one; sqrt, the rate times the
 # square root of BATCH over the row's own batch; linear; none). The default, "sqrt paper=none":
@@ -43,7 +47,7 @@
 # ROWS picks other rows of benchmarks.learning, each at batch BATCH (the rows pinned to fp32, as
 # default-w32 and the sb-* ones are, train in fp32 there too): ROWS=default-w32 trains the default
 # at width 32, which trains twice the passes a second on the CPU and learnt 0.7 dB less at 64k
-# passes (run it after the two default rows, not in their call).
+# passes (in a call of its own, after the paper and default rows).
 # Tried here first, on the CPU with a few steps: DEVICE=cpu PASSES=64 BATCH=8 PYTHON=.venv/bin/python
 # LEARN_STORE=benchmarks/.cache/learning-64.zarr OUT=/tmp/learn bash benchmarks/gpu.sh learn
 #
@@ -89,6 +93,8 @@ work=${WORK:-}
 [[ $part != learn || -n $work ]] || work=$(mktemp -d)
 scales=()
 for rule in ${LR_SCALE:-sqrt paper=none}; do scales+=(--lr-scale "$rule"); done
+caps=()
+for cap in ${ROW_SECONDS:-paper=200}; do caps+=(--row-seconds "$cap"); done
 train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 10)
 {
     # "-dirty": the tree differs from that commit (a device copy may carry an older .git)
@@ -108,8 +114,8 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
         viewer) "$py" -m benchmarks.viewer --device cuda "$@" ;;
         learn) "$py" -m benchmarks.learning --store "$store" --device "${DEVICE:-cuda}" --preload \
                    --budget "${PASSES:-1470000}" --batch "${BATCH:-128}" \
-                   "${scales[@]}" --rows "${ROWS:-default,paper}" \
-                   --row-seconds "${ROW_SECONDS:-230}" \
+                   "${scales[@]}" --rows "${ROWS:-paper,default}" \
+                   "${caps[@]}" --seconds "${LEARN_SECONDS:-530}" \
                    --work "$work" --results "$out" --name learning-gpu \
                    || echo "benchmarks.learning ended with status $?" ;;
     esac

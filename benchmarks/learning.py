@@ -46,6 +46,7 @@ import time
 from pathlib import Path
 
 from benchmarks.results import Table, save
+from benchmarks.row_options import RESERVE, BadRowOption, Schedule, per_row, seconds
 from farm.driver import submit
 from farm.plan import JobConfig
 from storage.catalog import Catalog
@@ -201,24 +202,17 @@ SCALED = {
 }
 
 
-class BadScale(ValueError):
-    """An ``--lr-scale`` value that names no rule or no row (its one-line error)."""
+def rule(text: str) -> str:
+    """``--lr-scale``'s value: one of :data:`LR_SCALES`."""
+    if text not in LR_SCALES:
+        raise ValueError(f"is not one of {', '.join(LR_SCALES)}")
+    return text
 
 
 def scale_rules(values: list[str], names: list[str]) -> dict[str, str]:
-    """Each of the rows ``names``' ``LR_SCALES`` rule from ``--lr-scale`` values: ``RULE`` for
-    every row, ``ROW=RULE`` for that row (a later value wins; a row not among ``names`` is
-    left alone, so one command's rules may name rows it does not train); ``none`` where none
-    is given."""
-    rules = dict.fromkeys(names, "none")
-    for value in values:
-        row, _, rule = value.rpartition("=")
-        if rule not in LR_SCALES:
-            raise BadScale(f"--lr-scale {value}: {rule!r} is not one of {', '.join(LR_SCALES)}")
-        if row and row not in ROWS:
-            raise BadScale(f"--lr-scale {value}: {row!r} is not a row (one of {', '.join(ROWS)})")
-        rules |= dict.fromkeys([row] if row in names else [] if row else names, rule)
-    return rules
+    """Each of the rows ``names``' ``LR_SCALES`` rule from ``--lr-scale`` values
+    (:func:`benchmarks.row_options.per_row`); ``none`` where none is given."""
+    return per_row("--lr-scale", values, names, ROWS, rule, "none")
 
 
 def said_rules(rules: dict[str, str]) -> str:
@@ -351,13 +345,18 @@ def score_run(run: Path, grid: Path | None = None, device: str = "cpu") -> dict:
     return scored.summary()["overall"]
 
 
+def row_done(work: Path, budget: int, name: str) -> bool:
+    """Whether row ``name`` at ``budget`` has its result kept in ``work`` (:func:`run_row`)."""
+    return (work / str(budget) / name / "result.json").exists()
+
+
 def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
     """Row ``name`` at ``budget`` passes: trained and scored once, then read from its file. A
     row stopped by its time limit (``time_limit`` in ``run_as``) is scored where it stopped
     (``cut``) and not kept as done: the next call resumes it."""
     run = work / str(budget) / name
     done = run / "result.json"
-    if done.exists():
+    if row_done(work, budget, name):
         return json.loads(done.read_text())
     cfg = row_config(name, store, run, budget, **run_as)
     print(f"{name} ({budget:,} passes, {cfg.max_steps} steps of {cfg.batch_size})", flush=True)
@@ -379,8 +378,20 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
         print(f"  stopped by its time limit at {speed['images']:,} passes", flush=True)
     else:
         done.write_text(json.dumps(result, indent=1))
-    print(f"  {result['psnr']:.2f} dB, {result['passes_per_second']:.1f} passes/s", flush=True)
+    print(f"  {said_scores(result)}", flush=True)  # in the log before any later row starts
     return result
+
+
+def said_scores(result: dict) -> str:
+    """A scored row's figures on one line, as its table row has them and how it trained."""
+    low, high = result.get("psnr_low"), result.get("psnr_high")
+    interval = f" [{low:.2f}, {high:.2f}]" if low is not None else ""
+    speed = result.get("passes_per_second")
+    return (
+        f"{result['psnr']:.2f} dB{interval}, SSIM {result['ssim']:.4f}, FLIP "
+        f"{result['flip']:.4f}; {result['steps']:,} steps, {result['images']:,} passes"
+        + ("" if speed is None else f", {speed:.1f} passes/s")
+    )
 
 
 def precision_of(cfg: TrainConfig) -> str:
@@ -436,7 +447,7 @@ def table(resolution: int, budget: int, results: list[dict], about: str, device:
             None if r.get(key) is None else round(r[key], 1),
         ])  # fmt: skip
         if r.get("cut"):
-            t.notes.append(f"{r['row']}: stopped by --row-seconds after {r['images']:,} of "
+            t.notes.append(f"{r['row']}: stopped by its time limit after {r['images']:,} of "
                            f"{budget:,} passes, at a rate not yet annealed")  # fmt: skip
     return t
 
@@ -472,24 +483,35 @@ def main(argv: list[str] | None = None) -> None:
                    "default); ROW=RULE for one row (repeatable, e.g. --lr-scale sqrt "
                    "--lr-scale paper=none)")  # fmt: skip
     p.add_argument("--preload", action="store_true", help="trainer train --preload")
-    p.add_argument("--row-seconds", type=float, default=None,
-                   help="stop each row's training after this many seconds (trainer train "
-                   "--time-limit) and score it there; the next call resumes it")  # fmt: skip
+    p.add_argument("--row-seconds", action="append", default=[], metavar="[ROW=]SECONDS",
+                   help="stop a row's training after this many seconds (trainer train "
+                   "--time-limit) and score it there; the next call resumes it. SECONDS for "
+                   "every row, ROW=SECONDS for one (repeatable, the later wins)")  # fmt: skip
+    p.add_argument("--seconds", type=float, default=None,
+                   help="the rows' wall-clock time in all, for a call with a limit of its "
+                   "own: each row trains within what is left, less "
+                   f"{RESERVE:g} s for it and each row after it (start-up and scoring) and "
+                   "the --row-seconds of the rows after it; a row without --row-seconds "
+                   "takes what the rows after it leave, so train it last")  # fmt: skip
     p.add_argument("--note", action="append", default=[], help="a note for the table (repeatable)")
     args = p.parse_args(argv)
+    started = time.monotonic()
     names = args.rows.split(",") if args.rows else list(ROWS)
     if unknown := [n for n in names if n not in ROWS]:
         p.error(f"unknown row {unknown[0]!r}: one of {', '.join(ROWS)}")
     try:
         rules = scale_rules(args.lr_scale, names)
-    except BadScale as exc:
+        caps = per_row("--row-seconds", args.row_seconds, names, ROWS, seconds)
+    except BadRowOption as exc:
         p.error(str(exc))
+    if args.seconds is not None and not args.seconds > 0:
+        p.error(f"--seconds must be above 0, not {args.seconds:g}")
     if set(rules.values()) != {"none"} and args.batch is None:
         p.error("--lr-scale scales the rates to --batch: give --batch")
     store = args.store or ensure_store(args.resolution)
     layout = Store(store).layout
     work = args.work / str(layout.resolution)
-    run_as = {"device": args.device, "preload": args.preload, "time_limit": args.row_seconds}
+    run_as = {"device": args.device, "preload": args.preload}
     if args.batch is not None:
         run_as["batch_size"] = args.batch
     about = (
@@ -511,8 +533,11 @@ def main(argv: list[str] | None = None) -> None:
             check_kept(run, row_config(n, store, run, budget, **run_as, **rates[n]))
     except OtherSettings as exc:
         p.error(str(exc))
+    order = [(b, n) for b in budgets for n in names if not row_done(work, b, n)]
+    clock = Schedule(order, {(b, n): caps[n] for b, n in order}, args.seconds, started)
     for budget in budgets:
-        results = [run_row(n, store, work, budget, **run_as, **rates[n]) for n in names]
+        results = [run_row(n, store, work, budget, **run_as, **rates[n],
+                           time_limit=clock.limit((budget, n))) for n in names]  # fmt: skip
         t = table(layout.resolution, budget, results, about, args.device)
         if args.batch is not None:
             t.notes.append(f"(peak) rates at batch {args.batch}: " + ", ".join(

@@ -8,6 +8,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -339,7 +340,8 @@ def test_the_learning_rows_rate_rules_are_given_for_every_row_or_one(capsys):
     """``--lr-scale RULE`` for every row, ``ROW=RULE`` for one (the later wins; a row not
     trained is left alone), named in the table's note; a rule or row that is not one is
     refused in one line naming it."""
-    from benchmarks.learning import BadScale, main, said_rules, scale_rules
+    from benchmarks.learning import main, said_rules, scale_rules
+    from benchmarks.row_options import BadRowOption
 
     rows = ["default", "paper"]
     assert scale_rules([], rows) == {"default": "none", "paper": "none"}
@@ -353,7 +355,7 @@ def test_the_learning_rows_rate_rules_are_given_for_every_row_or_one(capsys):
     assert said_rules({"default": "sqrt", "paper": "none"}) == (
         ", the rate of default scaled by the square root of the ratio of that batch to its own"
         ", of paper not scaled")  # fmt: skip
-    with pytest.raises(BadScale, match=r"^--lr-scale paper=cube: 'cube' is not one of none, "):
+    with pytest.raises(BadRowOption, match=r"^--lr-scale paper=cube: 'cube' is not one of none, "):
         scale_rules(["paper=cube"], rows)
     with pytest.raises(SystemExit) as stop:  # before any store is read or rendered
         main(["--rows", "default,paper", "--batch", "8", "--lr-scale", "papr=sqrt"])
@@ -361,10 +363,69 @@ def test_the_learning_rows_rate_rules_are_given_for_every_row_or_one(capsys):
     assert "--lr-scale papr=sqrt: 'papr' is not a row (one of paper, " in capsys.readouterr().err
 
 
+def test_the_learning_rows_share_a_calls_time_each_within_its_own_cap(capsys):
+    """``--row-seconds`` caps a row (``SECONDS`` or ``ROW=SECONDS``); ``--seconds`` is the call's:
+    a row trains within what is left of it, less the reserve for it and each row after it and
+    the caps of those rows, so a row without a cap, trained last, takes the rest; a row left
+    no time still trains a second. A cap that is no time or names no row is refused in one
+    line before any store is read."""
+    from benchmarks.learning import main
+    from benchmarks.row_options import LEAST, RESERVE, BadRowOption, Schedule, per_row, seconds
+    from benchmarks.row_options import time_limit as limit
+
+    rows = ["paper", "default"]
+    caps = per_row("--row-seconds", ["paper=200"], rows, ["paper", "default", "w32"], seconds)
+    assert caps == {"paper": 200.0, "default": None}
+    assert per_row("--row-seconds", ["30", "w32=5"], rows, ["paper", "default", "w32"],
+                   seconds) == {"paper": 30.0, "default": 30.0}  # fmt: skip
+    assert limit(200.0, [], None) == 200.0 and limit(None, [None], None) is None
+    # 530 s left: the paper row keeps its cap, the default (last) gets what is left after it
+    assert limit(200.0, [None], 530.0) == 200.0
+    assert limit(None, [], 400.0) == 400.0 - RESERVE
+    assert limit(200.0, [None], 250.0) == 250.0 - 2 * RESERVE  # less than its cap
+    assert limit(None, [100.0], 530.0) == 530.0 - 2 * RESERVE - 100.0  # a later row's cap
+    assert limit(None, [], 10.0) == LEAST
+    clock = Schedule([(1, "paper"), (1, "default")], {(1, "paper"): 200.0, (1, "default"): None},
+                     530.0, started=time.monotonic() - 100.0)  # fmt: skip
+    assert clock.limit((1, "paper")) == 200.0
+    assert 430.0 - RESERVE - 1.0 < clock.limit((1, "default")) <= 430.0 - RESERVE
+    for value, said in (("paper=0", "'0' is not above 0"), ("paper=x", "'x' is not a number"),
+                        ("papr=5", "'papr' is not a row")):  # fmt: skip
+        with pytest.raises(BadRowOption, match=f"^--row-seconds {value}: {said}"):
+            per_row("--row-seconds", [value], rows, ["paper", "default"], seconds)
+    for argv, said in (
+        (["--row-seconds", "paper=nan"], "--row-seconds paper=nan: 'nan' is not above 0"),
+        (["--seconds", "0"], "--seconds must be above 0, not 0"),
+    ):
+        with pytest.raises(SystemExit) as stop:  # before any store is read or rendered
+            main(["--rows", "default,paper", *argv])
+        assert stop.value.code == 2 and said in capsys.readouterr().err
+
+
+def test_a_learning_call_with_little_time_stops_its_row_there_and_says_so(
+    tiny_store, tmp_path, capsys
+):
+    """``--seconds``: a call given less time than its row needs trains it within that time,
+    scores it where it stopped, and says so in its log line and its table."""
+    from benchmarks.learning import main
+    from benchmarks.results import load
+
+    argv = ["--store", tiny_store.url, "--rows", "paper", "--budget", "1000000", "--seconds",
+            "1", "--grid-rows", "", "--work", str(tmp_path / "w"), "--results", str(tmp_path),
+            "--name", "cut"]  # fmt: skip
+    main(argv)
+    out = capsys.readouterr().out
+    assert "paper (1,000,000 passes" in out and "  stopped by its time limit at " in out
+    # every figure of its table row, on one line (no interval: too few held-out materials)
+    assert re.search(r"\n  [\d.]+ dB, SSIM 0\.\d+, FLIP 0\.\d+; \d+ steps, [\d,]+ passes", out)
+    notes = load(tmp_path / "cut.json").notes
+    assert any(n.startswith("paper: stopped by its time limit after ") for n in notes), notes
+
+
 def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_kept(
     tiny_store, tmp_path
 ):
-    """``--row-seconds``: a row stopped short of its budget is scored where it stopped, the
+    """A row stopped short of its budget by its time limit is scored where it stopped, the
     table says after how many passes, and it is not kept as done (the next call resumes). A
     row that ran all its steps is done though its epochs end in short batches."""
     from benchmarks.learning import run_row, table
@@ -373,7 +434,7 @@ def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_
     cut = run_row("paper", tiny_store.url, work, 400, time_limit=1e-6, workers=0)
     assert cut["cut"] and cut["images"] == 6 and 5 < cut["psnr"] < 60  # one step of 6
     assert not (work / "400" / "paper" / "result.json").exists()
-    said = "paper: stopped by --row-seconds after 6 of 400 passes, at a rate not yet annealed"
+    said = "paper: stopped by its time limit after 6 of 400 passes, at a rate not yet annealed"
     assert said in table(32, 400, [cut], "about").notes
     # on a GPU the speed column is the training loop's passes a second, not per CPU-second
     on_gpu = table(32, 400, [cut], "about", device="cuda")

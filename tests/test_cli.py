@@ -303,12 +303,16 @@ for ext in ("json", "png"):
 def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path):
     """``gpu.sh learn`` runs ``benchmarks.learning`` on the carried store at the paper's length,
     the default's rate scaled by the root of the batch ratio and the paper's at its own
-    (``LR_SCALE`` replaces those rules); the runs go to a folder of their own and ``$OUT``
-    gets only what a device call brings back: at most 8 files, 2 folders down at most."""
+    (``LR_SCALE`` replaces those rules), the paper's row first within its cap and the default
+    in the rest of the call (``ROW_SECONDS`` replaces the caps); the runs go to a folder of
+    their own and ``$OUT`` gets only what a device call brings back: at most 8 files, 2
+    folders down at most."""
     gpu_checkout(tmp_path, "learning", FAKE_LEARNING, "gpu-learn-64.zarr")
-    for call, (extra, rules) in enumerate(
-        (({}, ["sqrt", "paper=none"]), ({"LR_SCALE": "linear"}, ["linear"]))
-    ):
+    for call, (extra, rules, row_caps) in enumerate((
+        ({}, ["sqrt", "paper=none"], ["paper=200"]),
+        ({"LR_SCALE": "linear", "ROW_SECONDS": "100 default=300"}, ["linear"],
+         ["100", "default=300"]),
+    )):  # fmt: skip
         out = tmp_path / f"device-out-{call}"
         # TMPDIR: where gpu.sh makes the runs' folder
         env = {**os.environ, "PYTHON": sys.executable, "OUT": str(out), "TMPDIR": str(tmp_path)}
@@ -317,8 +321,10 @@ def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path)
                            capture_output=True, text=True)  # fmt: skip
         assert r.returncode == 0, r.stderr
         scales = [x for rule in rules for x in ("--lr-scale", rule)]
+        caps = [x for cap in row_caps for x in ("--row-seconds", cap)]
         said = ["--store", "out/gpu-learn-64.zarr", "--device", "cuda", "--preload", "--budget",
-                "1470000", "--batch", "128", *scales, "--rows", "default,paper"]  # fmt: skip
+                "1470000", "--batch", "128", *scales, "--rows", "paper,default", *caps,
+                "--seconds", "530"]  # fmt: skip
         assert f"args {said}"[:-1] in r.stdout, r.stdout
         back = sorted(p.name for p in out.rglob("*"))
         assert back == ["gpu-bench.txt", "learning-default-grid.png", "learning-default-log.jsonl",
