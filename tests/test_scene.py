@@ -9,6 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from render_jobs.screen_geometry import (
     PARTS,
@@ -252,6 +253,36 @@ def test_every_cue_exports_to_onnx_and_runs_there_as_in_torch(tmp_path, opset):
     )
     with torch.no_grad():
         np.testing.assert_allclose(got, scene(maps, sun).numpy(), atol=1e-4)
+
+
+class HostData(TorchDispatchMode):
+    """Notes every tensor made from host data (``lift_fresh``: a list as an index,
+    ``torch.tensor(values)``), which on a GPU is a copy that waits for the device."""
+
+    def __init__(self):
+        super().__init__()
+        self.made = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.made += func.overloadpacket.__name__ == "lift_fresh"
+        return func(*args, **(kwargs or {}))
+
+
+@pytest.mark.parametrize("loss", ["msssim", "flip"])
+def test_a_training_step_with_every_cue_makes_no_tensor_from_host_data(loss):
+    """The cues, the network, the loss and its gradients make no tensor from host data after
+    the first step (which may build cached constants): on a GPU each would make the host
+    wait for every step queued before it (trainer.scene's docstring)."""
+    g = geometry_at({(8, 8): ((0.0, -1.0, 0.0), (0, -1, 0), "ball"),
+                     (12, 4): ((3.0, 0.0, -1.5), (0, 0, 1), "floor")}, n=16)  # fmt: skip
+    model = NeuralRenderer(ModelConfig(16, width=8, inputs=ALL, norm="group"), g)
+    criterion = RendererLoss(None, 0.0, loss)
+    maps, sun = torch.rand(2, 10, 16, 16), torch.cat([light((0.3, -0.5, 0.8))] * 2)
+    for _ in range(2):
+        watch = HostData()
+        with watch:
+            criterion(model(maps, sun), torch.rand(2, 3, 16, 16)).backward()
+    assert watch.made == 0
 
 
 def _srgb(x: float) -> float:

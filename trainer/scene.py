@@ -41,6 +41,11 @@ light and concatenates them after the maps:
 Shapes: maps ``(N, 9 + r, H, W)`` in [0, 1] (``trainer.targets.model_inputs``), light
 ``(N, 4)``; out ``(N, 9 + r + channels(cues), H, W)``. Everything is a differentiable torch
 expression of the inputs and constant buffers, so ONNX export and every inference path run it.
+
+The cues run every training step on the GPU, so they make no tensor from host data (a
+Python list as an index, ``torch.tensor(values, device=...)``): copying one to the device
+waits until the device has run every step queued before, and the host then queues the rest
+of the step while the device idles. Constants are Python numbers, buffers or slices.
 """
 
 from __future__ import annotations
@@ -71,6 +76,19 @@ GLOSSY_LOSS = 0.55
 HORIZON_BLEND = 0.05
 #: how far a shadow ray starts off its surface, metres
 RAY_OFFSET = 2e-3
+
+
+def _rows(parts: tuple[str, ...]) -> slice:
+    """The rows of ``parts`` in the ``parts`` buffer, a slice (see the module docstring)."""
+    idx = [PARTS.index(p) for p in parts]
+    if idx != list(range(idx[0], idx[-1] + 1)):
+        raise ValueError(f"the parts {parts} are not next to each other in {PARTS}")
+    return slice(idx[0], idx[-1] + 1)
+
+
+#: the material's parts' rows in the ``parts`` buffer, and every other part's
+MATERIAL_ROWS = _rows(MATERIAL_PARTS)
+OTHER_ROWS = _rows(tuple(p for p in PARTS if p not in MATERIAL_PARTS))
 
 
 class SceneInputs(nn.Module):
@@ -191,8 +209,7 @@ class SceneInputs(nn.Module):
 
     def material_coverage(self) -> torch.Tensor:
         """``(1, 1, H, W)``: the pixel's coverage of the material."""
-        idx = [PARTS.index(p) for p in MATERIAL_PARTS]
-        return self.parts[idx].sum(0)[None, None]
+        return self.parts[MATERIAL_ROWS].sum(0)[None, None]
 
     def painted(self, maps: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
         """The maps with every other part's material added in its coverage: diffuse and
@@ -200,14 +217,13 @@ class SceneInputs(nn.Module):
         r = self.r
         m = self.part_materials  # (P, 3) linear diffuse, specular, roughness
         grey = srgb_encode(m[:, :2])
-        flat = torch.tensor([0.5, 0.5, 1.0], device=maps.device)
+        half, one = torch.full_like(m[:, :1], 0.5), torch.ones_like(m[:, :1])  # a flat normal
         values = torch.cat(
             [grey[:, :1].expand(-1, 3), grey[:, 1:2].expand(-1, 3), m[:, 2:3].expand(-1, r),
-             flat.expand(len(m), 3)], 1,
+             half, half, one], 1,
         )  # fmt: skip
-        values[PARTS.index("sky")] = 1.0
-        others = [i for i, p in enumerate(PARTS) if p not in MATERIAL_PARTS]
-        fill = _mix(values[others].T, self.parts[others])
+        values[PARTS.index("sky")].fill_(1.0)
+        fill = _mix(values[OTHER_ROWS].T, self.parts[OTHER_ROWS])
         return maps + fill[None]
 
     def geometry_planes(self) -> torch.Tensor:
@@ -384,6 +400,11 @@ def _frustum_blocks(o: torch.Tensor, d: torch.Tensor, f: torch.Tensor) -> torch.
     return hit
 
 
+#: the wavelengths (µm) of the sun lamp's red, green and blue, and their Rayleigh optical depths
+LAMBDA = (0.680, 0.550, 0.440)
+RAYLEIGH = tuple(0.008569 * lam**-4 * (1 + 0.0113 * lam**-2 + 0.00013 * lam**-4) for lam in LAMBDA)
+
+
 def sun_irradiance(light: torch.Tensor) -> torch.Tensor:
     """``(N, 3)`` linear RGB irradiance of the sun lamp for light vectors ``(N, 4)``: the
     torch form of :func:`render_jobs.sun.sun_lamp` (strength x colour)."""
@@ -391,10 +412,11 @@ def sun_irradiance(light: torch.Tensor) -> torch.Tensor:
     zenith = 90.0 - torch.asin(z) * (180.0 / math.pi)  # degrees
     cosz = torch.cos(zenith * (math.pi / 180.0))
     mass = 1.0 / (cosz + 0.50572 * (96.07995 - zenith).clamp_min(1e-3) ** -1.6364)
-    lam = torch.tensor([0.680, 0.550, 0.440], device=light.device)
-    tau_r = 0.008569 * lam**-4 * (1 + 0.0113 * lam**-2 + 0.00013 * lam**-4)
     turbidity = light[:, 3:4] * TURBIDITY_SCALE
     beta = (0.04608 * turbidity - 0.04586).clamp_min(0)
-    t = torch.exp(-mass[:, None] * (tau_r[None] + beta * lam[None] ** -1.3))
+    # a column a wavelength, from Python numbers (the module docstring: no host data)
+    columns = zip(LAMBDA, RAYLEIGH, strict=True)
+    depth = torch.cat([rayleigh + beta * lam**-1.3 for lam, rayleigh in columns], 1)
+    t = torch.exp(-mass[:, None] * depth)
     strength = sunlib.SUN_ZENITH_IRRADIANCE * t[:, 1:2] / float(sunlib.transmittance(90.0, 2.0)[1])
     return strength * t / t.amax(1, keepdim=True)

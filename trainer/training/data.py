@@ -163,9 +163,20 @@ class Preloaded:
         first, position = stream.epoch, stream.position
         for epoch in range(first, first + 1 if stream.epochs is None else stream.epochs):
             for ids in stream.batches(epoch, position if epoch == first else 0):
-                index = torch.as_tensor(ids, device=self.data["maps"].device)
+                index = device_index(ids, self.data["maps"].device)
                 batch = {k: v[index] for k, v in self.data.items()}
                 yield {**batch, "id": torch.as_tensor(ids), "epoch": epoch}
+
+
+def device_index(ids, device: torch.device) -> torch.Tensor:
+    """``ids`` as an index on ``device``, sent without waiting for it: a copy from pageable
+    host memory waits until the device has run everything queued before it, so each step's
+    work would be queued only once the last step's was done; from pinned memory it is
+    queued like any kernel."""
+    index = torch.as_tensor(ids)
+    if device.type != "cuda":
+        return index.to(device)
+    return index.pin_memory().to(device, non_blocking=True)
 
 
 #: how DataLoader workers start: spawned, like the farm's validation pool, because a fork
