@@ -8,8 +8,8 @@ The rows of a call with a wall-clock limit of its own (a device call's) share it
 (``--seconds``, :func:`time_limit`): each row trains until its own cap (``--row-seconds``) or
 until what is left of the call, less :data:`RESERVE` seconds for this row and each one after
 it (start-up, preloading, scoring) and less the caps of the rows after it, whichever comes
-first. So a row with no cap takes what the rows after it leave it: put it last. A row that
-is left no time still trains :data:`LEAST` seconds and is scored where it stopped.
+first. So a row with no cap takes all the time the rows after it do not need: put it last.
+A row that is left no time still trains :data:`LEAST` seconds and is scored where it stopped.
 """
 
 from __future__ import annotations
