@@ -53,7 +53,7 @@ from storage.catalog import Catalog
 from storage.reader import Store
 from trainer import runfiles
 from trainer.cues import ordered
-from trainer.precision import autocast_dtype
+from trainer.precision import PRECISIONS, autocast_dtype
 from trainer.training.config import TrainConfig, to_argv
 
 BIN = Path(sys.executable).parent
@@ -483,6 +483,9 @@ def main(argv: list[str] | None = None) -> None:
                    "default); ROW=RULE for one row (repeatable, e.g. --lr-scale sqrt "
                    "--lr-scale paper=none)")  # fmt: skip
     p.add_argument("--preload", action="store_true", help="trainer train --preload")
+    p.add_argument("--precision", choices=PRECISIONS, default=None,
+                   help="every row's trainer train --precision (default: each row's own, the "
+                   "trainer's auto unless the row pins one)")  # fmt: skip
     p.add_argument("--row-seconds", action="append", default=[], metavar="[ROW=]SECONDS",
                    help="stop a row's training after this many seconds (trainer train "
                    "--time-limit) and score it there; the next call resumes it. SECONDS for "
@@ -514,6 +517,8 @@ def main(argv: list[str] | None = None) -> None:
     run_as = {"device": args.device, "preload": args.preload}
     if args.batch is not None:
         run_as["batch_size"] = args.batch
+    if args.precision is not None:
+        run_as["precision"] = args.precision
     about = (
         f"{layout.num_materials} materials (half uniform, half procedural) x "
         f"{layout.suns_per_material} suns, {HOLDOUT:.0%} of the materials held out; every row "

@@ -24,6 +24,7 @@ SECTIONS = (
         "learning-64-16k", "learning-64-16k-more", "learning-64-64k", "learning-64-64k-more",
         "learning-64-noise", "learning-64-noise-more", "learning-128-8k",
         "learning-64-b128-default-none", "learning-64-b128-default-sqrt",
+        "learning-64-b128-default-bf16",
         "learning-64-b128-paper-none", "learning-64-b128-paper-sqrt", "learning-gpu",
     )),  # fmt: skip
     ("Training", ("cpu-train-64", "cpu-train-128", "train-cpu", "train-cuda")),

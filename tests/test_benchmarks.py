@@ -422,6 +422,20 @@ def test_a_learning_call_with_little_time_stops_its_row_there_and_says_so(
     assert any(n.startswith("paper: stopped by its time limit after ") for n in notes), notes
 
 
+def test_a_learning_call_trains_every_row_in_the_precision_it_is_given(tiny_store, tmp_path):
+    """``--precision``: every row's ``trainer train --precision``, over a row's own, and the
+    table's precision column says what each trained in."""
+    from benchmarks.learning import main
+    from benchmarks.results import load
+
+    for precision in ("bf16", "fp32"):
+        main(["--store", tiny_store.url, "--rows", "paper,w32", "--budget", "6", "--grid-rows",
+              "", "--precision", precision, "--work", str(tmp_path / precision), "--results",
+              str(tmp_path), "--name", precision])  # fmt: skip
+        rows = load(tmp_path / f"{precision}.json").rows
+        assert [r[3] for r in rows] == [precision, precision]  # w32 pins fp32 of its own
+
+
 def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_kept(
     tiny_store, tmp_path
 ):
