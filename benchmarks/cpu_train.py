@@ -7,7 +7,8 @@ For the default recipe's network and the paper's at ``--resolution``, each at it
 (or every one at ``--batch``), one training step (forward, the recipe's loss, backward,
 Adam) on a fixed synthetic batch, in each form:
 channels_last in fp32 (the trainer's format on every device: ``trainer.training.trainee.Rank.fmt``),
-channels_last in bf16 autocast (what the trainer runs on a CPU with AMX: ``trainer.precision``),
+channels_last in bf16 autocast (what the trainer runs on a CPU with AMX or AVX512-BF16:
+``trainer.precision``),
 contiguous (NCHW), ``torch.compile`` (Inductor's C++ backend) and one torch thread instead
 of all (channels_last, fp32). Every form is timed in turn, round after round (``--rounds``),
 so a drift of the machine falls on all alike; the table has the median images a second, each
@@ -86,6 +87,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--batch", type=int, default=None,
                     help="every recipe's batch (default: each recipe's own)")  # fmt: skip
     ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--name", default=None, help="the table's name (default cpu-train-R)")
     ap.add_argument(
         "--forms",
         default=",".join(FORMS),
@@ -105,7 +107,8 @@ def main(argv: list[str] | None = None) -> None:
         notes=[f"medians of {args.rounds} rounds, every recipe and form timed in turn; a "
                f"synthetic batch, torch's {torch.get_num_threads()} threads unless one; x paper: "
                "against the paper's recipe in the same form",
-               "the trainer trains in channels_last, in bf16 autocast on a CPU with AMX tiles "
+               "the trainer trains in channels_last, in bf16 autocast on a CPU with AMX tiles or "
+               "AVX512-BF16 "
                f"(`--precision auto`; this one: {'yes' if cpu_has_bf16_units() else 'no'})"],
     )  # fmt: skip
     steps, batches = {}, {}
@@ -131,7 +134,7 @@ def main(argv: list[str] | None = None) -> None:
         table.rows.append(row)
         print(f"{recipe:<12}{batches[recipe]:>3}  {name:<16}{row[3]:8.1f} images/s  "
               f"{row[4]:5.2f}x  {row[5]:5.2f}x paper")  # fmt: skip
-    save(f"cpu-train-{args.resolution}", table)
+    save(args.name or f"cpu-train-{args.resolution}", table)
 
 
 if __name__ == "__main__":

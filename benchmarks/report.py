@@ -27,7 +27,10 @@ SECTIONS = (
         "learning-64-b128-default-bf16",
         "learning-64-b128-paper-none", "learning-64-b128-paper-sqrt", "learning-gpu",
     )),  # fmt: skip
-    ("Training", ("cpu-train-64", "cpu-train-128", "train-cpu", "train-cuda")),
+    ("Training", (
+        "cpu-train-64", "cpu-train-128", "cpu-train-64-avx512-bf16", "cpu-train-128-avx512-bf16",
+        "train-cpu", "train-cuda",
+    )),  # fmt: skip
     ("Inference", ("infer-cpu", "infer-cuda", "frames")),
     ("The viewer", ("viewer-cpu", "viewer-cuda")),
     ("Rendering and the farm", ("render", "farm", "farm-scale", "materials")),

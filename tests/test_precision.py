@@ -4,7 +4,7 @@ the device and whether the CPU has bf16 matrix units."""
 import pytest
 import torch
 
-from trainer.precision import PRECISIONS, autocast_dtype, cpu_has_bf16_units
+from trainer.precision import BF16_PROBES, PRECISIONS, autocast_dtype, cpu_has_bf16_units
 from trainer.training.config import TrainConfig
 
 
@@ -24,6 +24,7 @@ def test_auto_trains_in_bf16_only_where_the_device_multiplies_it(precision, devi
 
 
 def test_this_cpu_is_asked_when_nothing_says_and_a_bad_precision_is_refused_in_one_line():
+    assert all(hasattr(torch.cpu, probe) for probe in BF16_PROBES)  # torch still has them
     assert isinstance(cpu_has_bf16_units(), bool)
     mine = torch.bfloat16 if cpu_has_bf16_units() else None
     assert autocast_dtype("auto", "cpu") is mine

@@ -278,8 +278,9 @@ class TrainConfig:
     )
     precision: str = _opt(
         "auto",
-        "auto: bf16 autocast where the device has bf16 arithmetic (CUDA, a CPU with AMX), "
-        "else fp32; bf16; fp32 (the weights and the optimizer are fp32 in every case)",
+        "auto: bf16 autocast where the device has bf16 arithmetic (CUDA, a CPU with AMX or "
+        "AVX512-BF16), else fp32; bf16; fp32 (the weights and the optimizer are fp32 in "
+        "every case)",
         choices=PRECISIONS,
     )
     log_samples: bool = _opt(False, "record each rank's sample ids in samples/rank-R.txt")

@@ -14,8 +14,8 @@ same loop as one DDP job: NCCL on GPUs, gloo on CPU. Examples::
     trainer launch --nodes 2 --nproc-per-node 8 --rdzv-endpoint head:29400 ...    # 2 nodes x 8
 
 The network (and VGG16) trains in channels_last on every device, in bf16 autocast where the
-device has bf16 arithmetic (``--precision``: CUDA, a CPU with AMX), and on CUDA with
-cudnn.benchmark. Each rank
+device has bf16 arithmetic (``--precision``: CUDA, a CPU with AMX or AVX512-BF16), and on
+CUDA with cudnn.benchmark. Each rank
 reads its own disjoint part of every epoch (``trainer.training.data``); ranks that end an epoch one
 batch short are handled by DDP's ``join``.
 Rank 0 writes the progress bar, ``RUNDIR/log.jsonl``, TensorBoard events under ``RUNDIR/tb``
