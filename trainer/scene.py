@@ -259,10 +259,13 @@ class SceneInputs(nn.Module):
         origin = (p + RAY_OFFSET * n_world)[None]  # (1, 3, H, W)
         d = _unit(sun_world, 1)[:, :, None, None]  # (N, 3, 1, 1)
         blocked = torch.zeros((d.shape[0], 1, *p.shape[-2:]), dtype=torch.bool, device=p.device)
-        for s in self.spheres:
-            blocked = blocked | _sphere_blocks(origin, d, s)
-        for f in self.frustums:
-            blocked = blocked | _frustum_blocks(origin, d, f)
+        # every caster of a kind at once (a handful of operations, not a handful a caster)
+        for hits in (
+            _sphere_blocks(origin, d, self.spheres),
+            _frustum_blocks(origin, d, self.frustums),
+        ):
+            for hit in hits.unbind(0):
+                blocked = blocked | hit
         return (~blocked).float()
 
     def surface(self, painted) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -358,29 +361,35 @@ def _smith_g1(x: torch.Tensor, a2: torch.Tensor) -> torch.Tensor:
 
 
 def _sphere_blocks(o: torch.Tensor, d: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
-    """Whether the rays ``o + t d`` (t > 0) meet the sphere ``s`` (centre, radius, band axis,
-    band lo and hi as fractions of the radius) outside its open band."""
-    c, radius, axis, lo, hi = s[:3, None, None], s[3], s[4:7, None, None], s[7], s[8]
+    """``(K, N, 1, H, W)``: whether the rays ``o + t d`` (t > 0; ``o (1, 3, H, W)``,
+    ``d (N, 3, 1, 1)``) meet each sphere of ``s (K, 9)`` (centre, radius, band axis, band lo
+    and hi as fractions of the radius) outside its open band."""
+    s = s[:, None, :, None, None]  # (K, 1, 9, 1, 1): a caster a row, then the rays' axes
+    c, radius, axis, lo, hi = s[:, :, :3], s[:, :, 3:4], s[:, :, 4:7], s[:, :, 7:8], s[:, :, 8:9]
+    o, d = o[None], d[None]
     oc = o - c
-    b = (oc * d).sum(1, keepdim=True)
-    cc = (oc * oc).sum(1, keepdim=True) - radius * radius
+    b = (oc * d).sum(2, keepdim=True)
+    cc = (oc * oc).sum(2, keepdim=True) - radius * radius
     disc = b * b - cc
     root = torch.sqrt(disc.clamp_min(0))
     hit = torch.zeros_like(disc, dtype=torch.bool)
     for t in (-b - root, -b + root):
-        height = ((oc + t * d) * axis).sum(1, keepdim=True) / radius
+        height = ((oc + t * d) * axis).sum(2, keepdim=True) / radius
         open_ = (height > lo) & (height < hi)
         hit = hit | ((disc > 0) & (t > 0) & ~open_)
     return hit
 
 
 def _frustum_blocks(o: torch.Tensor, d: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
-    """Whether the rays ``o + t d`` (t > 0) meet the vertical frustum ``f`` (z0, z1, r0, r1)
-    about the world's z axis: its side or its caps."""
-    z0, z1, r0, r1 = f[0], f[1], f[2], f[3]
+    """``(J, N, 1, H, W)``: whether the rays ``o + t d`` (t > 0; as :func:`_sphere_blocks`'s)
+    meet each vertical frustum of ``f (J, 4)`` (z0, z1, r0, r1) about the world's z axis:
+    its side or its caps."""
+    f = f[:, None, :, None, None]  # (J, 1, 4, 1, 1)
+    z0, z1, r0, r1 = f[:, :, 0:1], f[:, :, 1:2], f[:, :, 2:3], f[:, :, 3:4]
     k = (r1 - r0) / (z1 - z0)
-    ox, oy, oz = o[:, 0:1], o[:, 1:2], o[:, 2:3]
-    dx, dy, dz = d[:, 0:1], d[:, 1:2], d[:, 2:3]
+    o, d = o[None], d[None]
+    ox, oy, oz = o[:, :, 0:1], o[:, :, 1:2], o[:, :, 2:3]
+    dx, dy, dz = d[:, :, 0:1], d[:, :, 1:2], d[:, :, 2:3]
     rad0 = r0 + k * (oz - z0)  # the radius at the origin's height
     a = dx * dx + dy * dy - (k * dz) ** 2
     b = 2 * (ox * dx + oy * dy - rad0 * k * dz)
