@@ -345,9 +345,10 @@ def score_run(run: Path, grid: Path | None = None, device: str = "cpu") -> dict:
     return scored.summary()["overall"]
 
 
-def row_done(work: Path, budget: int, name: str) -> bool:
-    """Whether row ``name`` at ``budget`` has its result kept in ``work`` (:func:`run_row`)."""
-    return (work / str(budget) / name / "result.json").exists()
+def result_file(work: Path, budget: int, name: str) -> Path:
+    """Where row ``name`` at ``budget`` keeps its result in ``work``, once done
+    (:func:`run_row`)."""
+    return work / str(budget) / name / "result.json"
 
 
 def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
@@ -355,8 +356,8 @@ def run_row(name: str, store: str, work: Path, budget: int, **run_as) -> dict:
     row stopped by its time limit (``time_limit`` in ``run_as``) is scored where it stopped
     (``cut``) and not kept as done: the next call resumes it."""
     run = work / str(budget) / name
-    done = run / "result.json"
-    if row_done(work, budget, name):
+    done = result_file(work, budget, name)
+    if done.exists():
         return json.loads(done.read_text())
     cfg = row_config(name, store, run, budget, **run_as)
     print(f"{name} ({budget:,} passes, {cfg.max_steps} steps of {cfg.batch_size})", flush=True)
@@ -495,7 +496,8 @@ def main(argv: list[str] | None = None) -> None:
                    "own: each row trains within what is left, less "
                    f"{RESERVE:g} s for it and each row after it (start-up and scoring) and "
                    "the --row-seconds of the rows after it; a row without --row-seconds "
-                   "takes what the rows after it leave, so train it last")  # fmt: skip
+                   "takes all the time the rows after it do not need: train it "
+                   "last")  # fmt: skip
     p.add_argument("--note", action="append", default=[], help="a note for the table (repeatable)")
     args = p.parse_args(argv)
     started = time.monotonic()
@@ -538,7 +540,7 @@ def main(argv: list[str] | None = None) -> None:
             check_kept(run, row_config(n, store, run, budget, **run_as, **rates[n]))
     except OtherSettings as exc:
         p.error(str(exc))
-    order = [(b, n) for b in budgets for n in names if not row_done(work, b, n)]
+    order = [(b, n) for b in budgets for n in names if not result_file(work, b, n).exists()]
     clock = Schedule(order, {(b, n): caps[n] for b, n in order}, args.seconds, started)
     for budget in budgets:
         results = [run_row(n, store, work, budget, **run_as, **rates[n],
