@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 
 import click
-from tqdm import tqdm
 
 from farm.cancel import request_cancel
 from farm.driver import submit as run
@@ -22,6 +21,7 @@ from render_jobs.process import RenderProcess
 from render_jobs.screen_uv import default_supersample
 from render_jobs.specs import DEVICES, RenderSettings
 from shaderball.cli import Commands
+from shaderball.progress import bar as progress_bar
 from shaderball.signals import exit_stopped, stop_on_sigterm
 from shaderball.web import serve, server_options, token_for
 from storage.backend import Backend
@@ -114,7 +114,7 @@ def preview(material, out, suns, resolution, samples, seed, threads, device) -> 
 
     def progress(done: int) -> None:
         nonlocal bar
-        bar = bar or tqdm(total=suns, desc="rendering", unit="frame", file=sys.stderr)
+        bar = bar or progress_bar(total=suns, desc="rendering", unit="frame")
         bar.update(done - bar.n)
 
     stop_on_sigterm()  # the temporary folder goes on SIGTERM as on Ctrl-C
@@ -231,9 +231,7 @@ def materials(sources, seed, as_json):
     """
 
     def progress(items):
-        return tqdm(
-            items, desc="reading", unit="material", file=sys.stderr, leave=False, disable=None
-        )
+        return progress_bar(items, desc="reading", unit="material", leave=False)
 
     run = dry_run(list(sources), seed, progress=None if as_json else progress)
     click.echo(json.dumps(run.to_dict(), indent=1) if as_json else format_dry_run(run))

@@ -25,12 +25,9 @@ from __future__ import annotations
 
 import collections
 import logging
-import sys
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
-
-from tqdm import tqdm
 
 from farm import sizing
 from farm.actor import RenderWorker
@@ -47,6 +44,7 @@ from render_jobs.errors import MaterialError
 from render_jobs.screen_uv import FILE as SCREEN_UV_FILE
 from render_jobs.screen_uv import default_supersample
 from shaderball.errors import UserError
+from shaderball.progress import bar as progress_bar
 from shaderball.signals import sigterm_held, stop_on_sigterm
 from storage.backend import Backend
 from storage.errors import StoreError
@@ -275,13 +273,8 @@ class Loop:
         self.uv_ref: tuple[object, str] | None = None  # (ref, worker) of the screen UV render
         self.uv_tries = 0
         remaining = sum(len(layout.shard_samples(s)) for s in job.todo)
-        self.bar = tqdm(
-            total=remaining,
-            desc="frames",
-            unit="frame",
-            disable=not progress,
-            file=sys.stderr,
-            smoothing=0.1,
+        self.bar = progress_bar(
+            total=remaining, desc="frames", unit="frame", disable=not progress, smoothing=0.1
         )
 
     @property

@@ -19,13 +19,11 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-import sys
 from concurrent.futures import ProcessPoolExecutor
-
-from tqdm import tqdm
 
 from render_jobs.cpus import omp_threads, usable_cpus
 from render_jobs.materials import load_map_bytes
+from shaderball.progress import bar
 from storage.errors import StoreError
 from storage.reader import Store
 from storage.retry import StoreUnreachable
@@ -87,8 +85,8 @@ class InOrder:
 def read_all(specs: list, progress: bool = True) -> None:
     """Load every spec of ``specs`` (file-based ones) and drop the maps; raises the first bad
     one's :class:`~render_jobs.errors.MaterialError` in the order given."""
-    reads = tqdm(InOrder(_read, specs), desc="validating", unit="material", file=sys.stderr,
-                 disable=not progress or not specs)  # fmt: skip
+    reads = bar(InOrder(_read, specs), desc="validating", unit="material",
+                disable=not progress or not specs)  # fmt: skip
     for _ in reads:
         pass
 

@@ -5,5 +5,6 @@
 - ``cli``: the click group of every command line (``farm``, ``shards``, ``trainer``), which
   ends a command on a user error in one line;
 - ``signals``: SIGTERM unwinding a command as Ctrl-C does;
+- ``progress``: the progress bars, drawn on a terminal and written as lines elsewhere;
 - ``web``: the guarded web layer of the servers (``farm dashboard``, ``trainer viewer``).
 """

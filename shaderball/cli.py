@@ -4,7 +4,8 @@ A :class:`shaderball.errors.UserError` that reaches it ends the command in one l
 message; so does an ``OSError`` (a store out of reach after its retries, no such bucket,
 access denied, a full disk), named by its type. Commands therefore let the errors they expect
 rise rather than catch each kind. A closed pipe (``| head``) is left to click, which exits
-quietly.
+quietly. The settings every command reads from the environment are checked before it starts
+(:func:`shaderball.progress.log_seconds`), so a bad one stops it before it writes anything.
 """
 
 from __future__ import annotations
@@ -14,11 +15,13 @@ import errno
 import click
 
 from shaderball.errors import UserError
+from shaderball.progress import log_seconds
 
 
 class Commands(click.Group):
     def invoke(self, ctx: click.Context):
         try:
+            log_seconds()
             return super().invoke(ctx)
         except UserError as exc:
             raise click.ClickException(str(exc)) from None

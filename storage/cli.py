@@ -11,13 +11,13 @@ from pathlib import Path
 import click
 from PIL import Image
 from tabulate import tabulate
-from tqdm import tqdm
 
 from render_jobs.contact_sheet import contact_sheet, display_maps
 from render_jobs.exr import write_exr, write_image_exr
 from render_jobs.results import ScreenMaps
 from render_jobs.tonemap import to_uint8, tonemap
 from shaderball.cli import Commands, human_bytes
+from shaderball.progress import bar as progress_bar
 from shaderball.signals import exit_stopped, stop_on_sigterm
 from storage.errors import StoreError
 from storage.image_files import check_picture_name, save_image
@@ -139,9 +139,7 @@ def verify(store, as_json):
       shards verify out/dataset.zarr
     """
     s = _open(store)
-    bar = tqdm(
-        total=s.layout.num_shards, desc="verifying", unit="shard", file=sys.stderr, disable=as_json
-    )
+    bar = progress_bar(total=s.layout.num_shards, desc="verifying", unit="shard", disable=as_json)
     report = run_verify(s, progress=lambda _: bar.update(1))
     bar.close()
     if as_json:

@@ -51,36 +51,26 @@ def test_every_command_has_help(group, name):
                     assert param.help, f"{path} {param.opts[0]} has no help"
 
 
-def run(*args, cwd=None):
+def run(*args, cwd=None, env=None):
     return subprocess.run(
-        [str(BIN / args[0]), *args[1:]], capture_output=True, text=True, cwd=cwd, timeout=300
-    )
+        [str(BIN / args[0]), *args[1:]],
+        capture_output=True, text=True, cwd=cwd, timeout=300, env=env,
+    )  # fmt: skip
 
 
 @pytest.mark.slow
 def test_farm_preview_writes_maps_renders_and_a_contact_sheet(tmp_path):
     out = tmp_path / "preview"
-    r = run(
-        "farm",
-        "preview",
-        "-m",
-        "procedural",
-        "--suns",
-        "2",
-        "--resolution",
-        "48",
-        "--samples",
-        "4",
-        "--seed",
-        "3",
-        "--threads",
-        "2",
-        "-o",
-        str(out),
-    )
+    # the bar's lines as a log gets them, one at every redraw
+    every = {**os.environ, "SHADERBALL_PROGRESS_S": "0"}
+    args = ["-m", "procedural", "--suns", "2", "--resolution", "48", "--samples", "4",
+            "--seed", "3", "--threads", "2", "-o", str(out)]  # fmt: skip
+    r = run("farm", "preview", *args, env=every)
     assert r.returncode == 0, r.stderr
     assert "contact_sheet.png" in r.stdout
-    assert "| 0/2 [" in r.stderr and "| 2/2 [" in r.stderr  # the bar from before Blender loads
+    lines = r.stderr.splitlines()
+    assert "\r" not in r.stderr  # whole lines, the first from before Blender loads
+    assert any("| 0/2 [" in ln for ln in lines) and any("| 2/2 [" in ln for ln in lines)
     names = {p.name for p in out.iterdir()}
     for n in (
         "maps.exr",
@@ -172,6 +162,19 @@ def _maps_bpy(proc: psutil.Process) -> bool:
 def test_bad_option_values_are_refused(tmp_path):
     r = run("farm", "preview", "-m", "uniform", "--resolution", "2", "-o", str(tmp_path / "o"))
     assert r.returncode == 2 and "--resolution" in r.stderr
+
+
+@pytest.mark.parametrize("value", ["x", "-1", "inf", "nan"])
+def test_a_bad_progress_setting_is_one_line_before_a_command_writes(tmp_path, value):
+    env = {**os.environ, "SHADERBALL_PROGRESS_S": value}
+    out = tmp_path / "o"
+    for cmd in (["farm", "preview", "-m", "uniform", "-o", str(out)], ["shards", "ls", str(out)],
+                ["trainer", "launch", "--store", str(out), "--out", str(out)]):  # fmt: skip
+        r = run(*cmd, env=env)
+        assert r.returncode == 1 and not out.exists(), r.stderr
+        assert r.stderr.strip().splitlines() == [
+            f"Error: SHADERBALL_PROGRESS_S={value!r}: expected a number of seconds, 0 or more"
+        ]
 
 
 @pytest.mark.parametrize(

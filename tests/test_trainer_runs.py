@@ -127,6 +127,25 @@ def test_training_lowers_the_loss(tiny_store, trained):
     assert {r["lr"] for r in log} == {1e-3}  # the constant schedule
 
 
+def test_a_run_without_a_terminal_writes_its_bar_as_lines(
+    tiny_store, tmp_path, capsys, monkeypatch
+):
+    """Where stderr is no terminal (a pod's log, a file), rank 0's bar is whole lines with the
+    log's figures, not carriage returns (``shaderball.progress``)."""
+    from shaderball import progress
+
+    monkeypatch.setattr(progress, "PLAIN_EVERY", 0.0)  # a line at every redraw
+    train(config(tiny_store, tmp_path / "r", epochs=2, max_steps=12, val_samples=0))
+    err = capsys.readouterr().err
+    bars = [ln for ln in err.splitlines() if ln.startswith("epoch ")]
+    assert "\r" not in err and bars[0].startswith("epoch 1/2:   0%|")
+    assert any("img_s=" in ln and "loss=" in ln for ln in bars)  # the log's figures ride along
+    assert bars[-1].startswith("epoch 2/2:") and " 3/9 " in bars[-1]  # stopped at step 12 of 18
+    monkeypatch.setattr(progress, "PLAIN_EVERY", 3600.0)  # a short run: no line at all
+    train(config(tiny_store, tmp_path / "s", epochs=2, val_samples=0))
+    assert "epoch " not in capsys.readouterr().err
+
+
 def test_eval_scores_the_training_materials_when_asked(trained, tmp_path):
     """``--trained``: every sample of the materials the run trained on, said so, and the run's
     kept held-out scores (eval.json) left as they were; refused beside --on or a second

@@ -15,6 +15,7 @@ from render_jobs.specs import Sun
 from render_jobs.sun import sun_sweep
 from render_jobs.tonemap import to_uint8
 from shaderball.cli import Commands
+from shaderball.progress import bar as progress_bar
 from shaderball.web import serve, server_options, token_for
 from storage.backend import write_atomic
 from storage.extras import require
@@ -517,15 +518,11 @@ def _render_inputs(ckpt, material, store, sample, sun, turbidity, device):
 
 
 def _sweep(renderer, packed, sun, n: int):
-    """The frames of ``--sweep n``, with a progress bar on a terminal."""
-    import sys
-
-    from tqdm import tqdm
-
+    """The frames of ``--sweep n``, with a progress bar (:mod:`shaderball.progress`)."""
     from trainer.rendering.base import render_under
 
     frames = render_under(renderer, packed, sun_sweep(sun, n))
-    return tqdm(frames, total=n, desc="rendering", unit="frame", file=sys.stderr, disable=None)
+    return progress_bar(frames, total=n, desc="rendering", unit="frame")
 
 
 @main.command()

@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from shaderball.errors import UserError
+from shaderball.progress import bar
 from storage.backend import write_atomic
 from storage.catalog import Catalog
 from storage.errors import StoreError
@@ -226,7 +226,7 @@ def score(renderers: list[MapsRenderer], split, batch_size: int, grid_count: int
     ids = np.arange(len(split))
     show = set(spread(len(split), grid_count).tolist())
     batches = range(0, len(ids), batch_size)
-    for lo in tqdm(batches, desc="eval", unit="batch", disable=None):  # no bar in a log file
+    for lo in bar(batches, desc="eval", unit="batch"):
         batch = reader.batch(ids[lo : lo + batch_size])
         mats = []
         for i in batch["id"].tolist():

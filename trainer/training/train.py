@@ -36,9 +36,9 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel as DDP
-from tqdm import tqdm
 
 from render_jobs.screen_uv import FILE as SCREEN_UV_FILE
+from shaderball import progress
 from shaderball.errors import UserError
 from storage.errors import StoreError
 from storage.reader import Store
@@ -249,7 +249,8 @@ def _epochs(
             # this rank's batches: one fewer on some ranks
             mine = len(stream.batches(t.epoch, t.position))
             total = steps_left(samples, rk.world, cfg.batch_size, t.position)
-            bar = tqdm(total=total, desc=f"epoch {t.epoch + 1}/{cfg.epochs}", disable=not rk.master)
+            desc = f"epoch {t.epoch + 1}/{cfg.epochs}"
+            bar = progress.bar(total=total, desc=desc, disable=not rk.master)
             log.new_window()
             with contextlib.closing(bar):  # the bar ends its line even on errors
                 start = t.step
