@@ -67,6 +67,10 @@ HOLDOUT = 0.15
 BUDGETS = (16_000, 64_000)
 #: held-out samples shown in each grid
 GRID_COUNT = 6
+#: a row's run saves at an epoch's end once a minute at most: its epochs are short (17 steps
+#: at batch 128 on a store of 500 materials) and a GPU trains one in less time than it takes
+#: to write the run's checkpoint of up to 190 MB
+CHECKPOINT_SECONDS = 60.0
 
 #: the paper's recipe (L1: no VGG16 weights here), in the trainer's default precision, as
 #: ``gpu.sh learn`` trains it beside the default
@@ -255,7 +259,7 @@ def row_config(name: str, store: str, run: Path, budget: int, **run_as) -> Train
         store=(store,), out=str(run),
         max_steps=steps_for(budget, probe.batch_size, training_samples(store, probe.holdout_seed)),
         epochs=100_000, holdout_fraction=HOLDOUT, val_samples=0, checkpoint_every=1_000_000,
-        keep=1, **(defaults | settings),
+        checkpoint_seconds=CHECKPOINT_SECONDS, keep=1, **(defaults | settings),
     )  # fmt: skip
 
 
@@ -267,6 +271,7 @@ class OtherSettings(ValueError):
 #: (the precision a row trained in is in its result and its table)
 HOW_IT_RUNS = frozenset((
     "store", "out", "resume", "device", "workers", "preload", "log_every", "checkpoint_every",
+    "checkpoint_seconds",
     "keep", "log_samples", "val_every", "val_samples", "epochs", "precision", "time_limit",
 ))  # fmt: skip
 

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
+import time
+from types import SimpleNamespace as NS
 
 import numpy as np
 import pytest
@@ -13,8 +16,10 @@ from render_jobs.tonemap import tonemap as numpy_tonemap
 from trainer import runfiles
 from trainer.model import ModelConfig, NeuralRenderer, count_parameters, fold_batchnorm
 from trainer.targets import Tonemap, light_vector, model_inputs
+from trainer.training.config import TrainConfig
 from trainer.training.data import epoch_order, rank_batches, steps_left, worker_batches
 from trainer.training.losses import MissingWeightsError, RendererLoss, load_vgg, vgg16_relu3_3
+from trainer.training.train import epoch_end_saves
 
 
 def vgg_weights_file(path, seed: int = 0):
@@ -706,6 +711,8 @@ def test_shared_memory_need_and_the_one_line_when_it_is_short(tmp_path):
         ("roughness_channels", 2, "--roughness-channels must be one of 1, 3, not 2"),
         ("max_steps", 0, "--max-steps must be at least 1, not 0"),
         ("time_limit", 0.0, "--time-limit must be above 0, not 0.0"),
+        ("checkpoint_seconds", -1.0, "--checkpoint-seconds must be 0 or more, not -1.0"),
+        ("checkpoint_seconds", float("nan"), "--checkpoint-seconds must be 0 or more, not nan"),
         ("loss", "l2", "--loss must be one of l1\\+vgg, l1, l1\\+msssim, l1\\+flip, not 'l2'"),
     ],
 )
@@ -771,3 +778,21 @@ def test_a_runs_time_counts_the_log_lines_of_the_steps_it_kept():
     assert [x["step"] for x in kept] == [2, 4, 6, 8] and kept[2] is again[0]
     assert runfiles.loop_seconds([*first, *again]) == pytest.approx(6.0)
     assert runfiles.loop_seconds(first) == pytest.approx(11.0)
+
+
+def test_when_an_epochs_end_saves():
+    """The policy alone: every epoch's end by default; with ``checkpoint_seconds``, the run's
+    end, a stop, a new best score, or that long since the last checkpoint."""
+    cfg = TrainConfig(store=("s",), epochs=5, max_steps=100, checkpoint_seconds=60.0)
+    now = time.monotonic()
+
+    def saves(epoch=1, step=10, timed_out=False, saved_ago=1.0, val=None, best=None, **kw):
+        t = NS(epoch=epoch, step=step, timed_out=timed_out, best=best)
+        log = NS(saved_at=now - saved_ago, last_val=val)
+        return epoch_end_saves(dataclasses.replace(cfg, **kw), t, log)
+
+    assert saves(checkpoint_seconds=0.0) and not saves()
+    assert saves(saved_ago=61.0) and saves(epoch=5) and saves(step=100) and saves(timed_out=True)
+    assert saves(val={"step": 10, "psnr": 30.0}, best={"step": 5, "psnr": 29.0})
+    assert not saves(val={"step": 10, "psnr": 28.0}, best={"step": 5, "psnr": 29.0})
+    assert not saves(val={"step": 9, "psnr": 31.0})  # scored before this step: not new

@@ -1271,6 +1271,23 @@ def test_a_time_limit_stops_the_run_with_a_checkpoint_and_resume_goes_on(tiny_st
     assert state["step"] == steps_per_epoch(len(split), 2, 2)
 
 
+def test_checkpoint_seconds_skips_epoch_end_saves_until_that_long_has_passed(tiny_store, tmp_path):
+    """``--checkpoint-seconds``: an epoch that ends sooner than that after the last checkpoint
+    (or the run's start) writes none, the run's end always does, and the weights are those of
+    a run that saved at every epoch's end."""
+    kw = {"epochs": 3, "lr_schedule": "constant", "log_samples": True, "val_samples": 0,
+          "keep": 10, "checkpoint_every": 1000}  # fmt: skip
+    ref, run = tmp_path / "ref", tmp_path / "run"
+    train(config(tiny_store, ref, **kw))
+    train(config(tiny_store, run, **kw, checkpoint_seconds=3600))
+    steps = [checkpoint.load(p)["step"] for p in checkpoint.listing(ref)]
+    assert steps == [9, 18, 27]  # every epoch's end
+    assert [checkpoint.load(p)["step"] for p in checkpoint.listing(run)] == [27]  # the end
+    assert sample_lines(run)[-1] == sample_lines(ref)[-1]
+    train(config(tiny_store, run, **{**kw, "epochs": 4}, resume=True, checkpoint_seconds=3600))
+    assert [checkpoint.load(p)["step"] for p in checkpoint.listing(run)] == [27, 36]
+
+
 def test_launch_checks_inputs_before_torchrun_and_a_failed_rank_is_one_line(tiny_store, tmp_path):
     """Bad input stops ``trainer launch`` before any rank starts; a rank that dies later
     (here rank 0 at step 1, no restarts) ends it with one line naming the rank, not torchrun's

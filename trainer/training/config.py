@@ -13,6 +13,7 @@ arguments (:func:`to_argv`).
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import MISSING, asdict, dataclass, field, fields
 
@@ -140,6 +141,7 @@ RULES = {
     "perceptual_weight": _at_least(0),
     "workers": _at_least(0),
     "checkpoint_every": _at_least(1),
+    "checkpoint_seconds": (lambda v: 0 <= v < math.inf, "0 or more"),
     "log_every": _at_least(1),
     "val_every": _at_least(0),
     "val_samples": _at_least(0),
@@ -250,6 +252,12 @@ class TrainConfig:
         "takes about 100 MB), on a GPU whose steps a loader cannot keep up with",
     )
     checkpoint_every: int = _opt(500, "steps between checkpoints (and at each epoch's end)")
+    checkpoint_seconds: float = _opt(
+        0.0,
+        "at an epoch's end, save only once this many seconds have passed since the last "
+        "checkpoint (0: at every epoch's end); the run's end, a stop and a new best score "
+        "always save: for runs of many short epochs, whose saves would outlast their steps",
+    )
     keep: int = _opt(3, "checkpoints kept")
     log_every: int = _opt(10, "steps between log lines and TensorBoard points")
     val_every: int = _opt(

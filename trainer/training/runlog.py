@@ -40,6 +40,7 @@ class RunLog:
         self.writer = None
         self.samples = None
         self.last_checkpoint: Path | None = None
+        self.saved_at = time.monotonic()  # the last checkpoint's time, or the run's start
         self.window = _new_window()
         self.validator: Validator | None = None  # rank 0's, unless --val-samples 0
         self.val_every, self.fmt = cfg.val_every, rk.fmt

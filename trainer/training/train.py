@@ -259,8 +259,9 @@ def _epochs(
             log.validate(t, bar)  # the epoch's weights, unless the last step just scored them
             if not _stopped(cfg, t):
                 t.epoch, t.position = t.epoch + 1, 0
-            save(cfg, rk, t, out, log)
-            _check_time(rk, t, epoch_end=True)
+            _check_time(rk, t, epoch_end=True)  # first: a run stopped here saves here
+            if epoch_end_saves(cfg, t, log):
+                save(cfg, rk, t, out, log)
     return images
 
 
@@ -623,6 +624,16 @@ def check_finite(t: Trainee, out: Path, weights: bool = False) -> None:
         )
 
 
+def epoch_end_saves(cfg: TrainConfig, t: Trainee, log: RunLog) -> bool:
+    """Whether the end of an epoch writes a checkpoint: always at the run's end (its last
+    epoch, ``--max-steps``, ``--time-limit``) and for a new best score; otherwise at every
+    epoch's end, or with ``--checkpoint-seconds`` once that long has passed since the last
+    checkpoint (the run's start before the first)."""
+    if not cfg.checkpoint_seconds or t.epoch >= cfg.epochs or _stopped(cfg, t):
+        return True
+    return _new_best(t, log) or time.monotonic() - log.saved_at >= cfg.checkpoint_seconds
+
+
 def _new_best(t: Trainee, log: RunLog) -> bool:
     """Whether the network was just scored (rank 0), better than ever before."""
     val = log.last_val
@@ -638,6 +649,7 @@ def save(cfg: TrainConfig, rk: Rank, t: Trainee, out: Path, log: RunLog) -> None
     also ``checkpoints/best.pt`` when the network was just scored, better than ever before
     (a mid-epoch score that is writes a checkpoint of its own: :func:`_epoch`)."""
     check_finite(t, out, weights=True)
+    log.saved_at = time.monotonic()
     if not rk.master:
         return
     better = _new_best(t, log)
