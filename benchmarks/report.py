@@ -24,7 +24,8 @@ SECTIONS = (
         "learning-64-16k", "learning-64-16k-more", "learning-64-64k", "learning-64-64k-more",
         "learning-64-noise", "learning-64-noise-more", "learning-128-8k",
         "learning-64-b128-default-none", "learning-64-b128-default-sqrt",
-        "learning-64-b128-default-bf16",
+        "learning-64-b128-default-bf16", "learning-64-b128-default-128k",
+        "learning-64-b128-default-384k",
         "learning-64-b128-paper-none", "learning-64-b128-paper-sqrt", "learning-gpu",
     )),  # fmt: skip
     ("Training", (
