@@ -1503,16 +1503,32 @@ def test_the_default_recipes_network_exports_to_onnx_with_its_scene(
     np.testing.assert_allclose(model.render(maps, sun, turbidity), want, atol=1e-4)
 
 
-def test_preloaded_batches_train_the_same_weights_as_the_loaders(tiny_store, tmp_path):
-    """``--preload`` takes the same batches in the same order from memory."""
+def test_preloaded_batches_train_the_same_weights_as_the_loaders(tiny_store, tmp_path, monkeypatch):
+    """``--preload`` takes the same batches in the same order from memory, with each sample's
+    target and scene cues made once (or, over ``PRELOAD_CUES_BYTES``, the cues in each step):
+    the same weights to the bit."""
+    from trainer.training import train as loop
+
+    step, seen = loop.train_step, []
+
+    def noting(cfg, rk, t, batch):
+        seen.append(sorted(k for k in batch if k in ("cues", "target")))
+        return step(cfg, rk, t, batch)
+
+    monkeypatch.setattr(loop, "train_step", noting)
     weights = []
-    for i, preload in enumerate((False, True)):
-        out = tmp_path / f"run{i}"
+    for i, (preload, cap) in enumerate(((False, None), (True, None), (True, 0))):
+        if cap is not None:
+            monkeypatch.setattr(loop, "PRELOAD_CUES_BYTES", cap)
+        out, seen[:] = tmp_path / f"run{i}", []
         train(TrainConfig(store=(tiny_store.url,), out=str(out), preload=preload,
                           **(DEFAULT | {"max_steps": 4, "ema_decay": 0.0})))  # fmt: skip
         weights.append(checkpoint.load(out)["model"])
-    for name, w in weights[0].items():
-        torch.testing.assert_close(weights[1][name], w, atol=0, rtol=0, msg=name)
+        made = [[], ["cues", "target"], ["target"]][i]  # what each batch brought along
+        assert seen == [made] * 4
+    for other in weights[1:]:
+        for name, w in weights[0].items():
+            torch.testing.assert_close(other[name], w, atol=0, rtol=0, msg=name)
 
 
 def test_a_store_without_scene_buffers_is_refused_by_the_default_recipe_in_one_line(

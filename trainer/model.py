@@ -223,9 +223,17 @@ class NeuralRenderer(nn.Module):
     def check_inputs(self, maps: torch.Tensor, light: torch.Tensor) -> None:
         check_inputs(self.config, maps, light)
 
-    def forward(self, maps: torch.Tensor, light: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, maps: torch.Tensor, light: torch.Tensor, cues: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The image of ``maps`` under ``light``; ``cues``: what the scene makes of them, made
+        before (``trainer train --preload`` keeps each sample's), instead of making it here."""
         skips = []
-        x = inputs = maps if self.scene is None else self.scene(maps, light)
+        if self.scene is None:
+            cues = maps
+        elif cues is None:
+            cues = self.scene(maps, light)
+        x = inputs = cues
         for enc in self.encoder:
             x = enc(x)
             skips.append(x)

@@ -248,8 +248,10 @@ class TrainConfig:
     preload: bool = _opt(
         False,
         "read the training split into the device's memory once and take every batch from "
-        "there, with no loader workers: for stores that fit (a 64² store of 2,500 samples "
-        "takes about 100 MB), on a GPU whose steps a loader cannot keep up with",
+        "there, with no loader workers, each sample's target and scene cues made once: for "
+        "stores that fit (a 64² store of 2,500 samples takes about 100 MB, and the default "
+        "network's cues of it 1.5 GB, made in each step instead above 4 GiB), on a GPU whose "
+        "steps a loader cannot keep up with",
     )
     checkpoint_every: int = _opt(500, "steps between checkpoints (and at each epoch's end)")
     checkpoint_seconds: float = _opt(

@@ -150,13 +150,21 @@ class Preloaded:
     """The batches of a :class:`ShardStream`, in its order, from the whole split read once into
     ``device``'s memory (``trainer train --preload``): for a store that fits there, a GPU's
     steps wait for no loader. Iterating it yields what the DataLoader would, on ``device``;
-    the split is read ``chunk`` samples at a time when it is made."""
+    the split is read ``chunk`` samples at a time when it is made.
 
-    def __init__(self, stream: ShardStream, device: torch.device, chunk: int = 256):
+    ``derive``, if given, maps a chunk's tensors (``{"maps", "light", "render", ...}`` on
+    ``device``) to more tensors of each sample, computed once here and then in every batch
+    beside the stored ones: what a step would otherwise compute from them again every epoch."""
+
+    def __init__(self, stream: ShardStream, device: torch.device, chunk: int = 256, derive=None):
         self.stream = stream
         reader, n = stream.reader, len(stream.reader.split)
         parts = [reader.batch(np.arange(lo, min(lo + chunk, n))) for lo in range(0, n, chunk)]
         self.data = {k: torch.cat([p[k] for p in parts]).to(device) for k in parts[0] if k != "id"}
+        if derive is not None:
+            more = [derive({k: v[lo : lo + chunk] for k, v in self.data.items()})
+                    for lo in range(0, n, chunk)]  # fmt: skip
+            self.data |= {k: torch.cat([m[k] for m in more]) for k in more[0]}
 
     def __iter__(self):
         stream = self.stream
