@@ -26,7 +26,8 @@ SECTIONS = (
         "learning-64-b128-default-none", "learning-64-b128-default-sqrt",
         "learning-64-b128-default-bf16", "learning-64-b128-default-128k",
         "learning-64-b128-default-384k",
-        "learning-64-b128-paper-none", "learning-64-b128-paper-sqrt", "learning-gpu",
+        "learning-64-b128-paper-none", "learning-64-b128-paper-sqrt", "learning-64-b128-paper-384k",
+        "learning-gpu",
     )),  # fmt: skip
     ("Training", (
         "cpu-train-64", "cpu-train-128", "cpu-train-64-avx512-bf16", "cpu-train-128-avx512-bf16",
