@@ -1505,14 +1505,15 @@ def test_the_default_recipes_network_exports_to_onnx_with_its_scene(
 
 def test_preloaded_batches_train_the_same_weights_as_the_loaders(tiny_store, tmp_path, monkeypatch):
     """``--preload`` takes the same batches in the same order from memory, with each sample's
-    target and scene cues made once (or, over ``PRELOAD_CUES_BYTES``, the cues in each step):
-    the same weights to the bit."""
+    target and scene cues made once, in place of its render and maps (or, over
+    ``PRELOAD_CUES_BYTES``, the maps kept and the cues made in each step): the same weights
+    to the bit."""
     from trainer.training import train as loop
 
     step, seen = loop.train_step, []
 
     def noting(cfg, rk, t, batch):
-        seen.append(sorted(k for k in batch if k in ("cues", "target")))
+        seen.append(sorted(k for k in batch if k in ("cues", "maps", "render", "target")))
         return step(cfg, rk, t, batch)
 
     monkeypatch.setattr(loop, "train_step", noting)
@@ -1524,7 +1525,8 @@ def test_preloaded_batches_train_the_same_weights_as_the_loaders(tiny_store, tmp
         train(TrainConfig(store=(tiny_store.url,), out=str(out), preload=preload,
                           **(DEFAULT | {"max_steps": 4, "ema_decay": 0.0})))  # fmt: skip
         weights.append(checkpoint.load(out)["model"])
-        made = [[], ["cues", "target"], ["target"]][i]  # what each batch brought along
+        # what each batch brought along: from memory, only what its step reads
+        made = [["maps", "render"], ["cues", "target"], ["maps", "target"]][i]
         assert seen == [made] * 4
     for other in weights[1:]:
         for name, w in weights[0].items():

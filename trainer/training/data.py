@@ -153,25 +153,26 @@ class Preloaded:
     the split is read ``chunk`` samples at a time when it is made.
 
     ``derive``, if given, maps a chunk's tensors (``{"maps", "light", "render", ...}`` on
-    ``device``) to more tensors of each sample, computed once here and then in every batch
-    beside the stored ones: what a step would otherwise compute from them again every epoch."""
+    ``device``) to the tensors each batch carries instead, computed once here: what a step
+    would otherwise compute from them again every epoch. What it leaves out is not kept, so
+    no batch gathers a tensor its step does not read."""
 
     def __init__(self, stream: ShardStream, device: torch.device, chunk: int = 256, derive=None):
-        self.stream = stream
+        self.stream, self.device = stream, device
         reader, n = stream.reader, len(stream.reader.split)
         parts = [reader.batch(np.arange(lo, min(lo + chunk, n))) for lo in range(0, n, chunk)]
         self.data = {k: torch.cat([p[k] for p in parts]).to(device) for k in parts[0] if k != "id"}
         if derive is not None:
-            more = [derive({k: v[lo : lo + chunk] for k, v in self.data.items()})
+            made = [derive({k: v[lo : lo + chunk] for k, v in self.data.items()})
                     for lo in range(0, n, chunk)]  # fmt: skip
-            self.data |= {k: torch.cat([m[k] for m in more]) for k in more[0]}
+            self.data = {k: torch.cat([m[k] for m in made]) for k in made[0]}
 
     def __iter__(self):
         stream = self.stream
         first, position = stream.epoch, stream.position
         for epoch in range(first, first + 1 if stream.epochs is None else stream.epochs):
             for ids in stream.batches(epoch, position if epoch == first else 0):
-                index = device_index(ids, self.data["maps"].device)
+                index = device_index(ids, self.device)
                 batch = {k: v[index] for k, v in self.data.items()}
                 yield {**batch, "id": torch.as_tensor(ids), "epoch": epoch}
 

@@ -589,11 +589,12 @@ PRELOAD_CUES_BYTES = 4 << 30
 
 
 def preload_derive(t: Trainee, samples: int):
-    """What ``--preload`` keeps beside each of ``samples`` samples, computed once
-    (:class:`Preloaded`'s ``derive``): the tonemapped target and the network's scene cues
-    (where they fit in :data:`PRELOAD_CUES_BYTES`). Neither depends on the weights and no
-    sample is augmented, so a step reads them rather than computes them again: about a third
-    of the default's operations a step (each a kernel launch on a GPU)."""
+    """What ``--preload`` keeps of each of ``samples`` samples, computed once
+    (:class:`Preloaded`'s ``derive``): the light, the tonemapped target, and the network's
+    scene cues in place of the maps (where they fit in :data:`PRELOAD_CUES_BYTES`; the maps
+    otherwise). Neither the target nor the cues depend on the weights and no sample is
+    augmented, so a step reads them rather than computes them again: about a third of the
+    default's operations a step (each a kernel launch on a GPU)."""
     scene = getattr(t.model, "scene", None)
     if scene is not None:
         cfg = t.model_cfg
@@ -602,11 +603,11 @@ def preload_derive(t: Trainee, samples: int):
 
     @torch.no_grad()
     def derive(data: dict) -> dict:
-        more = {"target": t.tonemap(data["render"])}
-        if scene is not None:
-            x = model_inputs(data["maps"], t.model_cfg.roughness_channels)
-            more["cues"] = scene(x, data["light"])
-        return more
+        kept = {"light": data["light"], "target": t.tonemap(data["render"])}
+        if scene is None:
+            return kept | {"maps": data["maps"]}
+        x = model_inputs(data["maps"], t.model_cfg.roughness_channels)
+        return kept | {"cues": scene(x, data["light"])}
 
     return derive
 
@@ -614,17 +615,21 @@ def preload_derive(t: Trainee, samples: int):
 def train_step(cfg: TrainConfig, rk: Rank, t: Trainee, batch: dict) -> torch.Tensor:
     """One optimizer step on ``batch``; returns the loss (a detached tensor, not synced).
 
-    Under bf16 autocast (``rk.autocast``) the U-Net and VGG run in bf16, the L1, feature MSE,
-    MS-SSIM and FLIP in fp32. A NaN or
-    infinite gradient norm is raised as :class:`TrainingDiverged` at the next check."""
-    maps = batch["maps"].to(rk.device, non_blocking=True)
-    x = model_inputs(maps, t.model_cfg.roughness_channels).contiguous(memory_format=rk.fmt)
+    A preloaded split's batch (:func:`preload_derive`) brings its target, and its scene cues
+    in place of the maps. Under bf16 autocast (``rk.autocast``) the U-Net and VGG run in
+    bf16, the L1, feature MSE, MS-SSIM and FLIP in fp32. A NaN or infinite gradient norm is
+    raised as :class:`TrainingDiverged` at the next check."""
     light = batch["light"].to(rk.device, non_blocking=True)
-    if "target" in batch:  # a preloaded split's (preload_derive)
+    if "cues" in batch:
+        x, cues = None, {"cues": batch["cues"]}
+    else:
+        maps = batch["maps"].to(rk.device, non_blocking=True)
+        x = model_inputs(maps, t.model_cfg.roughness_channels).contiguous(memory_format=rk.fmt)
+        cues = {}
+    if "target" in batch:
         target = batch["target"]
     else:
         target = t.tonemap(batch["render"].to(rk.device, non_blocking=True))
-    cues = {"cues": batch["cues"]} if "cues" in batch else {}
     with rk.autocasting():
         loss = t.criterion(t.net(x, light, **cues), target)
     t.opt.zero_grad(set_to_none=True)
