@@ -469,7 +469,8 @@ def side_by_side(work: Path, budget: int, names: list[str], path: Path, device: 
     write_grid(path, scored.shown, labels=tuple(names))
 
 
-def main(argv: list[str] | None = None) -> None:
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m benchmarks.learning``."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--resolution", type=int, default=64)
     p.add_argument("--budget", type=int, action="append", help="image passes (repeatable)")
@@ -504,8 +505,12 @@ def main(argv: list[str] | None = None) -> None:
                    "takes all the time the rows after it do not need: train it "
                    "last")  # fmt: skip
     p.add_argument("--note", action="append", default=[], help="a note for the table (repeatable)")
-    args = p.parse_args(argv)
-    started = time.monotonic()
+    return p
+
+
+def checked(p: argparse.ArgumentParser, args: argparse.Namespace):
+    """The rows ``args`` name, each row's rate rule and time cap; a bad setting ends the
+    command through ``p.error`` (one line, exit 2) before anything trains."""
     names = args.rows.split(",") if args.rows else list(ROWS)
     if unknown := [n for n in names if n not in ROWS]:
         p.error(f"unknown row {unknown[0]!r}: one of {', '.join(ROWS)}")
@@ -518,15 +523,22 @@ def main(argv: list[str] | None = None) -> None:
         p.error(f"--seconds must be above 0, not {args.seconds:g}")
     if set(rules.values()) != {"none"} and args.batch is None:
         p.error("--lr-scale scales the rates to --batch: give --batch")
-    store = args.store or ensure_store(args.resolution)
-    layout = Store(store).layout
-    work = args.work / str(layout.resolution)
+    return names, rules, caps
+
+
+def run_settings(args: argparse.Namespace) -> dict:
+    """What every row's run takes from the command line, beside its own settings."""
     run_as = {"device": args.device, "preload": args.preload}
     if args.batch is not None:
         run_as["batch_size"] = args.batch
     if args.precision is not None:
         run_as["precision"] = args.precision
-    about = (
+    return run_as
+
+
+def store_note(layout, args: argparse.Namespace, rules: dict) -> str:
+    """The table's first note: the store, the held-out share and how every row trains."""
+    return (
         f"{layout.num_materials} materials (half uniform, half procedural) x "
         f"{layout.suns_per_material} suns, {HOLDOUT:.0%} of the materials held out; every row "
         + ("trains one CPU process" if args.device == "cpu" else "trains on one GPU")
@@ -535,6 +547,33 @@ def main(argv: list[str] | None = None) -> None:
         + ("" if args.batch is None else f", batch {args.batch} for every row")
         + said_rules(rules)
     )  # fmt: skip
+
+
+def publish(t: Table, name: str, results: list[dict], args, work: Path, budget: int) -> None:
+    """Print and save the table ``name`` of ``results``, with the grid of ``--grid-rows``
+    that trained (in ``--results``, or beside the docs' pictures)."""
+    trained = {r["row"] for r in results if "diverged" not in r}
+    shown = [n for n in args.grid_rows.split(",") if n in trained]
+    if shown:
+        grid = (args.results or DOC_IMG) / f"{name}.png"
+        side_by_side(work, budget, shown, grid, args.device)
+        print(f"grid: {grid}", flush=True)
+        if args.results is None:  # the page docs/benchmarks.md shows it
+            t.notes.append(f"truth, {', '.join(shown)} and their errors on the same held-out "
+                           f"samples: ![{name}](img/{name}.png)")  # fmt: skip
+    print(t.markdown(), flush=True)
+    save(name, t, *([args.results] if args.results else []))
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = parser()
+    args = p.parse_args(argv)
+    started = time.monotonic()
+    names, rules, caps = checked(p, args)
+    store = args.store or ensure_store(args.resolution)
+    layout = Store(store).layout
+    work = args.work / str(layout.resolution)
+    run_as = run_settings(args)
     os.environ.setdefault("OMP_NUM_THREADS", str(len(os.sched_getaffinity(0))))
     rates = {n: {"lr": scaled_lr(n, store, args.batch, rules[n])} if args.batch else {}
              for n in names}  # fmt: skip
@@ -550,23 +589,13 @@ def main(argv: list[str] | None = None) -> None:
     for budget in budgets:
         results = [run_row(n, store, work, budget, **run_as, **rates[n],
                            time_limit=clock.limit((budget, n))) for n in names]  # fmt: skip
-        t = table(layout.resolution, budget, results, about, args.device)
+        t = table(layout.resolution, budget, results, store_note(layout, args, rules), args.device)
         if args.batch is not None:
             t.notes.append(f"(peak) rates at batch {args.batch}: " + ", ".join(
                 f"{n} {rates[n]['lr']:.3g}" for n in names))  # fmt: skip
         t.notes += args.note
         name = args.name or f"learning-{layout.resolution}-{budget // 1000}k"
-        trained = {r["row"] for r in results if "diverged" not in r}
-        shown = [n for n in args.grid_rows.split(",") if n in trained]
-        if shown:
-            grid = (args.results or DOC_IMG) / f"{name}.png"
-            side_by_side(work, budget, shown, grid, args.device)
-            print(f"grid: {grid}", flush=True)
-            if args.results is None:  # the page docs/benchmarks.md shows it
-                t.notes.append(f"truth, {', '.join(shown)} and their errors on the same held-out "
-                               f"samples: ![{name}](img/{name}.png)")  # fmt: skip
-        print(t.markdown(), flush=True)
-        save(name, t, *([args.results] if args.results else []))
+        publish(t, name, results, args, work, budget)
 
 
 if __name__ == "__main__":
