@@ -212,7 +212,8 @@ def print_library(suv: ScreenUV, args, device: torch.device, recipe: str) -> Non
             print(f"| {i + 1} | {pic:.2f} | {first:.2f} | {mb:,.0f} | {peak:,.0f} |", flush=True)
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m benchmarks.viewer``."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--resolutions", default="128,256,400")
     ap.add_argument("--frames", type=int, default=12)
@@ -229,7 +230,12 @@ def main() -> None:
     ap.add_argument("--recipes", default="shaderball,paper",
                     help="whose networks to time, one or more of "
                     f"{','.join(RECIPES)} (the first for --library)")  # fmt: skip
-    args = ap.parse_args()
+    return ap
+
+
+def checked(ap: argparse.ArgumentParser, args: argparse.Namespace):
+    """The runtimes, the recipes and the device ``args`` name; a bad setting ends the
+    command through ``ap.error`` (one line, exit 2) before anything runs."""
     if args.frames < 1:
         ap.error("--frames must be at least 1")
     if args.library < 0:
@@ -245,18 +251,12 @@ def main() -> None:
         ap.error("--runtimes onnx runs on the CPU: add --device cpu")
     if "graph" in runtimes and device.type != "cuda":
         ap.error("--runtimes graph runs on CUDA: add --device cuda")
-    if args.library:
-        first = layout(int(args.resolutions.split(",")[0]), args.cache)
-        return print_library(first, args, device, recipes[0])
-    print(f"device: {device_name(device)}; torch threads {torch.get_num_threads()}; "
-          f"texture {args.texture}²; medians of {args.frames} frames")  # fmt: skip
-    print(
-        "| resolution | network | runtime | sub-samples | mapping ms | network ms | encoding ms "
-        "| edit frame ms | outside the network | tiling edit: mapping ms | outside the network "
-        "| drag frame ms |"
-    )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    table = Table(
+    return runtimes, recipes, device
+
+
+def edit_table(args: argparse.Namespace, device: torch.device) -> Table:
+    """The saved table of the edit and drag frames, with no rows yet."""
+    return Table(
         title=f"The viewer: an edit's time (`make bench-viewer`), texture {args.texture}², "
         f"medians of {args.frames} frames",
         columns=["resolution", "network", "runtime", "sub-samples", "mapping ms", "network ms",
@@ -269,6 +269,36 @@ def main() -> None:
             "a drag frame moves the sun"
         ],
     )  # fmt: skip
+
+
+def print_row(r: int, recipe: str, runtime: str, m: dict) -> None:
+    """One measured network's line of the printed table."""
+    print(
+        f"| {r}² | {recipe} | {runtime} | {m['supersample']}² ({m['hits']:,} hits) | "
+        f"{m['mapping']:.1f} | "
+        f"{m['network']:.2f} | {m['encoding']:.2f} | {m['frame']:.1f} | "
+        f"{100 * m['outside']:.1f} % | {m['tiling']:.1f} | "
+        f"{100 * m['tiling_outside']:.1f} % | {m['drag']:.1f} |",
+        flush=True,
+    )
+
+
+def main() -> None:
+    ap = parser()
+    args = ap.parse_args()
+    runtimes, recipes, device = checked(ap, args)
+    if args.library:
+        first = layout(int(args.resolutions.split(",")[0]), args.cache)
+        return print_library(first, args, device, recipes[0])
+    print(f"device: {device_name(device)}; torch threads {torch.get_num_threads()}; "
+          f"texture {args.texture}²; medians of {args.frames} frames")  # fmt: skip
+    print(
+        "| resolution | network | runtime | sub-samples | mapping ms | network ms | encoding ms "
+        "| edit frame ms | outside the network | tiling edit: mapping ms | outside the network "
+        "| drag frame ms |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    table = edit_table(args, device)
     by_kind = []
     with tempfile.TemporaryDirectory() as tmp:
         for r, recipe, runtime in (
@@ -280,14 +310,7 @@ def main() -> None:
                 layout(r, args.cache), args.frames, args.texture, device, sub, runtime, recipe
             )
             by_kind.append((r, f"{recipe}, {runtime}", m))
-            print(
-                f"| {r}² | {recipe} | {runtime} | {m['supersample']}² ({m['hits']:,} hits) | "
-                f"{m['mapping']:.1f} | "
-                f"{m['network']:.2f} | {m['encoding']:.2f} | {m['frame']:.1f} | "
-                f"{100 * m['outside']:.1f} % | {m['tiling']:.1f} | "
-                f"{100 * m['tiling_outside']:.1f} % | {m['drag']:.1f} |",
-                flush=True,
-            )
+            print_row(r, recipe, runtime, m)
             table.rows.append([
                 f"{r}²", recipe, runtime, f"{m['supersample']}²", round(m["mapping"], 1),
                 round(m["network"], 2), round(m["encoding"], 2), round(m["frame"], 1),
