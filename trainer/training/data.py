@@ -149,8 +149,9 @@ class ShardStream(IterableDataset):
 class Preloaded:
     """The batches of a :class:`ShardStream`, in its order, from the whole split read once into
     ``device``'s memory (``trainer train --preload``): for a store that fits there, a GPU's
-    steps wait for no loader. Iterating it yields what the DataLoader would, on ``device``;
-    the split is read ``chunk`` samples at a time when it is made.
+    steps wait for no loader. Iterating it yields the DataLoader's batches, in its order, on
+    ``device`` (with ``derive``, what that makes of them); the split is read ``chunk``
+    samples at a time when it is made.
 
     ``derive``, if given, maps a chunk's tensors (``{"maps", "light", "render", ...}`` on
     ``device``) to the tensors each batch carries instead, computed once here: what a step
