@@ -620,18 +620,16 @@ def train_step(cfg: TrainConfig, rk: Rank, t: Trainee, batch: dict) -> torch.Ten
     bf16, the L1, feature MSE, MS-SSIM and FLIP in fp32. A NaN or infinite gradient norm is
     raised as :class:`TrainingDiverged` at the next check."""
     light = batch["light"].to(rk.device, non_blocking=True)
-    if "cues" in batch:
-        x, cues = None, {"cues": batch["cues"]}
-    else:
+    cues, x = batch.get("cues"), None
+    if cues is None:
         maps = batch["maps"].to(rk.device, non_blocking=True)
         x = model_inputs(maps, t.model_cfg.roughness_channels).contiguous(memory_format=rk.fmt)
-        cues = {}
     if "target" in batch:
         target = batch["target"]
     else:
         target = t.tonemap(batch["render"].to(rk.device, non_blocking=True))
     with rk.autocasting():
-        loss = t.criterion(t.net(x, light, **cues), target)
+        loss = t.criterion(t.net(x, light, cues), target)
     t.opt.zero_grad(set_to_none=True)
     loss.backward()
     rate = lr_at(t.step, cfg.lr, cfg.lr_schedule, t.run_steps, cfg.warmup_steps, t.knee)
