@@ -8,7 +8,9 @@ Schema version 1 (``storage.schema``):
   8-bit PNGs), sRGB keeps dark colours as precise as 8-bit maps allow, and it halves bytes
   against float16 and compresses better.
 - ``renders``   ``(N, 3, H, W) float16`` per sample: linear HDR radiance (float16 holds it
-  to ~1e-3 relative, up to 65504).
+  to ~1e-3 relative, up to 65504). A store whose settings have ``render_bits`` B keeps only B
+  of the 10 mantissa bits (``farm submit --render-bits``): smaller, for a store that must
+  travel, and still far more precise than a render's Monte Carlo noise.
 - ``material_index (N,) int32``, ``sun_direction (N, 3) float32``, ``turbidity (N,) float32``,
   ``seed (N,) int64``, ``render_seconds (N,) float32``.
 - group attributes ``shaderball``: schema version, layout (resolution, suns per material,

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from numcodecs import BitRound
 
 from render_jobs.materials.maps import linear_to_srgb, quantize_u8, srgb_to_linear
 from render_jobs.specs import MATERIAL_KINDS
@@ -179,6 +180,26 @@ def encode_maps(maps: dict[str, np.ndarray]) -> np.ndarray:
             arr = linear_to_srgb(arr)
         parts.append(arr)
     return quantize_u8(np.concatenate(parts))
+
+
+#: the store setting (in its attributes' ``settings``) that keeps this many of float16's 10
+#: mantissa bits in every render; a store without it keeps all 10
+RENDER_BITS = "render_bits"
+FLOAT16_MANTISSA_BITS = 10
+
+
+def round_renders(renders: np.ndarray, bits: int) -> np.ndarray:
+    """``(n, 3, H, W) float16`` renders with ``bits`` of their 10 mantissa bits kept, each
+    rounded to the nearest (ties to even; numcodecs' ``BitRound``). The bits dropped are
+    zeros, which zstd packs: fewer bytes a render for a relative error of at most
+    2^-(bits+1). A value that would round past float16's largest is rounded down."""
+    if bits >= FLOAT16_MANTISSA_BITS:
+        return renders
+    renders = np.ascontiguousarray(renders, dtype=np.float16)
+    rounded = BitRound(keepbits=bits).encode(renders).view(np.float16)
+    mask = np.uint16((0xFFFF << (FLOAT16_MANTISSA_BITS - bits)) & 0xFFFF)
+    down = (renders.view(np.uint16) & mask).view(np.float16)
+    return np.where(np.isinf(rounded) & np.isfinite(renders), down, rounded)
 
 
 def decode_maps(packed: np.ndarray) -> dict[str, np.ndarray]:

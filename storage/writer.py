@@ -10,6 +10,7 @@ processes on any number of machines may write at once.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import platform
@@ -27,12 +28,15 @@ from storage.reader import Store
 from storage.retry import retrying
 from storage.schema import (
     ATTRS_KEY,
+    FLOAT16_MANTISSA_BITS,
     KINDS,
+    RENDER_BITS,
     SCHEMA_VERSION,
     Layout,
     ShardPayload,
     arrays,
     commit_key,
+    round_renders,
 )
 
 ZSTD_LEVEL = 3
@@ -134,8 +138,12 @@ def _write_arrays(group, layout: Layout, samples: range, materials: range, p: Sh
 
 
 def write_shard(store: Store, shard: int, payload: ShardPayload, overwrite: bool = False) -> dict:
-    """Write ``shard`` whole, make it durable, then commit it; returns the commit record."""
+    """Write ``shard`` whole, make it durable, then commit it; returns the commit record.
+    Its renders keep the mantissa bits the store's ``render_bits`` setting names (all where
+    it has none), whoever writes it."""
     _check_payload(store, shard, payload)
+    bits = store.settings.get(RENDER_BITS, FLOAT16_MANTISSA_BITS)
+    payload = dataclasses.replace(payload, renders=round_renders(payload.renders, bits))
     backend = store.backend
     if store.commit_record(shard) is not None:
         if not overwrite:

@@ -134,6 +134,20 @@ def test_submit_resume_and_refusal(tmp_path):
     assert other.returncode == 1
     assert other.stderr.strip().splitlines()[-1].startswith("Error: ")
     assert "settings.samples=2, not 8" in other.stderr
+    rounded = farm("submit", "-m", "uniform:3", "-m", "procedural:2", *TINY, "--render-bits", "6",
+                   "-o", out)  # fmt: skip
+    assert rounded.returncode == 1 and "settings.render_bits=None, not 6" in rounded.stderr
+
+
+def test_a_store_keeps_a_render_bits_setting_only_where_bits_are_dropped():
+    """A store made before the setting existed is the same dataset as one made with all 10."""
+    sources = ("uniform:2",)
+    assert "render_bits" not in JobConfig(sources=sources, out="x").dataset_settings()
+    kept = JobConfig(sources=sources, out="x", render_bits=6).dataset_settings()
+    assert kept["render_bits"] == 6
+    for bad in (0, 11):
+        with pytest.raises(ValueError, match=r"--render-bits must be in \[1, 10\], not"):
+            JobConfig(sources=sources, out="x", render_bits=bad)
 
 
 @pytest.mark.parametrize("suns,want", [(1, 5), (3, 15), (5, 25), (7, 35)])

@@ -16,7 +16,14 @@ import pytest
 from storage.catalog import Catalog, draw_heldout, holdout_count
 from storage.errors import ShardCommittedError, StoreError
 from storage.reader import Store
-from storage.schema import Layout, commit_key, decode_maps, encode_maps, untrainable
+from storage.schema import (
+    Layout,
+    commit_key,
+    decode_maps,
+    encode_maps,
+    round_renders,
+    untrainable,
+)
 from storage.writer import create_store, write_shard
 from tests.storage_helpers import synthetic_payload
 
@@ -105,6 +112,36 @@ def test_map_encoding_round_trips_within_8_bit_precision():
 
 
 # ---- commit protocol -----------------------------------------------------------------------
+
+
+def test_renders_rounded_to_fewer_mantissa_bits_are_near_and_compress_better():
+    import zstandard
+
+    rng = np.random.default_rng(0)
+    renders = rng.gamma(1.0, 0.3, (4, 3, 32, 32)).astype(np.float16)
+    renders[0, 0, 0, :3] = [65504, -65504, np.inf]  # past the largest when rounded up; inf
+    assert round_renders(renders, 10) is renders
+    kept = round_renders(renders, 6)
+    assert kept.dtype == np.float16 and kept.shape == renders.shape
+    assert not (kept.view(np.uint16) & 0b1111).any()  # the 4 bits dropped are zeros
+    finite = np.isfinite(renders) & (renders != 0)
+    err = np.abs(kept[finite].astype(np.float32) / renders[finite].astype(np.float32) - 1)
+    assert err.max() <= 2**-7 and err.mean() > 2**-11  # each within half a step; not a copy
+    assert kept[0, 0, 0, :2].tolist() == [65024, -65024] and np.isinf(kept[0, 0, 0, 2])
+    size = [len(zstandard.compress(x.tobytes(), 3)) for x in (renders, kept)]
+    assert size[1] < 0.8 * size[0], size
+
+
+@pytest.mark.parametrize("bits", [None, 6])
+def test_a_shards_renders_keep_the_mantissa_bits_its_stores_settings_name(tmp_path, bits):
+    settings = {"samples": 8} | ({} if bits is None else {"render_bits": bits})
+    store = create_store(str(tmp_path / "s.zarr"), LAYOUT, settings)
+    payload = synthetic_payload(LAYOUT, 0)
+    write_shard(store, 0, payload)
+    stored = Store(str(tmp_path / "s.zarr")).read_shard(0).renders
+    want = payload.renders if bits is None else round_renders(payload.renders, bits)
+    np.testing.assert_array_equal(stored, want)
+    assert (bits is None) == np.array_equal(stored, payload.renders)
 
 
 def test_round_trip_of_every_sample(tmp_path):
