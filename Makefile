@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry learn-store-500 clean
 
 # torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
 # torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
@@ -110,12 +110,30 @@ gpu-wheels: $(BIN)/.installed
 		'zstandard>=0.22' 'google-crc32c>=1.5' tenacity flip-evaluator
 
 # The stores the GPU benchmarks read, made here by the farm (once): out/bench-400.zarr (train,
-# infer) and out/gpu-learn-64.zarr (learn: 500 materials x 5 suns at 64², 32 spp, 53 MiB,
-# so that it and .whl/ fit one device call's 64 MiB)
+# infer) and out/gpu-learn-64-700.zarr (learn: 700 materials x 5 suns at 64², 32 spp, its
+# renders kept at 6 mantissa bits: 45 MB, so that it, .whl/ and the checkout fit one device
+# call's 64 MiB; make gpu-carry checks). out/gpu-learn-64.zarr (500 materials, every bit) is
+# the store the CPU's batch-128 learning tables read (learning-64-b128-*).
+LEARN_STORE := out/gpu-learn-64-700.zarr
 gpu-stores: bench-store
+	test -f $(LEARN_STORE)/zarr.json || $(BIN)/farm submit -m uniform:350 -m procedural:350 \
+		--resolution 64 --samples 32 --shard-size 25 --render-bits 6 --no-ray-dashboard \
+		-o $(LEARN_STORE)
+
+learn-store-500: $(BIN)/.installed
 	test -f out/gpu-learn-64.zarr/zarr.json || $(BIN)/farm submit -m uniform:250 \
 		-m procedural:250 --resolution 64 --samples 32 --shard-size 25 --no-ray-dashboard \
 		-o out/gpu-learn-64.zarr
+
+# What `gpu.sh learn`'s device call carries: the checkout's files (tracked, and untracked
+# ones git does not ignore), the store and .whl/, in file bytes; refused over 64 MiB
+GPU_CARRY_LIMIT := 67108864
+gpu-carry:
+	@total=$$( { git ls-files -z --cached --others --exclude-standard | \
+		xargs -0 stat -c %s 2>/dev/null; find $(LEARN_STORE) .whl -type f -printf '%s\n'; } | \
+		awk '{s += $$1} END {print s}'); \
+	echo "a device call carries $$total bytes of files ($$((total * 100 / $(GPU_CARRY_LIMIT))) % of 64 MiB)"; \
+	test "$$total" -le $(GPU_CARRY_LIMIT) || { echo "over the 64 MiB a call carries" >&2; exit 1; }
 
 # How much each recipe learns per image pass (hours on 2 cores; resumes row by row)
 # every row at 16k image passes; at 64k the paper's network, the default, the shaderball row and

@@ -3,12 +3,12 @@
 # registry, such as the lent device.
 #
 # On the CPU machine, once: `make gpu-stores` (renders out/bench-400.zarr and
-# out/gpu-learn-64.zarr) and `make gpu-wheels` (the packages the device lacks, as wheels in
-# .whl/). Carry the store a part reads and .whl/ with the checkout (64 MiB a call at most),
-# then there:
+# out/gpu-learn-64-700.zarr) and `make gpu-wheels` (the packages the device lacks, as wheels in
+# .whl/). Carry the store a part reads and .whl/ with the checkout (64 MiB a call at most, the
+# checkout's own files too: `make gpu-carry` adds them up for learn), then there:
 #
 #     bash benchmarks/gpu.sh learn          # the default recipe and the paper's, each for the
-#                                           # paper's 1.47 M image passes on out/gpu-learn-64.zarr
+#                                           # paper's 1.47 M image passes on out/gpu-learn-64-700.zarr
 #     bash benchmarks/gpu.sh infer [ARGS]   # benchmarks.infer at batch 1 and 128, compiled rows
 #     bash benchmarks/gpu.sh train          # benchmarks.train, L1 (2,000 samples), then L1 + VGG16
 #     bash benchmarks/gpu.sh viewer [ARGS]  # benchmarks.viewer --device cuda (carry benchmarks/.cache
@@ -38,9 +38,10 @@
 # steps on the CPU: benchmarks.learning --budget 64000 --batch 128 --lr-scale sqrt|linear --rows
 # shaderball) sqrt learnt more than linear, whose peak of 3.2e-2 trained but less well. The
 # default's batch of 4 gives it a peak of 1.13e-2 at batch 128, which trained as well there as
-# the shaderball row's 8e-3 (--rows sb-ambient-b4). On this store at batch 128 and 64k passes
-# the default reached 34.2 dB at the root's peak and 0.75 dB less at its own 2e-3, and in bf16
-# autocast, as the GPU trains it, as much as in fp32 (learning-64-b128-default-bf16). The paper's
+# the shaderball row's 8e-3 (--rows sb-ambient-b4). On the 500-material store (make
+# learn-store-500) at batch 128 and 64k passes the default reached 34.2 dB at the root's peak
+# and 0.75 dB less at its own 2e-3, and in bf16 autocast, as the GPU trains it, as much as in
+# fp32 (learning-64-b128-default-bf16). The paper's
 # constant rate keeps its own 1e-3: 28.2 dB, the root's 4.6e-3 0.4 dB less, and at a constant
 # rate the score is where the last steps land, which moved the root's far more (2.1 dB less
 # at 500 steps; 22.4 dB on another machine) than its own (tables learning-64-b128-default-*
@@ -73,7 +74,7 @@ py=${PYTHON:-python3}
 store=out/bench-400.zarr
 part=${1:-}
 [[ $part == learn || $part == infer || $part == train || $part == viewer ]] || { echo "usage: bash benchmarks/gpu.sh learn|infer|train|viewer [ARGS]" >&2; exit 2; }
-[[ $part == learn ]] && store=${LEARN_STORE:-out/gpu-learn-64.zarr}
+[[ $part == learn ]] && store=${LEARN_STORE:-out/gpu-learn-64-700.zarr}
 shift
 [[ ($part != train && $part != learn) || $# -eq 0 ]] || { echo "gpu.sh: $part takes no arguments" >&2; exit 2; }
 if [[ $part == viewer ]]; then

@@ -51,6 +51,7 @@ from farm.driver import submit
 from farm.plan import JobConfig
 from storage.catalog import Catalog
 from storage.reader import Store
+from storage.schema import RENDER_BITS
 from trainer import runfiles
 from trainer.cues import ordered
 from trainer.precision import PRECISIONS, autocast_dtype
@@ -536,11 +537,14 @@ def run_settings(args: argparse.Namespace) -> dict:
     return run_as
 
 
-def store_note(layout, args: argparse.Namespace, rules: dict) -> str:
+def store_note(store: Store, args: argparse.Namespace, rules: dict) -> str:
     """The table's first note: the store, the held-out share and how every row trains."""
+    layout, bits = store.layout, store.settings.get(RENDER_BITS)
     return (
         f"{layout.num_materials} materials (half uniform, half procedural) x "
-        f"{layout.suns_per_material} suns, {HOLDOUT:.0%} of the materials held out; every row "
+        f"{layout.suns_per_material} suns"
+        + ("" if bits is None else f" (renders kept at {bits} of float16's 10 mantissa bits)")
+        + f", {HOLDOUT:.0%} of the materials held out; every row "
         + ("trains one CPU process" if args.device == "cpu" else "trains on one GPU")
         + (", the split in its memory" if args.preload else
            ", one loader worker" if args.device == "cpu" else "")
@@ -571,7 +575,8 @@ def main(argv: list[str] | None = None) -> None:
     started = time.monotonic()
     names, rules, caps = checked(p, args)
     store = args.store or ensure_store(args.resolution)
-    layout = Store(store).layout
+    opened = Store(store)
+    layout = opened.layout
     work = args.work / str(layout.resolution)
     run_as = run_settings(args)
     os.environ.setdefault("OMP_NUM_THREADS", str(len(os.sched_getaffinity(0))))
@@ -589,7 +594,7 @@ def main(argv: list[str] | None = None) -> None:
     for budget in budgets:
         results = [run_row(n, store, work, budget, **run_as, **rates[n],
                            time_limit=clock.limit((budget, n))) for n in names]  # fmt: skip
-        t = table(layout.resolution, budget, results, store_note(layout, args, rules), args.device)
+        t = table(layout.resolution, budget, results, store_note(opened, args, rules), args.device)
         if args.batch is not None:
             t.notes.append(f"(peak) rates at batch {args.batch}: " + ", ".join(
                 f"{n} {rates[n]['lr']:.3g}" for n in names))  # fmt: skip
