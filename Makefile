@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry learn-store-500 clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry learn-store-500 bench-render-bits clean
 
 # torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
 # torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
@@ -163,6 +163,10 @@ bench-report: $(BIN)/.installed
 
 bench-storage: .venv-bench/bin/.installed
 	.venv-bench/bin/python -m benchmarks.storage
+
+# what each count of --render-bits saves and costs, on the 500-material store (every bit)
+bench-render-bits: learn-store-500
+	$(BIN)/python -m benchmarks.render_bits --store out/gpu-learn-64.zarr
 
 clean:
 	rm -rf $(VENV) .venv-bench out .pytest_cache .ruff_cache

@@ -36,7 +36,7 @@ SECTIONS = (
     ("Inference", ("infer-cpu", "infer-cuda", "frames")),
     ("The viewer", ("viewer-cpu", "viewer-cuda")),
     ("Rendering and the farm", ("render", "farm", "farm-scale", "materials")),
-    ("Storage and the dashboard", ("storage", "dashboard")),
+    ("Storage and the dashboard", ("storage", "render-bits", "dashboard")),
 )  # fmt: skip
 
 INTRO = """# Benchmarks

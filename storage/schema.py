@@ -192,7 +192,8 @@ def round_renders(renders: np.ndarray, bits: int) -> np.ndarray:
     """``(n, 3, H, W) float16`` renders with ``bits`` of their 10 mantissa bits kept, each
     rounded to the nearest (ties to even; numcodecs' ``BitRound``). The bits dropped are
     zeros, which zstd packs: fewer bytes a render for a relative error of at most
-    2^-(bits+1). A value that would round past float16's largest is rounded down."""
+    2^-(bits+1) (of a normal value; a subnormal one, under 6.1e-5, has fewer bits to keep
+    and may round to 0). A value that would round past float16's largest is rounded down."""
     if bits >= FLOAT16_MANTISSA_BITS:
         return renders
     renders = np.ascontiguousarray(renders, dtype=np.float16)

@@ -545,6 +545,33 @@ def test_the_learning_benchmark_trains_scores_and_tables_each_row_once(tiny_stor
     assert (seconds > 0).all()
 
 
+def test_render_bits_tables_bytes_and_error_of_each_count_beside_the_renders_noise(
+    tiny_store, tmp_path
+):
+    """Fewer bits: fewer bytes a render and a larger error, each within half a step of the
+    bits kept; the second render's noise is larger than the rounding's at every count."""
+    from benchmarks import render_bits
+    from benchmarks.results import load
+    from storage.schema import Layout
+    from storage.writer import create_store
+
+    render_bits.main(["--store", tiny_store.url, "--samples", "12", "--noise-samples", "3",
+                      "--results", str(tmp_path), "--name", "b"])  # fmt: skip
+    t = load(tmp_path / "b.json")
+    bits = t.rows[:-1]
+    assert [r[0] for r in bits] == [f"{b} bits" for b in render_bits.BITS]
+    sizes, errors = [r[1] for r in bits], [float(r[3]) for r in bits]
+    assert sizes == sorted(sizes, reverse=True) and sizes[-1] < sizes[0] and bits[0][2] == 1.0
+    assert all(e <= 2.0 ** -(b + 1) for b, e in zip(render_bits.BITS, errors, strict=True))
+    psnrs = [r[4] for r in bits[1:]]
+    assert psnrs == sorted(psnrs, reverse=True) and bits[0][4] is None
+    assert t.rows[-1][0].startswith("another ") and t.rows[-1][4] < psnrs[-1]
+    rounded = create_store(str(tmp_path / "r.zarr"), Layout(2, 1, 16, 1), {"render_bits": 6})
+    with pytest.raises(SystemExit) as stop:
+        render_bits.main(["--store", rounded.url, "--results", str(tmp_path)])
+    assert stop.value.code == 2
+
+
 def test_the_cpu_training_forms_are_timed_in_turn_and_tabled(tmp_path):
     """``benchmarks.cpu_train`` at a tiny size: a row for each recipe and form asked for,
     positive rates, channels_last (the trainer's format) the unit of a recipe, the paper's
