@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry learn-store-500 bench-render-bits clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry learn-store-500 learn-test-store bench-render-bits clean
 
 # torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
 # torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
@@ -124,6 +124,13 @@ learn-store-500: $(BIN)/.installed
 	test -f out/gpu-learn-64.zarr/zarr.json || $(BIN)/farm submit -m uniform:250 \
 		-m procedural:250 --resolution 64 --samples 32 --shard-size 25 --no-ray-dashboard \
 		-o out/gpu-learn-64.zarr
+
+# 120 materials none of the stores above holds (another --seed): runs on different stores
+# are compared on it (trainer eval --checkpoint A --checkpoint B --on out/learn-test-64.zarr)
+learn-test-store: $(BIN)/.installed
+	test -f out/learn-test-64.zarr/zarr.json || $(BIN)/farm submit -m uniform:60 \
+		-m procedural:60 --seed 1 --resolution 64 --samples 32 --shard-size 25 \
+		--no-ray-dashboard -o out/learn-test-64.zarr
 
 # What `gpu.sh learn`'s device call carries: the checkout's files (tracked, and untracked
 # ones git does not ignore), the store and .whl/, in file bytes; refused over 64 MiB
