@@ -629,7 +629,8 @@ def train_step(cfg: TrainConfig, rk: Rank, t: Trainee, batch: dict) -> torch.Ten
     else:
         target = t.tonemap(batch["render"].to(rk.device, non_blocking=True))
     with rk.autocasting():
-        loss = t.criterion(t.net(x, light, cues), target)
+        out = t.net(x, light) if cues is None else t.net(x, light, cues)
+        loss = t.criterion(out, target)
     t.opt.zero_grad(set_to_none=True)
     loss.backward()
     rate = lr_at(t.step, cfg.lr, cfg.lr_schedule, t.run_steps, cfg.warmup_steps, t.knee)
