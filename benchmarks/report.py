@@ -28,6 +28,7 @@ SECTIONS = (
         "learning-64-b128-default-384k", "learning-64-b128-default-1470k",
         "learning-64-700-b128-default-384k",
         "learning-64-b128-paper-none", "learning-64-b128-paper-sqrt", "learning-64-b128-paper-384k",
+        "learning-64-b128-paper-1470k",
         "learning-gpu",
     )),  # fmt: skip
     ("Training", (
