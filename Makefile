@@ -107,7 +107,7 @@ gpu-wheels: $(BIN)/.installed
 	$(BIN)/pip download --quiet --only-binary=:all: --no-deps --python-version $(GPU_PYTHON) \
 		--platform manylinux2014_x86_64 --platform manylinux_2_28_x86_64 \
 		--platform manylinux1_x86_64 -d .whl 'zarr>=3.1,<3.2' 'numcodecs>=0.14' donfig crc32c \
-		'zstandard>=0.22' 'google-crc32c>=1.5' tenacity flip-evaluator
+		'google-crc32c>=1.5' tenacity flip-evaluator
 
 # The stores the GPU benchmarks read, made here by the farm (once): out/bench-400.zarr (train,
 # infer) and out/gpu-learn-64-700.zarr (learn: 700 materials x 5 suns at 64², 32 spp, its

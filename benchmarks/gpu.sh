@@ -82,7 +82,7 @@ if [[ $part == viewer ]]; then
 else
     [[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make bench-store, then carry it)" >&2; exit 2; }
 fi
-if ! "$py" -c "import zarr, numcodecs, zstandard, google_crc32c, PIL, click, tenacity, fsspec, tqdm, flip_evaluator" 2>/dev/null; then
+if ! "$py" -c "import zarr, numcodecs, google_crc32c, PIL, click, tenacity, fsspec, tqdm, flip_evaluator" 2>/dev/null; then
     [[ -d .whl ]] || { echo "gpu.sh: zarr or the trainer's packages are not installed and .whl/ is missing (make gpu-wheels)" >&2; exit 2; }
     "$py" -m pip install --quiet --no-index --no-deps --find-links .whl .whl/*.whl
 fi

@@ -20,7 +20,7 @@ from collections import OrderedDict
 
 import google_crc32c
 import numpy as np
-import zstandard
+from numcodecs import Zstd
 
 from storage.backend import Backend
 from storage.errors import StoreError
@@ -68,7 +68,7 @@ class ChunkReader:
         )
         self.fill = meta.get("fill_value", 0)
         self._index: OrderedDict[int, np.ndarray] = OrderedDict()
-        self._dctx = zstandard.ZstdDecompressor()
+        self._zstd = Zstd()  # numcodecs': zarr's own zstd, so the reader needs no other package
         self._fds: dict[int, int] = {}
 
     def _key(self, shard: int) -> str:
@@ -126,8 +126,8 @@ class ChunkReader:
         if google_crc32c.value(raw[:-4]) != int.from_bytes(raw[-4:], "little"):
             raise StoreError(f"{self.backend.url}: {self._key(shard)}: chunk {k} checksum")
         try:
-            data = self._dctx.decompress(raw[:-4])
-        except zstandard.ZstdError as exc:
+            data = self._zstd.decode(raw[:-4])
+        except RuntimeError as exc:  # numcodecs raises it for a frame it cannot decode
             raise StoreError(f"{self.backend.url}: {self._key(shard)}: chunk {k}: {exc}") from None
         return np.frombuffer(data, self.dtype).reshape(self.chunk_shape)
 
