@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry learn-store-500 learn-test-store bench-render-bits clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry learn-store-500 learn-store-700 learn-test-store bench-render-bits clean
 
 # torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
 # torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
@@ -110,13 +110,14 @@ gpu-wheels: $(BIN)/.installed
 		'google-crc32c>=1.5' tenacity flip-evaluator
 
 # The stores the GPU benchmarks read, made here by the farm (once): out/bench-400.zarr (train,
-# infer) and out/gpu-learn-64-700.zarr (learn: 700 materials x 5 suns at 64², 32 spp, its
-# renders kept at 6 mantissa bits: 45 MB, so that it, .whl/ and the checkout fit one device
+# infer) and out/gpu-learn-64-800.zarr (learn: 800 materials x 5 suns at 64², 32 spp, its
+# renders kept at 6 mantissa bits: 51.6 MB, so that it, .whl/ and the checkout fit one device
 # call's 64 MiB; make gpu-carry checks). out/gpu-learn-64.zarr (500 materials, every bit) is
-# the store the CPU's batch-128 learning tables read (learning-64-b128-*).
-LEARN_STORE := out/gpu-learn-64-700.zarr
+# the store the CPU's batch-128 learning tables read (learning-64-b128-*), and
+# out/gpu-learn-64-700.zarr (700, 6 bits) learning-64-700-b128-default-384k's.
+LEARN_STORE := out/gpu-learn-64-800.zarr
 gpu-stores: bench-store
-	test -f $(LEARN_STORE)/zarr.json || $(BIN)/farm submit -m uniform:350 -m procedural:350 \
+	test -f $(LEARN_STORE)/zarr.json || $(BIN)/farm submit -m uniform:400 -m procedural:400 \
 		--resolution 64 --samples 32 --shard-size 25 --render-bits 6 --no-ray-dashboard \
 		-o $(LEARN_STORE)
 
@@ -124,6 +125,11 @@ learn-store-500: $(BIN)/.installed
 	test -f out/gpu-learn-64.zarr/zarr.json || $(BIN)/farm submit -m uniform:250 \
 		-m procedural:250 --resolution 64 --samples 32 --shard-size 25 --no-ray-dashboard \
 		-o out/gpu-learn-64.zarr
+
+learn-store-700: $(BIN)/.installed
+	test -f out/gpu-learn-64-700.zarr/zarr.json || $(BIN)/farm submit -m uniform:350 \
+		-m procedural:350 --resolution 64 --samples 32 --shard-size 25 --render-bits 6 \
+		--no-ray-dashboard -o out/gpu-learn-64-700.zarr
 
 # 120 materials none of the stores above holds (another --seed): runs on different stores
 # are compared on it (trainer eval --checkpoint A --checkpoint B --on out/learn-test-64.zarr)

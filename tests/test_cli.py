@@ -310,7 +310,7 @@ def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path)
     in the rest of the call (``ROW_SECONDS`` replaces the caps); the runs go to a folder of
     their own and ``$OUT`` gets only what a device call brings back: at most 8 files, 2
     folders down at most."""
-    gpu_checkout(tmp_path, "learning", FAKE_LEARNING, "gpu-learn-64-700.zarr")
+    gpu_checkout(tmp_path, "learning", FAKE_LEARNING, "gpu-learn-64-800.zarr")
     for call, (extra, rules, row_caps) in enumerate((
         ({}, ["sqrt", "paper=none"], ["paper=200"]),
         ({"LR_SCALE": "linear", "ROW_SECONDS": "100 default=300"}, ["linear"],
@@ -325,7 +325,7 @@ def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path)
         assert r.returncode == 0, r.stderr
         scales = [x for rule in rules for x in ("--lr-scale", rule)]
         caps = [x for cap in row_caps for x in ("--row-seconds", cap)]
-        said = ["--store", "out/gpu-learn-64-700.zarr", "--device", "cuda", "--preload", "--budget",
+        said = ["--store", "out/gpu-learn-64-800.zarr", "--device", "cuda", "--preload", "--budget",
                 "1470000", "--batch", "128", *scales, "--rows", "paper,default", *caps,
                 "--seconds", "530"]  # fmt: skip
         assert f"args {said}"[:-1] in r.stdout, r.stdout
