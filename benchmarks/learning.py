@@ -129,6 +129,8 @@ ROWS = {
     "default-w32": ("the default recipe at width 32, in fp32", DEFAULT_W32),
     "default-wd": ("the default-w32 row with decoupled weight decay 0.1 (AdamW)",
                    DEFAULT_W32 | {"weight_decay": 0.1}),
+    "default-wd64": ("the default recipe with decoupled weight decay 0.1 (AdamW), in the "
+                     "trainer's default precision", {"weight_decay": 0.1}),
     "default-lr3e-3": ("the default-w32 row with a peak rate of 3e-3", DEFAULT_W32 | {"lr": 3e-3}),
     "default-w48": ("the default recipe at width 48, in fp32",
                     {"width": 48, "precision": "fp32"}),
