@@ -80,7 +80,7 @@ shift
 if [[ $part == viewer ]]; then
     compgen -G "benchmarks/.cache/screen_uv-*.npz" >/dev/null || { echo "gpu.sh: benchmarks/.cache has no screen UV layouts (make bench-viewer, then carry benchmarks/.cache)" >&2; exit 2; }
 else
-    [[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make bench-store, then carry it)" >&2; exit 2; }
+    [[ -f $store/zarr.json ]] || { echo "gpu.sh: $store is missing (make gpu-stores, then carry it)" >&2; exit 2; }
 fi
 if ! "$py" -c "import zarr, numcodecs, google_crc32c, PIL, click, tenacity, fsspec, tqdm, flip_evaluator" 2>/dev/null; then
     [[ -d .whl ]] || { echo "gpu.sh: zarr or the trainer's packages are not installed and .whl/ is missing (make gpu-wheels)" >&2; exit 2; }
