@@ -116,27 +116,24 @@ gpu-wheels: $(BIN)/.installed
 # the store the CPU's batch-128 learning tables read (learning-64-b128-*), and
 # out/gpu-learn-64-700.zarr (700, 6 bits) learning-64-700-b128-default-384k's.
 LEARN_STORE := out/gpu-learn-64-800.zarr
+# $(call learn-store,STORE,MATERIALS OF EACH KIND,MORE FARM FLAGS): a 64², 32-spp store of
+# half uniform, half procedural materials, rendered unless it is there
+learn-store = test -f $(1)/zarr.json || $(BIN)/farm submit -m uniform:$(2) -m procedural:$(2) \
+	--resolution 64 --samples 32 --shard-size 25 --no-ray-dashboard $(3) -o $(1)
+
 gpu-stores: bench-store
-	test -f $(LEARN_STORE)/zarr.json || $(BIN)/farm submit -m uniform:400 -m procedural:400 \
-		--resolution 64 --samples 32 --shard-size 25 --render-bits 6 --no-ray-dashboard \
-		-o $(LEARN_STORE)
+	$(call learn-store,$(LEARN_STORE),400,--render-bits 6)
 
 learn-store-500: $(BIN)/.installed
-	test -f out/gpu-learn-64.zarr/zarr.json || $(BIN)/farm submit -m uniform:250 \
-		-m procedural:250 --resolution 64 --samples 32 --shard-size 25 --no-ray-dashboard \
-		-o out/gpu-learn-64.zarr
+	$(call learn-store,out/gpu-learn-64.zarr,250)
 
 learn-store-700: $(BIN)/.installed
-	test -f out/gpu-learn-64-700.zarr/zarr.json || $(BIN)/farm submit -m uniform:350 \
-		-m procedural:350 --resolution 64 --samples 32 --shard-size 25 --render-bits 6 \
-		--no-ray-dashboard -o out/gpu-learn-64-700.zarr
+	$(call learn-store,out/gpu-learn-64-700.zarr,350,--render-bits 6)
 
 # 120 materials none of the stores above holds (another --seed): runs on different stores
 # are compared on it (trainer eval --checkpoint A --checkpoint B --on out/learn-test-64.zarr)
 learn-test-store: $(BIN)/.installed
-	test -f out/learn-test-64.zarr/zarr.json || $(BIN)/farm submit -m uniform:60 \
-		-m procedural:60 --seed 1 --resolution 64 --samples 32 --shard-size 25 \
-		--no-ray-dashboard -o out/learn-test-64.zarr
+	$(call learn-store,out/learn-test-64.zarr,60,--seed 1)
 
 # What `gpu.sh learn`'s device call carries: the checkout's files (tracked, and untracked
 # ones git does not ignore), the store and .whl/, in file bytes; refused over 64 MiB

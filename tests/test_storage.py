@@ -492,3 +492,20 @@ def test_fast_reads_match_zarr_and_catch_corruption(tmp_path):
     r = shards("show", path, "--sample", "6", "-o", tmp_path / "x.png")
     assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1
     assert "checksum" in r.stderr and not (tmp_path / "x.png").exists()
+
+
+def test_a_chunk_whose_checksum_holds_but_whose_zstd_frame_does_not_is_a_store_error(tmp_path):
+    import google_crc32c
+
+    from storage.chunks import ChunkReader
+
+    path = tmp_path / "s.zarr"
+    store = full_store(path)
+    offset, nbytes = (int(x) for x in ChunkReader(store.backend, "renders").index(1)[0])
+    f = shard_file(path, "renders", 1)
+    data = bytearray(f.read_bytes())
+    body = bytes(nbytes - 4)  # zeros: no zstd frame, under a checksum that matches them
+    data[offset : offset + nbytes] = body + google_crc32c.value(body).to_bytes(4, "little")
+    f.write_bytes(bytes(data))
+    with pytest.raises(StoreError, match="renders/c/1/0/0/0: chunk 0: Zstd"):
+        Store(str(path)).render(6)
