@@ -20,14 +20,19 @@
 # held-out materials. The runs (checkpoints of 140-190 MB each) go to WORK (default: a new
 # temporary folder; a row finished there is kept if a later one is cut off, and a WORK given
 # again resumes its rows), and $OUT gets what a device call brings back (8 files at most, none
-# over 16 MiB): the table (learning-gpu.json), the side-by-side grid (learning-gpu.png), the
-# log gpu-bench.txt and each row's grid and training log (learning-ROW-grid.png,
-# learning-ROW-log.jsonl).
-# The rows share LEARN_SECONDS (default 530: with the set-up, the rows, their scoring and the
-# copies fit a 600-second call; give less when the call has less) by benchmarks.learning
-# --seconds: the paper's row first, for at most ROW_SECONDS ("paper=200", space-separated
-# SECONDS or ROW=SECONDS: --row-seconds), then the default in what is left of the call; a row
-# stopped by its limit is scored where it stopped and the table says after how many passes.
+# over 16 MiB, 64 MiB in all): the table (learning-gpu.json), the side-by-side grid
+# (learning-gpu.png), the log gpu-bench.txt, each row's grid and training log in
+# learning-rows.tgz, and each row's network (trainer slim: float16, 23 MB for the default's)
+# in parts of 15 MiB, learning-ROW.pt.0, .1, ...; here, `cat learning-ROW.pt.* > ROW.pt` makes
+# a checkpoint that trainer eval, render, viewer and export take (for example trainer eval
+# --checkpoint ROW.pt --on out/learn-test-64.zarr: materials no store holds). A row's network
+# that would pass 8 files or 60 MiB in all stays behind, and the log says so.
+# The rows share LEARN_SECONDS (default 520: with the set-up, the rows, their scoring, the
+# slimming and the copies fit a 600-second call; give less when the call has less) by
+# benchmarks.learning --seconds: the paper's row first, for at most ROW_SECONDS ("paper=200",
+# space-separated SECONDS or ROW=SECONDS: --row-seconds), then the default in what is left of
+# the call; a row stopped by its limit is scored where it stopped and the table says after
+# how many passes.
 # Each row's scores are in the log as soon as it is scored, so a call killed later still
 # brings them back.
 # Each row's (peak) rate is scaled to BATCH by the rules in LR_SCALE (benchmarks.learning
@@ -117,16 +122,27 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
         learn) "$py" -m benchmarks.learning --store "$store" --device "${DEVICE:-cuda}" --preload \
                    --budget "${PASSES:-1470000}" --batch "${BATCH:-128}" \
                    "${scales[@]}" --rows "${ROWS:-paper,default}" \
-                   "${caps[@]}" --seconds "${LEARN_SECONDS:-530}" \
+                   "${caps[@]}" --seconds "${LEARN_SECONDS:-520}" \
                    --work "$work" --results "$out" --name learning-gpu \
                    || echo "benchmarks.learning ended with status $?" ;;
     esac
 } 2>&1 | tee -a "$log"
-if [[ $part == learn ]]; then  # each row's grid and log, flat: a call brings back 2 levels
+if [[ $part == learn ]]; then  # each row's grid and log in one archive, then its network
+    rows=()
     for run in "$work"/*/*/*/; do
-        row=$(basename "$run")
-        [[ ! -f $run/grid.png ]] || cp "$run/grid.png" "$out/learning-$row-grid.png"
-        [[ ! -f $run/log.jsonl ]] || cp "$run/log.jsonl" "$out/learning-$row-log.jsonl"
+        [[ -f $run/log.jsonl ]] && rows+=("$(basename "$run")")
+    done
+    ((${#rows[@]})) || exit 0
+    tar -czf "$out/learning-rows.tgz" -C "$work" $(cd "$work" && ls -d */*/*/grid.png */*/*/log.jsonl 2>/dev/null)
+    for row in "${rows[@]}"; do
+        run=$(ls -d "$work"/*/*/"$row")
+        "$py" -m trainer.cli slim --checkpoint "$run" -o "$work/$row.pt" 2>&1 | tee -a "$log" || continue
+        have=$(find "$out" -type f | wc -l) parts=$(( ($(stat -c %s "$work/$row.pt") + (15 << 20) - 1) / (15 << 20) ))
+        if ((have + parts > 8 || $(du -cb "$out" "$work/$row.pt" | tail -1 | cut -f1) > 60 << 20)); then
+            echo "gpu.sh: $row's network stays behind (over 8 files or 60 MiB to bring back)" | tee -a "$log"
+            continue
+        fi
+        split -b 15M -d -a 1 "$work/$row.pt" "$out/learning-$row.pt."
     done
 fi
 [[ $part == infer ]] || exit 0

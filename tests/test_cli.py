@@ -9,6 +9,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tarfile
 import time
 from pathlib import Path
 
@@ -303,18 +304,36 @@ for ext in ("json", "png"):
 """
 
 
+# stands in for ``trainer slim``: writes FAKE_SLIM_MB MiB (20 by default) for a run named
+# default, 1,000 bytes for any other
+FAKE_SLIM = """
+import os, pathlib, sys
+args = sys.argv[1:]
+assert args[0] == "slim", args
+run, out = args[args.index("--checkpoint") + 1], args[args.index("-o") + 1]
+size = int(float(os.environ.get("FAKE_SLIM_MB", "20")) * 2**20) if run.endswith("default") else 1000
+pathlib.Path(out).write_bytes(bytes(range(256)) * (size // 256))
+print("wrote", out)
+"""
+
+
 def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path):
     """``gpu.sh learn`` runs ``benchmarks.learning`` on the carried store at the paper's length,
     the default's rate scaled by the root of the batch ratio and the paper's at its own
     (``LR_SCALE`` replaces those rules), the paper's row first within its cap and the default
     in the rest of the call (``ROW_SECONDS`` replaces the caps); the runs go to a folder of
     their own and ``$OUT`` gets only what a device call brings back: at most 8 files, 2
-    folders down at most."""
+    folders down at most, 60 MiB in all: the rows' grids and logs in one archive and each
+    row's slimmed network in parts of 15 MiB, unless it would pass that."""
     gpu_checkout(tmp_path, "learning", FAKE_LEARNING, "gpu-learn-64-800.zarr")
+    (tmp_path / "trainer").mkdir()
+    (tmp_path / "trainer" / "__init__.py").touch()
+    (tmp_path / "trainer" / "cli.py").write_text(FAKE_SLIM)
+    seen: set[Path] = set()  # the earlier calls' runs
     for call, (extra, rules, row_caps) in enumerate((
         ({}, ["sqrt", "paper=none"], ["paper=200"]),
-        ({"LR_SCALE": "linear", "ROW_SECONDS": "100 default=300"}, ["linear"],
-         ["100", "default=300"]),
+        ({"LR_SCALE": "linear", "ROW_SECONDS": "100 default=300", "FAKE_SLIM_MB": "61"},
+         ["linear"], ["100", "default=300"]),
     )):  # fmt: skip
         out = tmp_path / f"device-out-{call}"
         # TMPDIR: where gpu.sh makes the runs' folder
@@ -327,13 +346,26 @@ def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path)
         caps = [x for cap in row_caps for x in ("--row-seconds", cap)]
         said = ["--store", "out/gpu-learn-64-800.zarr", "--device", "cuda", "--preload", "--budget",
                 "1470000", "--batch", "128", *scales, "--rows", "paper,default", *caps,
-                "--seconds", "530"]  # fmt: skip
+                "--seconds", "520"]  # fmt: skip
         assert f"args {said}"[:-1] in r.stdout, r.stdout
         back = sorted(p.name for p in out.rglob("*"))
-        assert back == ["gpu-bench.txt", "learning-default-grid.png", "learning-default-log.jsonl",
-                        "learning-gpu.json", "learning-gpu.png", "learning-paper-grid.png",
-                        "learning-paper-log.jsonl"]  # fmt: skip
-        assert (out / "learning-paper-log.jsonl").read_text() == "paper log.jsonl"
+        weights = ["learning-default.pt.0", "learning-default.pt.1"] if call == 0 else []
+        assert back == ["gpu-bench.txt", *weights, "learning-gpu.json", "learning-gpu.png",
+                        "learning-paper.pt.0", "learning-rows.tgz"]  # fmt: skip
+        assert all(p.stat().st_size <= 16 << 20 for p in out.iterdir())
+        with tarfile.open(out / "learning-rows.tgz") as tar:
+            kept = {m.name: tar.extractfile(m).read() for m in tar.getmembers() if m.isfile()}
+        files = ("grid.png", "log.jsonl")
+        names = [f"{row} {file}" for row in ("default", "paper") for file in files]
+        assert kept == {f"64/1470000/{n.replace(' ', '/')}": n.encode() for n in names}
+        (work,) = {p.parents[3] for p in tmp_path.glob("tmp.*/64/1470000/*/log.jsonl")} - seen
+        seen.add(work)
+        for row in ("default", "paper")[call:]:  # the parts make the file again
+            parts = sorted(out.glob(f"learning-{row}.pt.*"))
+            assert b"".join(p.read_bytes() for p in parts) == (work / f"{row}.pt").read_bytes()
+        log = (out / "gpu-bench.txt").read_text()
+        behind = "gpu.sh: default's network stays behind (over 8 files or 60 MiB to bring back)"
+        assert (behind in log) == (call == 1)
     assert len(list(tmp_path.glob("tmp.*/64/1470000/paper/checkpoints/step-1.pt"))) == 2
 
 

@@ -1503,6 +1503,57 @@ def test_the_default_recipes_network_exports_to_onnx_with_its_scene(
     np.testing.assert_allclose(model.render(maps, sun, turbidity), want, atol=1e-4)
 
 
+def test_a_slimmed_checkpoint_renders_as_its_run_and_starts_runs_but_resumes_none(
+    tiny_store, trained_default, tmp_path
+):
+    """``trainer slim``: the run's average in float16, the scene's buffers as they were, no
+    optimizer state; it renders within float16's rounding of the run, eval scores its
+    held-out split, ``--init`` starts a run from it; asking for the weights it dropped, a
+    resume from it and a name that is not .pt are one-line errors."""
+    from trainer.slim import parameter_names
+
+    out = tmp_path / "share" / "ball.pt"
+    r = CliRunner().invoke(trainer_main, ["slim", "--checkpoint", str(trained_default), "-o",
+                                          str(out)])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    assert f"wrote {out} (" in r.output and "the average weights of step 6 in float16" in r.output
+    whole, slim = checkpoint.load(trained_default), checkpoint.load(out)
+    assert slim["slim"] == {"weights": "average", "dtype": "float16"}
+    assert "optimizer" not in slim and "ema" not in slim and slim["catalog"] == whole["catalog"]
+    params = parameter_names(whole)
+    average = whole["ema"]["weights"]
+    for name, value in slim["model"].items():
+        want = torch.float16 if name in params else average[name].dtype
+        assert value.dtype == want, name
+        assert torch.equal(value, average[name].to(want)), name
+    assert any(n.startswith("scene.") for n in slim["model"]) and params < set(slim["model"])
+    assert out.stat().st_size < checkpoint.latest(trained_default).stat().st_size
+
+    renderer = Renderer.from_checkpoint(out)
+    assert renderer.weights == "average" and renderer.step == 6
+    maps = tiny_store.packed_maps(1)
+    sun, turbidity = tiny_store.light(2)
+    want = Renderer.from_checkpoint(trained_default).render(maps, sun, turbidity)
+    got = renderer.render(maps, sun, turbidity)
+    assert 0 < np.abs(got - want).max() < 2e-2  # rounded, and only by a little
+    assert evaluate(out)["overall"]["n"] == evaluate(trained_default)["overall"]["n"]
+    tuned = tmp_path / "tuned"
+    train(TrainConfig(store=(tiny_store.url,), out=str(tuned), init=str(out), **DEFAULT))
+    assert checkpoint.load(tuned)["step"] == 6
+
+    msg = one_line_error(["eval", "--checkpoint", str(out), "--weights", "trained"])
+    assert "keeps the average weights alone (slim the run's own checkpoint with --weights" in msg
+    kept = tmp_path / "resumed" / runfiles.CHECKPOINTS
+    kept.mkdir(parents=True)
+    (kept / "step-00000006.pt").write_bytes(out.read_bytes())
+    with pytest.raises(RunError, match="a slimmed checkpoint .* start a new run from it with"):
+        train(TrainConfig(store=(tiny_store.url,), out=str(kept.parent), resume=True, **DEFAULT))
+    r = CliRunner().invoke(trainer_main, ["slim", "--checkpoint", str(out), "-o", "b.onnx"])
+    assert r.exit_code == 2 and "'b.onnx' does not end in .pt" in r.output
+    msg = one_line_error(["slim", "--checkpoint", str(out), "-o", str(out)])
+    assert msg == f"Error: {out}: is the checkpoint it slims; name another file"
+
+
 def test_preloaded_batches_train_the_same_weights_as_the_loaders(tiny_store, tmp_path, monkeypatch):
     """``--preload`` takes the same batches in the same order from memory, with each sample's
     target and scene cues made once, in place of its render and maps (or, over

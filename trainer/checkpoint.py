@@ -1,18 +1,19 @@
 """Checkpoints of a run: ``RUNDIR/checkpoints/step-NNNNNNNN.pt``, written atomically.
 
-A checkpoint is a plain dict loadable with ``torch.load(..., weights_only=True)``:
-``model`` and ``optimizer`` state dicts, ``step``, ``epoch`` and ``position`` (the loader
-state: the next global position in that epoch's order, see ``trainer.training.data``), ``config``
-(the run's :class:`trainer.training.config.TrainConfig`), ``model_config``, ``tonemap`` and
-``catalog`` (the stores, shards and held-out materials the run trains on), and ``screen_uv`` when
-the stores have one (the bytes of ``render_jobs.screen_uv.FILE``: the checkpoint alone then maps any
-material to the network's input, ``trainer.rendering.mapping``), and ``best`` (``{"step", "psnr"}``:
-the best held-out score at a checkpoint so far, or none), and ``ema`` when the run averages
-its weights (:meth:`trainer.training.ema.WeightAverage.state_dict`: the weights the checkpoint
-renders with, :func:`weights`). Written to a temporary file in the same folder, fsynced, then
-renamed into place; the newest ``keep`` are kept, and ``checkpoints/best.pt`` is a second name of
-the one with the best held-out PSNR (:func:`keep_best`), kept when the rotation drops its step
-file.
+A checkpoint is a plain dict loadable with ``torch.load(..., weights_only=True)``: ``model`` and
+``optimizer`` state dicts, ``step``, ``epoch`` and ``position`` (the loader state: the next
+global position in that epoch's order, see ``trainer.training.data``), ``config`` (the run's
+:class:`trainer.training.config.TrainConfig`), ``model_config``, ``tonemap`` and ``catalog``
+(the stores, shards and held-out materials the run trains on), and ``screen_uv`` when the stores
+have one (the bytes of ``render_jobs.screen_uv.FILE``: the checkpoint alone then maps any
+material to the network's input, ``trainer.rendering.mapping``), and ``best`` (``{"step",
+"psnr"}``: the best held-out score at a checkpoint so far, or none), and ``ema`` when the run
+averages its weights (:meth:`trainer.training.ema.WeightAverage.state_dict`: the weights the
+checkpoint renders with, :func:`weights`). A slimmed checkpoint (``trainer.slim``) keeps one set
+of weights as ``model``, with no ``optimizer`` or ``ema``, and says which in ``slim``. Written
+to a temporary file in the same folder, fsynced, then renamed into place; the newest ``keep``
+are kept, and ``checkpoints/best.pt`` is a second name of the one with the best held-out PSNR
+(:func:`keep_best`), kept when the rotation drops its step file.
 """
 
 from __future__ import annotations
@@ -45,6 +46,13 @@ def chosen(state: dict, which: str = "auto") -> str:
     use."""
     if which not in WEIGHTS:
         raise ValueError(f"weights must be one of {', '.join(WEIGHTS)}, not {which!r}")
+    if (slim := state.get("slim")) is not None:  # one set: the one it was slimmed from
+        if which not in ("auto", slim["weights"]):
+            raise CheckpointError(
+                f"a slimmed checkpoint keeps the {slim['weights']} weights alone (slim the "
+                f"run's own checkpoint with --weights {which} for those)"
+            )
+        return slim["weights"]
     kept = state.get("ema") is not None
     if which == "average" and not kept:
         raise CheckpointError(
@@ -56,7 +64,8 @@ def chosen(state: dict, which: str = "auto") -> str:
 
 def weights(state: dict, which: str = "auto") -> dict:
     """The model state dict of the checkpoint's weights that ``which`` names (:func:`chosen`)."""
-    return state["ema"]["weights"] if chosen(state, which) == "average" else state["model"]
+    kept = chosen(state, which)
+    return state["ema"]["weights"] if kept == "average" and "slim" not in state else state["model"]
 
 
 def folder(run_dir: str | os.PathLike) -> Path:

@@ -14,7 +14,7 @@ from render_jobs.materials.sources import load_map_bytes, one_material
 from render_jobs.specs import Sun
 from render_jobs.sun import sun_sweep
 from render_jobs.tonemap import to_uint8
-from shaderball.cli import Commands
+from shaderball.cli import Commands, human_bytes
 from shaderball.progress import bar as progress_bar
 from shaderball.web import serve, server_options, token_for
 from storage.backend import write_atomic
@@ -25,6 +25,7 @@ from trainer import runfiles
 from trainer.checkpoint import WEIGHTS
 from trainer.intervals import MIN_MATERIALS, bracket
 from trainer.rendering.viewer import MAX_UPLOAD_MB
+from trainer.slim import DTYPES as SLIM_DTYPES
 from trainer.training import config as train_config
 
 
@@ -569,6 +570,40 @@ def export(ckpt, output, opset, no_catalog, weights):
     )
     if done.screen_uv is not None:
         click.echo(f"wrote {done.screen_uv} (the screen UV layout for new materials)")
+
+
+@main.command(context_settings={"show_default": True})
+@click.option("--checkpoint", "ckpt", required=True, help="a checkpoint file or a run folder")
+@click.option("-o", "--output", type=click.Path(path_type=Path), required=True,
+              help="the slimmed checkpoint, a .pt file")  # fmt: skip
+@click.option("--dtype", type=click.Choice(SLIM_DTYPES), default=SLIM_DTYPES[0],
+              help="what the network's parameters are kept in")  # fmt: skip
+@weights_option
+def slim(ckpt, output, dtype, weights):
+    """Keep a checkpoint's network alone: the weights it renders with, in half precision,
+    without the optimizer's state or a second set of weights (an eighth of a run's
+    checkpoint, or less), to carry or share.
+
+    trainer render, eval, viewer, export and train --init take the file as they take the
+    whole checkpoint: the weights are copied back into the network's fp32 parameters, and the
+    store addresses, held-out split, screen UV layout and tonemap stay. A run cannot resume
+    from it. What float16 costs in PSNR: docs/training.md.
+
+    \b
+    Examples:
+      trainer slim --checkpoint runs/demo -o share/demo.pt
+      trainer eval --checkpoint runs/demo --checkpoint share/demo.pt   # the rounding, paired
+      trainer slim --checkpoint runs/demo --weights trained --dtype float32 -o demo-trained.pt
+    """
+    from trainer.slim import write_slim
+
+    if output.suffix != ".pt":
+        raise click.BadParameter(f"{str(output)!r} does not end in .pt", param_hint="-o")
+    done = write_slim(ckpt, output, weights, dtype)
+    click.echo(
+        f"wrote {done.path} ({human_bytes(done.bytes)}, {human_bytes(done.source_bytes)} "
+        f"before): the {done.weights} weights of step {done.step:,} in {dtype}"
+    )
 
 
 @main.command()

@@ -422,6 +422,11 @@ def _resume_state(cfg: TrainConfig, out: Path) -> tuple[dict | None, Path | None
     if found is not None and not cfg.resume:
         raise RunError(f"{out} already holds checkpoints: pass --resume, or another --out")
     state = checkpoint.load(found) if (cfg.resume and found is not None) else None
+    if state is not None and "slim" in state:
+        raise RunError(
+            f"{found}: a slimmed checkpoint (trainer slim) has no optimizer state to resume "
+            "from; start a new run from it with --init"
+        )
     if state is not None:
         _check_schedule(cfg, state, found)
     return state, found
