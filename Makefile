@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry learn-store-500 learn-store-700 learn-test-store bench-render-bits clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry gpu-learn-back learn-store-500 learn-store-700 learn-test-store bench-render-bits clean
 
 # torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
 # torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
@@ -134,6 +134,13 @@ learn-store-700: $(BIN)/.installed
 # are compared on it (trainer eval --checkpoint A --checkpoint B --on out/learn-test-64.zarr)
 learn-test-store: $(BIN)/.installed
 	$(call learn-store,out/learn-test-64.zarr,60,--seed 1)
+
+# After a `gpu.sh learn` device call, FROM the folder its files came back to: the table and
+# grid where make bench-report reads them, the networks joined in out/gpu-learn and scored
+# here, paired, on the run's held-out materials and on out/learn-test-64.zarr's
+gpu-learn-back: $(BIN)/.installed
+	@test -n "$(FROM)" || { echo "make gpu-learn-back FROM=FOLDER: the device call's files" >&2; exit 2; }
+	$(BIN)/python -m benchmarks.gpu_learn_back $(FROM)
 
 # What `gpu.sh learn`'s device call carries: the checkout's files (tracked, and untracked
 # ones git does not ignore), the store and .whl/, in file bytes; refused over 64 MiB

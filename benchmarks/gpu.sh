@@ -23,10 +23,11 @@
 # over 16 MiB, 64 MiB in all): the table (learning-gpu.json), the side-by-side grid
 # (learning-gpu.png), the log gpu-bench.txt, each row's grid and training log in
 # learning-rows.tgz, and each row's network (trainer slim: float16, 23 MB for the default's)
-# in parts of 15 MiB, learning-ROW.pt.0, .1, ...; here, `cat learning-ROW.pt.* > ROW.pt` makes
-# a checkpoint that trainer eval, render, viewer and export take (for example trainer eval
-# --checkpoint ROW.pt --on out/learn-test-64.zarr: materials no store holds). A row's network
-# that would pass 8 files or 60 MiB in all stays behind, and the log says so.
+# in parts of 15 MiB, learning-ROW.pt.0, .1, ...: eight files for both rows. Here, `make
+# gpu-learn-back FROM=FOLDER` puts the table in place, joins each network into
+# out/gpu-learn/ROW.pt (a checkpoint trainer eval, render, viewer and export take) and scores
+# them here. A row's network that would pass 8 files or 60 MiB in all stays behind, and the
+# log says so.
 # The rows share LEARN_SECONDS (default 520: with the set-up, the rows, their scoring, the
 # slimming and the copies fit a 600-second call; give less when the call has less) by
 # benchmarks.learning --seconds: the paper's row first, for at most ROW_SECONDS ("paper=200",

@@ -1554,6 +1554,59 @@ def test_a_slimmed_checkpoint_renders_as_its_run_and_starts_runs_but_resumes_non
     assert msg == f"Error: {out}: is the checkpoint it slims; name another file"
 
 
+def test_a_gpu_learn_calls_files_are_put_in_place_and_its_networks_scored(
+    tiny_store, trained_default, tmp_path, capsys
+):
+    """``benchmarks.gpu_learn_back``: the table (with its grid's note) and grid go where the
+    report reads them, each row's parts are joined into the slimmed checkpoint they were cut
+    from, the rows' archive is unpacked, and trainer eval scores the networks on the run's
+    held-out split; a part missing is one line (exit 2) before anything is written."""
+    import tarfile
+
+    from benchmarks import gpu_learn_back, results
+
+    back, into = tmp_path / "back", tmp_path / "into"
+    back.mkdir()
+    slim = tmp_path / "default.pt"
+    assert CliRunner().invoke(trainer_main, ["slim", "--checkpoint", str(trained_default), "-o",
+                                             str(slim)]).exit_code == 0  # fmt: skip
+    whole = slim.read_bytes()
+    (back / "learning-default.pt.0").write_bytes(whole[:1000])
+    (back / "learning-default.pt.1").write_bytes(whole[1000:])
+    table = results.Table("t", ["row", "PSNR dB"], [["paper", 1.0], ["default", 2.0]])
+    results.save("learning-gpu", table, back)
+    (back / "learning-gpu.png").write_bytes(b"png")
+    (tmp_path / "64" / "8" / "default").mkdir(parents=True)
+    (tmp_path / "64" / "8" / "default" / "log.jsonl").write_text("{}")
+    with tarfile.open(back / "learning-rows.tgz", "w:gz") as tar:
+        tar.add(tmp_path / "64", "64")
+    kept = {"--results": tmp_path / "results", "--pictures": tmp_path / "pictures"}
+    for folder in kept.values():
+        folder.mkdir()
+    args = [str(back), "--into", str(into), "--store", tiny_store.url, "--on", ""]
+    args += [str(x) for pair in kept.items() for x in pair]
+
+    (back / "learning-paper.pt.1").write_bytes(b"a part without its first")
+    with pytest.raises(SystemExit) as stopped:
+        gpu_learn_back.main(args)
+    assert stopped.value.code == 2
+    assert "learning-paper.pt.0 is missing" in capsys.readouterr().err
+    assert not into.exists() and not any((tmp_path / "results").iterdir())
+    (back / "learning-paper.pt.1").unlink()
+
+    gpu_learn_back.main(args)
+    said = capsys.readouterr().out
+    assert (into / "default.pt").read_bytes() == whole
+    assert (into / "rows" / "64" / "8" / "default" / "log.jsonl").read_text() == "{}"
+    saved = results.load(tmp_path / "results" / "learning-gpu.json")
+    assert saved.notes == ["truth, paper, default and their errors on the same held-out "
+                           "samples: ![learning-gpu](img/learning-gpu.png)"]  # fmt: skip
+    assert (tmp_path / "pictures" / "learning-gpu.png").read_bytes() == b"png"
+    heldout = (into / "eval-heldout.txt").read_text()
+    assert "step 6 (the run's moving average): 6 held-out samples" in heldout and heldout in said
+    assert (into / "eval-heldout.png").exists() and not (into / "eval-unseen.txt").exists()
+
+
 def test_preloaded_batches_train_the_same_weights_as_the_loaders(tiny_store, tmp_path, monkeypatch):
     """``--preload`` takes the same batches in the same order from memory, with each sample's
     target and scene cues made once, in place of its render and maps (or, over
