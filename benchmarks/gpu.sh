@@ -134,16 +134,21 @@ if [[ $part == learn ]]; then  # each row's grid and log in one archive, then it
         [[ -f $run/log.jsonl ]] && rows+=("$(basename "$run")")
     done
     ((${#rows[@]})) || exit 0
-    tar -czf "$out/learning-rows.tgz" -C "$work" $(cd "$work" && ls -d */*/*/grid.png */*/*/log.jsonl 2>/dev/null)
+    kept=$(cd "$work" && ls -d */*/*/grid.png */*/*/log.jsonl 2>/dev/null)
+    tar -czf "$out/learning-rows.tgz" -C "$work" $kept
+    part=$((15 << 20))
     for row in "${rows[@]}"; do
-        run=$(ls -d "$work"/*/*/"$row")
-        "$py" -m trainer.cli slim --checkpoint "$run" -o "$work/$row.pt" 2>&1 | tee -a "$log" || continue
-        have=$(find "$out" -type f | wc -l) parts=$(( ($(stat -c %s "$work/$row.pt") + (15 << 20) - 1) / (15 << 20) ))
-        if ((have + parts > 8 || $(du -cb "$out" "$work/$row.pt" | tail -1 | cut -f1) > 60 << 20)); then
-            echo "gpu.sh: $row's network stays behind (over 8 files or 60 MiB to bring back)" | tee -a "$log"
+        slim=$work/$row.pt
+        "$py" -m trainer.cli slim --checkpoint "$(ls -d "$work"/*/*/"$row")" -o "$slim" 2>&1 \
+            | tee -a "$log" || continue
+        size=$(stat -c %s "$slim")
+        files=$(($(find "$out" -type f | wc -l) + (size + part - 1) / part))
+        if ((files > 8 || $(du -sb "$out" | cut -f1) + size > 60 << 20)); then
+            echo "gpu.sh: $row's network stays behind (over 8 files or 60 MiB to bring back)" \
+                | tee -a "$log"
             continue
         fi
-        split -b 15M -d -a 1 "$work/$row.pt" "$out/learning-$row.pt."
+        split -b "$part" -d -a 1 "$slim" "$out/learning-$row.pt."
     done
 fi
 [[ $part == infer ]] || exit 0
