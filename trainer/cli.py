@@ -26,6 +26,7 @@ from trainer.checkpoint import WEIGHTS
 from trainer.intervals import MIN_MATERIALS, bracket
 from trainer.rendering.viewer import MAX_UPLOAD_MB
 from trainer.slim import DTYPES as SLIM_DTYPES
+from trainer.slim import write_slim
 from trainer.training import config as train_config
 
 
@@ -595,8 +596,6 @@ def slim(ckpt, output, dtype, weights):
       trainer eval --checkpoint runs/demo --checkpoint share/demo.pt   # the rounding, paired
       trainer slim --checkpoint runs/demo --weights trained --dtype float32 -o demo-trained.pt
     """
-    from trainer.slim import write_slim
-
     if output.suffix != ".pt":
         raise click.BadParameter(f"{str(output)!r} does not end in .pt", param_hint="-o")
     done = write_slim(ckpt, output, weights, dtype)

@@ -18,6 +18,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from storage.backend import write_atomic
 from trainer import checkpoint
 
 #: the dtypes :func:`slimmed` keeps the parameters in
@@ -69,8 +70,6 @@ def write_slim(
     """Slim the checkpoint (or run folder's latest) ``source`` into ``output``, written
     atomically."""
     import torch
-
-    from storage.backend import write_atomic
 
     found = Path(source)
     if found.is_dir():
