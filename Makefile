@@ -137,10 +137,11 @@ learn-test-store: $(BIN)/.installed
 
 # After a `gpu.sh learn` device call, FROM the folder its files came back to: the table and
 # grid where make bench-report reads them, the networks joined in out/gpu-learn and scored
-# here, paired, on the run's held-out materials and on out/learn-test-64.zarr's
+# here, paired, on the run's held-out materials and on out/learn-test-64.zarr's (ARGS: more
+# options, e.g. ARGS="--also out/learn800/64/768000/default")
 gpu-learn-back: $(BIN)/.installed
 	@test -n "$(FROM)" || { echo "make gpu-learn-back FROM=FOLDER: the device call's files" >&2; exit 2; }
-	$(BIN)/python -m benchmarks.gpu_learn_back $(FROM)
+	$(BIN)/python -m benchmarks.gpu_learn_back $(FROM) $(ARGS)
 
 # What `gpu.sh learn`'s device call carries: the checkout's files (tracked, and untracked
 # ones git does not ignore), the store and .whl/, in file bytes; refused over 64 MiB
