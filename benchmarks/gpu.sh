@@ -129,18 +129,17 @@ train=(-m benchmarks.train --store "$store" --batch 32 --workers 12 --log-every 
     esac
 } 2>&1 | tee -a "$log"
 if [[ $part == learn ]]; then  # each row's grid and log in one archive, then its network
-    rows=()
+    runs=()
     for run in "$work"/*/*/*/; do
-        [[ -f $run/log.jsonl ]] && rows+=("$(basename "$run")")
+        [[ -f $run/log.jsonl ]] && runs+=("${run%/}")
     done
-    ((${#rows[@]})) || exit 0
+    ((${#runs[@]})) || exit 0
     kept=$(cd "$work" && ls -d */*/*/grid.png */*/*/log.jsonl 2>/dev/null)
     tar -czf "$out/learning-rows.tgz" -C "$work" $kept
     part=$((15 << 20))
-    for row in "${rows[@]}"; do
-        slim=$work/$row.pt
-        "$py" -m trainer.cli slim --checkpoint "$(ls -d "$work"/*/*/"$row")" -o "$slim" 2>&1 \
-            | tee -a "$log" || continue
+    for run in "${runs[@]}"; do
+        row=$(basename "$run") slim=$work/$row.pt
+        "$py" -m trainer.cli slim --checkpoint "$run" -o "$slim" 2>&1 | tee -a "$log" || continue
         size=$(stat -c %s "$slim")
         files=$(($(find "$out" -type f | wc -l) + (size + part - 1) / part))
         if ((files > 8 || $(du -sb "$out" | cut -f1) + size > 60 << 20)); then

@@ -28,7 +28,7 @@ import tarfile
 from pathlib import Path
 
 from benchmarks import results
-from benchmarks.learning import DOC_IMG
+from benchmarks.learning import DOC_IMG, grid_note
 from storage.backend import write_atomic
 
 NAME = "learning-gpu"
@@ -62,15 +62,6 @@ def join(parts: list[Path], into: Path) -> Path:
 
     write_atomic(into, write)
     return into
-
-
-def with_grid_note(table: results.Table, rows: list[str]) -> results.Table:
-    """The table with the note ``benchmarks.learning`` writes beside a grid in docs/img."""
-    note = (f"truth, {', '.join(rows)} and their errors on the same held-out samples: "
-            f"![{NAME}](img/{NAME}.png)")  # fmt: skip
-    if note not in table.notes:
-        table.notes.append(note)
-    return table
 
 
 def evaluate(checkpoints: list[Path | str], extra: list[str], grid: Path) -> str:
@@ -114,13 +105,15 @@ def main(argv: list[str] | None = None) -> None:
     grid = args.folder / f"{NAME}.png"
     if grid.is_file():
         shutil.copyfile(grid, args.pictures / f"{NAME}.png")
-        table = with_grid_note(table, [str(row[0]) for row in table.rows])
+        note = grid_note(NAME, [str(row[0]) for row in table.rows])
+        if note not in table.notes:
+            table.notes.append(note)
     print(f"table: {results.save(NAME, table, args.results)}")
     rows_archive = args.folder / "learning-rows.tgz"
     if rows_archive.is_file():
         with tarfile.open(rows_archive) as tar:
             tar.extractall(args.into / "rows", filter="data")
-    joined = [join(p_, args.into / f"{row}.pt") for row, p_ in parts.items()]
+    joined = [join(pieces, args.into / f"{row}.pt") for row, pieces in parts.items()]
     for path in joined:
         print(f"network: {path}")
     scored = [*joined, *args.also]

@@ -555,6 +555,12 @@ def store_note(store: Store, args: argparse.Namespace, rules: dict) -> str:
     )  # fmt: skip
 
 
+def grid_note(name: str, rows: list[str]) -> str:
+    """The table's note that shows its grid, ``docs/img/NAME.png``, of ``rows``."""
+    return (f"truth, {', '.join(rows)} and their errors on the same held-out samples: "
+            f"![{name}](img/{name}.png)")  # fmt: skip
+
+
 def publish(t: Table, name: str, results: list[dict], args, work: Path, budget: int) -> None:
     """Print and save the table ``name`` of ``results``, with the grid of ``--grid-rows``
     that trained (in ``--results``, or beside the docs' pictures)."""
@@ -565,8 +571,7 @@ def publish(t: Table, name: str, results: list[dict], args, work: Path, budget: 
         side_by_side(work, budget, shown, grid, args.device)
         print(f"grid: {grid}", flush=True)
         if args.results is None:  # the page docs/benchmarks.md shows it
-            t.notes.append(f"truth, {', '.join(shown)} and their errors on the same held-out "
-                           f"samples: ![{name}](img/{name}.png)")  # fmt: skip
+            t.notes.append(grid_note(name, shown))
     print(t.markdown(), flush=True)
     save(name, t, *([args.results] if args.results else []))
 

@@ -135,14 +135,20 @@ def why_unreadable(path: Path, exc: Exception) -> str:
     return lines[0] if lines else type(exc).__name__
 
 
-def load(path: str | os.PathLike, map_location="cpu") -> dict:
-    """A checkpoint (``path``: a file, or a run folder meaning its latest)."""
+def resolve(path: str | os.PathLike) -> Path:
+    """The checkpoint file ``path`` names: the file itself, or a run folder's latest."""
     p = Path(path)
     if p.is_dir():
         found = latest(p)
         if found is None:
             raise CheckpointError(f"{p}: no checkpoints in {folder(p)}")
         p = found
+    return p
+
+
+def load(path: str | os.PathLike, map_location="cpu") -> dict:
+    """A checkpoint (``path``: a file, or a run folder meaning its latest)."""
+    p = resolve(path)
     if not p.is_file():
         raise CheckpointError(f"{p}: no such checkpoint")
     if p.suffix.lower() == ".onnx":

@@ -71,9 +71,7 @@ def write_slim(
     atomically."""
     import torch
 
-    found = Path(source)
-    if found.is_dir():
-        found = checkpoint.latest(found) or found  # load() names the run that has none
+    found = checkpoint.resolve(source)
     state = checkpoint.load(found)
     try:
         slim = slimmed(state, which, dtype)
