@@ -14,7 +14,7 @@ same samples, paired: on the run's held-out materials, its store at its address 
 (``--store``), and on materials no store holds (``--on``: ``make learn-test-store``), each
 table saved in ``INTO/eval-*.txt`` beside its grid. A row whose network stayed behind (the log
 says why) is scored from the table alone; a missing table, or a network missing a part, is
-one line before anything is copied.
+one line before anything is copied, and so is an archive that does not unpack.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import shutil
 import subprocess
 import sys
 import tarfile
+import tempfile
 from pathlib import Path
 
 from benchmarks import results
@@ -53,7 +54,7 @@ def networks(folder: Path) -> dict[str, list[Path]]:
 
 
 def join(parts: list[Path], into: Path) -> Path:
-    """The parts, one after the other, in ``into`` (written atomically)."""
+    """The parts, one after the other, in ``into`` (written atomically; one part: a copy)."""
 
     def write(f) -> None:
         for part in parts:
@@ -62,6 +63,24 @@ def join(parts: list[Path], into: Path) -> Path:
 
     write_atomic(into, write)
     return into
+
+
+def unpack(archive: Path, into: Path) -> None:
+    """The archive's files in the folder ``into``, unpacked beside it first: a bad archive or
+    a kill leaves the folder as it was, never a part of either."""
+    into.parent.mkdir(parents=True, exist_ok=True)
+    fresh = Path(tempfile.mkdtemp(prefix=f".{into.name}.new.", dir=into.parent))
+    old = fresh.with_name(fresh.name.replace(".new.", ".old."))
+    try:
+        with tarfile.open(archive) as tar:
+            tar.extractall(fresh, filter="data")
+        if into.exists():
+            into.rename(old)
+        fresh.rename(into)
+    except BaseException:
+        shutil.rmtree(fresh, ignore_errors=True)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
 
 
 def evaluate(checkpoints: list[Path | str], extra: list[str], grid: Path) -> str:
@@ -102,17 +121,19 @@ def main(argv: list[str] | None = None) -> None:
     except Incomplete as exc:
         p.error(str(exc))
     table = results.load(table_file)
+    rows_archive = args.folder / "learning-rows.tgz"
+    if rows_archive.is_file():
+        try:
+            unpack(rows_archive, args.into / "rows")
+        except tarfile.TarError as exc:
+            p.error(f"{rows_archive}: not an archive that unpacks ({exc})")
     grid = args.folder / f"{NAME}.png"
     if grid.is_file():
-        shutil.copyfile(grid, args.pictures / f"{NAME}.png")
+        join([grid], args.pictures / f"{NAME}.png")
         note = grid_note(NAME, [str(row[0]) for row in table.rows])
         if note not in table.notes:
             table.notes.append(note)
     print(f"table: {results.save(NAME, table, args.results)}")
-    rows_archive = args.folder / "learning-rows.tgz"
-    if rows_archive.is_file():
-        with tarfile.open(rows_archive) as tar:
-            tar.extractall(args.into / "rows", filter="data")
     joined = [join(pieces, args.into / f"{row}.pt") for row, pieces in parts.items()]
     for path in joined:
         print(f"network: {path}")
@@ -120,6 +141,13 @@ def main(argv: list[str] | None = None) -> None:
     if not scored:
         print("no networks came back: the rows' figures are in the table alone")
         return
+    score(scored, args)
+
+
+def score(scored: list[Path | str], args: argparse.Namespace) -> None:
+    """``trainer eval`` of the networks on the run's held-out materials and, with ``--on``,
+    on unseen ones: each table printed and kept in ``INTO/eval-NAME.txt``."""
+    args.into.mkdir(parents=True, exist_ok=True)
     runs = [("heldout", ["--store", args.store])]
     if args.on:
         runs.append(("unseen", ["--on", args.on]))

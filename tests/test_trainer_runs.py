@@ -1560,7 +1560,8 @@ def test_a_gpu_learn_calls_files_are_put_in_place_and_its_networks_scored(
     """``benchmarks.gpu_learn_back``: the table (with its grid's note) and grid go where the
     report reads them, each row's parts are joined into the slimmed checkpoint they were cut
     from, the rows' archive is unpacked, and trainer eval scores the networks on the run's
-    held-out split; a part missing is one line (exit 2) before anything is written."""
+    held-out split, an earlier call's rows replaced; a part or the table missing, or an
+    archive that does not unpack, is one line (exit 2) before anything is written."""
     import tarfile
 
     from benchmarks import gpu_learn_back, results
@@ -1586,18 +1587,31 @@ def test_a_gpu_learn_calls_files_are_put_in_place_and_its_networks_scored(
     args = [str(back), "--into", str(into), "--store", tiny_store.url, "--on", ""]
     args += [str(x) for pair in kept.items() for x in pair]
 
+    def refused(said: str) -> None:
+        with pytest.raises(SystemExit) as stopped:
+            gpu_learn_back.main(args)
+        assert stopped.value.code == 2 and said in capsys.readouterr().err
+        assert not (into / "rows").exists() and not any((tmp_path / "results").iterdir())
+
     (back / "learning-paper.pt.1").write_bytes(b"a part without its first")
-    with pytest.raises(SystemExit) as stopped:
-        gpu_learn_back.main(args)
-    assert stopped.value.code == 2
-    assert "learning-paper.pt.0 is missing" in capsys.readouterr().err
-    assert not into.exists() and not any((tmp_path / "results").iterdir())
+    refused("learning-paper.pt.0 is missing")
+    assert not into.exists()
     (back / "learning-paper.pt.1").unlink()
+    (back / "learning-gpu.json").rename(back / "table")
+    refused("learning-gpu.json is missing: the call wrote no table")
+    (back / "table").rename(back / "learning-gpu.json")
+    (back / "learning-rows.tgz").rename(back / "archive")
+    (back / "learning-rows.tgz").write_bytes(b"not gzip")
+    refused("learning-rows.tgz: not an archive that unpacks")
+    (back / "archive").replace(back / "learning-rows.tgz")
+    (into / "rows" / "stale").mkdir(parents=True)  # an earlier call's files are replaced
 
     gpu_learn_back.main(args)
     said = capsys.readouterr().out
     assert (into / "default.pt").read_bytes() == whole
     assert (into / "rows" / "64" / "8" / "default" / "log.jsonl").read_text() == "{}"
+    assert sorted(x.name for x in (into / "rows").iterdir()) == ["64"]
+    assert [x.name for x in into.iterdir() if x.name.startswith(".")] == []
     saved = results.load(tmp_path / "results" / "learning-gpu.json")
     assert saved.notes == ["truth, paper, default and their errors on the same held-out "
                            "samples: ![learning-gpu](img/learning-gpu.png)"]  # fmt: skip
