@@ -79,6 +79,8 @@ def unpack(archive: Path, into: Path) -> None:
         fresh.rename(into)
     except BaseException:
         shutil.rmtree(fresh, ignore_errors=True)
+        if old.exists() and not into.exists():
+            old.rename(into)  # the new files did not go in: the earlier ones go back
         raise
     shutil.rmtree(old, ignore_errors=True)
 
