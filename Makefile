@@ -3,7 +3,7 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-report gpu-wheels gpu-stores gpu-carry gpu-learn-back learn-store-500 learn-store-700 learn-test-store bench-render-bits clean
+.PHONY: demo demo-train test lint chromium quality bench-frames bench-dashboard bench-render bench-farm bench-farm-scale bench-store bench-train bench-infer bench-viewer bench-materials bench-storage bench-learning bench-flops bench-report gpu-wheels gpu-stores gpu-carry gpu-learn-back learn-store-500 learn-store-700 learn-store-800 learn-test-store bench-render-bits clean
 
 # torch: the CPU build these machines keep in pip's find-links folder, when it is there. A plain
 # torch==2.13.0 resolves to PyPI's CUDA build (2.13.0+cu130 sorts above 2.13.0+cpu): gigabytes of
@@ -110,25 +110,29 @@ gpu-wheels: $(BIN)/.installed
 		'google-crc32c>=1.5' tenacity flip-evaluator
 
 # The stores the GPU benchmarks read, made here by the farm (once): out/bench-400.zarr (train,
-# infer) and out/gpu-learn-64-800.zarr (learn: 800 materials x 5 suns at 64², 32 spp, its
-# renders kept at 6 mantissa bits: 51.6 MB, so that it, .whl/ and the checkout fit one device
+# infer) and out/gpu-learn-64-1100.zarr (learn: 1,100 materials x 5 suns at 64², 32 spp, its
+# renders kept at 4 mantissa bits: 49.5 MB, so that it, .whl/ and the checkout fit one device
 # call's 64 MiB; make gpu-carry checks). out/gpu-learn-64.zarr (500 materials, every bit) is
-# the store the CPU's batch-128 learning tables read (learning-64-b128-*), and
-# out/gpu-learn-64-700.zarr (700, 6 bits) learning-64-700-b128-default-384k's.
-LEARN_STORE := out/gpu-learn-64-800.zarr
+# the store the CPU's batch-128 learning tables read (learning-64-b128-*), out/gpu-learn-64-700.zarr
+# (700, 6 bits) learning-64-700-b128-default-384k's and out/gpu-learn-64-800.zarr (800, 6 bits)
+# the learning-64-800-b128-* tables'.
+LEARN_STORE := out/gpu-learn-64-1100.zarr
 # $(call learn-store,STORE,MATERIALS OF EACH KIND,MORE FARM FLAGS): a 64², 32-spp store of
 # half uniform, half procedural materials, rendered unless it is there
 learn-store = test -f $(1)/zarr.json || $(BIN)/farm submit -m uniform:$(2) -m procedural:$(2) \
 	--resolution 64 --samples 32 --shard-size 25 --no-ray-dashboard $(3) -o $(1)
 
 gpu-stores: bench-store
-	$(call learn-store,$(LEARN_STORE),400,--render-bits 6)
+	$(call learn-store,$(LEARN_STORE),550,--render-bits 4)
 
 learn-store-500: $(BIN)/.installed
 	$(call learn-store,out/gpu-learn-64.zarr,250)
 
 learn-store-700: $(BIN)/.installed
 	$(call learn-store,out/gpu-learn-64-700.zarr,350,--render-bits 6)
+
+learn-store-800: $(BIN)/.installed
+	$(call learn-store,out/gpu-learn-64-800.zarr,400,--render-bits 6)
 
 # 120 materials none of the stores above holds (another --seed): runs on different stores
 # are compared on it (trainer eval --checkpoint A --checkpoint B --on out/learn-test-64.zarr)
@@ -138,7 +142,7 @@ learn-test-store: $(BIN)/.installed
 # After a `gpu.sh learn` device call, FROM the folder its files came back to: the table and
 # grid where make bench-report reads them, the networks joined in out/gpu-learn and scored
 # here, paired, on the run's held-out materials and on out/learn-test-64.zarr's (ARGS: more
-# options, e.g. ARGS="--also out/learn800/64/768000/default")
+# options, e.g. ARGS="--also RUN" for a CPU run on the same store)
 gpu-learn-back: $(BIN)/.installed
 	@test -n "$(FROM)" || { echo "make gpu-learn-back FROM=FOLDER: the device call's files" >&2; exit 2; }
 	$(BIN)/python -m benchmarks.gpu_learn_back $(FROM) $(ARGS)
@@ -181,6 +185,10 @@ bench-report: $(BIN)/.installed
 
 bench-storage: .venv-bench/bin/.installed
 	.venv-bench/bin/python -m benchmarks.storage
+
+# the FLOPs of a training image pass of the rows gpu.sh learn trains, at 64² and 128²
+bench-flops: $(BIN)/.installed
+	$(BIN)/python -m benchmarks.pass_flops --resolution 64 --resolution 128
 
 # what each count of --render-bits saves and costs, on the 500-material store (every bit)
 bench-render-bits: learn-store-500

@@ -3,12 +3,13 @@
 # registry, such as the lent device.
 #
 # On the CPU machine, once: `make gpu-stores` (renders out/bench-400.zarr and
-# out/gpu-learn-64-800.zarr) and `make gpu-wheels` (the packages the device lacks, as wheels in
+# out/gpu-learn-64-1100.zarr) and `make gpu-wheels` (the packages the device lacks, as wheels in
 # .whl/). Carry the store a part reads and .whl/ with the checkout (64 MiB a call at most, the
 # checkout's own files too: `make gpu-carry` adds them up for learn), then there:
 #
 #     bash benchmarks/gpu.sh learn          # the default recipe and the paper's, each for the
-#                                           # paper's 1.47 M image passes on out/gpu-learn-64-800.zarr
+#                                           # paper's 1.47 M image passes on
+#                                           # out/gpu-learn-64-1100.zarr
 #     bash benchmarks/gpu.sh infer [ARGS]   # benchmarks.infer at batch 1 and 128, compiled rows
 #     bash benchmarks/gpu.sh train          # benchmarks.train, L1 (2,000 samples), then L1 + VGG16
 #     bash benchmarks/gpu.sh viewer [ARGS]  # benchmarks.viewer --device cuda (carry benchmarks/.cache
@@ -80,7 +81,7 @@ py=${PYTHON:-python3}
 store=out/bench-400.zarr
 part=${1:-}
 [[ $part == learn || $part == infer || $part == train || $part == viewer ]] || { echo "usage: bash benchmarks/gpu.sh learn|infer|train|viewer [ARGS]" >&2; exit 2; }
-[[ $part == learn ]] && store=${LEARN_STORE:-out/gpu-learn-64-800.zarr}
+[[ $part == learn ]] && store=${LEARN_STORE:-out/gpu-learn-64-1100.zarr}
 shift
 [[ ($part != train && $part != learn) || $# -eq 0 ]] || { echo "gpu.sh: $part takes no arguments" >&2; exit 2; }
 if [[ $part == viewer ]]; then

@@ -101,12 +101,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("folder", type=Path, help="the device call's files")
     p.add_argument("--into", type=Path, default=Path("out/gpu-learn"),
                    help="where the networks, the rows' files and the scores go")  # fmt: skip
-    p.add_argument("--store", default="out/gpu-learn-64-800.zarr",
+    p.add_argument("--store", default="out/gpu-learn-64-1100.zarr",
                    help="the store the call trained on, as it is here")  # fmt: skip
     p.add_argument("--on", default="out/learn-test-64.zarr",
                    help="a store of materials no store holds ('' to skip)")  # fmt: skip
     p.add_argument("--also", action="append", default=[], metavar="CHECKPOINT",
-                   help="score this network beside them (repeatable)")  # fmt: skip
+                   help="score this network beside them (repeatable): one trained on the "
+                   "same store, as trainer eval refuses one that trained on the call's held-out "
+                   "materials")  # fmt: skip
     p.add_argument("--results", type=Path, default=results.FOLDER)
     p.add_argument("--pictures", type=Path, default=DOC_IMG)
     return p

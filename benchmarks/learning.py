@@ -435,6 +435,21 @@ SPEED = {
 }  # fmt: skip
 
 
+#: what the GPU table's TFLOP/s column counts (benchmarks.pass_flops)
+TFLOPS_SAID = "matrix and convolution work of forward, loss and backward: benchmarks.pass_flops"
+
+
+def tflops(result: dict, resolution: int) -> float | None:
+    """The TFLOP/s a row's training loop sustained: its passes a second times the FLOPs of a
+    pass at ``resolution`` (:mod:`benchmarks.pass_flops`); None for a row without a speed."""
+    from benchmarks.pass_flops import count
+
+    speed = result.get("passes_per_second")
+    if speed is None:
+        return None
+    return round(speed * count(result["row"], resolution)["pass"] / 1e12, 1)
+
+
 def table(resolution: int, budget: int, results: list[dict], about: str, device: str = "cpu"):
     """The rows' :class:`Table`; its speed column is the ``device``'s (:data:`SPEED`)."""
     speed, key, said = SPEED[device]
@@ -444,10 +459,13 @@ def table(resolution: int, budget: int, results: list[dict], about: str, device:
                  "FLIP", speed],
         notes=[about, said],
     )  # fmt: skip
+    if device == "cuda":
+        t.columns.append("TFLOP/s")
+        t.notes.append(f"TFLOP/s: the passes a second times a pass's FLOPs ({TFLOPS_SAID})")
     for r in results:
         if "diverged" in r:
             t.rows.append([r["row"], ROWS[r["row"]][0], batch_of(r), precision(r), "diverged",
-                           *[None] * 4])  # fmt: skip
+                           *[None] * (len(t.columns) - 5)])  # fmt: skip
             continue
         t.rows.append([
             r["row"], ROWS[r["row"]][0], batch_of(r), precision(r), round(r["psnr"], 2),
@@ -455,6 +473,8 @@ def table(resolution: int, budget: int, results: list[dict], about: str, device:
             round(r["ssim"], 4), round(r["flip"], 4),
             None if r.get(key) is None else round(r[key], 1),
         ])  # fmt: skip
+        if device == "cuda":
+            t.rows[-1].append(tflops(r, resolution))
         if r.get("cut"):
             t.notes.append(f"{r['row']}: stopped by its time limit after {r['images']:,} of "
                            f"{budget:,} passes, at a rate not yet annealed")  # fmt: skip

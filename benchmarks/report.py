@@ -27,15 +27,16 @@ SECTIONS = (
         "learning-64-b128-default-bf16", "learning-64-b128-default-128k",
         "learning-64-b128-default-384k", "learning-64-b128-default-1470k",
         "learning-64-700-b128-default-384k", "learning-64-800-b128-default-384k",
-        "learning-64-800-b128-default-768k",
+        "learning-64-800-b128-default-768k", "learning-64-800-b128-default-128k",
+        "learning-64-1100-b128-default-128k",
         "learning-64-100-b128-wd-128k",
         "learning-64-b128-paper-none", "learning-64-b128-paper-sqrt", "learning-64-b128-paper-384k",
         "learning-64-b128-paper-1470k",
         "learning-gpu",
     )),  # fmt: skip
     ("Training", (
-        "cpu-train-64", "cpu-train-128", "cpu-train-64-avx512-bf16", "cpu-train-128-avx512-bf16",
-        "train-cpu", "train-cuda",
+        "pass-flops", "cpu-train-64", "cpu-train-128", "cpu-train-64-avx512-bf16",
+        "cpu-train-128-avx512-bf16", "train-cpu", "train-cuda",
     )),  # fmt: skip
     ("Inference", ("infer-cpu", "infer-cuda", "frames")),
     ("The viewer", ("viewer-cpu", "viewer-cuda")),
@@ -53,6 +54,7 @@ and noisy: compare rows of one table (one run), not figures across tables.
 | command | what it measures |
 |---|---|
 | `make bench-learning` | held-out scores per recipe for a budget of passes; the truth's noise |
+| `make bench-flops` | the FLOPs of a training image pass, per recipe and resolution |
 | `make bench-train` | training images/s and data wait at 400² |
 | `make bench-infer` | ms a frame at batch 1, frames/s batched (CUDA: bf16, CUDA graphs) |
 | `make bench-frames` | the quality table's methods timed side by side: networks and Cycles |

@@ -442,6 +442,7 @@ def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_
     """A row stopped short of its budget by its time limit is scored where it stopped, the
     table says after how many passes, and it is not kept as done (the next call resumes). A
     row that ran all its steps is done though its epochs end in short batches."""
+    from benchmarks import pass_flops
     from benchmarks.learning import run_row, table
 
     work = tmp_path / "work"
@@ -452,8 +453,11 @@ def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_
     assert said in table(32, 400, [cut], "about").notes
     # on a GPU the speed column is the training loop's passes a second, not per CPU-second
     on_gpu = table(32, 400, [cut], "about", device="cuda")
-    assert on_gpu.columns[-1] == "passes / s"
-    assert on_gpu.rows[0][-1] == round(cut["passes_per_second"], 1) > 0
+    assert on_gpu.columns[-2:] == ["passes / s", "TFLOP/s"]
+    assert on_gpu.rows[0][-2] == round(cut["passes_per_second"], 1) > 0
+    # and the work a second that speed is, from the FLOPs of one of the row's passes
+    flops = pass_flops.count("paper", 32)["pass"]
+    assert on_gpu.rows[0][-1] == round(cut["passes_per_second"] * flops / 1e12, 1)
     # 21 training samples (7 materials x 3 suns) at batch 6: 4 steps train 6 + 6 + 6 + 3 passes
     full = run_row("paper", tiny_store.url, work, 21, workers=0)
     assert (full["steps"], full["images"]) == (4, 21) and "cut" not in full
@@ -623,3 +627,53 @@ def test_the_viewer_benchmark_times_each_network_and_runtime_and_a_gallery(tmp_p
     )
     bad = subprocess.run([*common, "--runtimes", "graph"], capture_output=True, text=True)
     assert bad.returncode == 2 and "--runtimes graph runs on CUDA" in bad.stderr
+
+
+def conv_and_linear_flops(model, *inputs) -> int:
+    """FLOPs of ``model``'s convolutions and linear layers in one forward pass, counted from
+    each layer's output shape (a multiply-add is two): a count apart from PyTorch's."""
+    import torch
+    from torch import nn
+
+    total = 0
+
+    def hook(module, _args, out):
+        nonlocal total
+        if isinstance(module, nn.Conv2d):
+            k = module.kernel_size[0] * module.kernel_size[1]
+            total += 2 * out.numel() * k * module.in_channels // module.groups
+        else:
+            total += 2 * out.numel() * module.in_features
+
+    handles = [m.register_forward_hook(hook) for m in model.modules()
+               if isinstance(m, nn.Conv2d | nn.Linear)]  # fmt: skip
+    with torch.no_grad():
+        model(*inputs)
+    for h in handles:
+        h.remove()
+    return total
+
+
+def test_pass_flops_counts_the_networks_layers_per_image_and_a_pass_about_thrice():
+    import torch
+
+    from benchmarks import pass_flops
+
+    for row in ("paper", "default"):
+        counted = pass_flops.count(row, 32)
+        model, _ = pass_flops.row_network(row, 32)
+        maps = torch.rand(1, model.config.in_channels, 32, 32)
+        light = torch.rand(1, 4)
+        cues = None if model.scene is None else model.scene(maps, light)
+        assert counted["forward"] == conv_and_linear_flops(model, maps, light, cues)
+        # the backward pass is about twice the forward (the first layer's input gradient is
+        # not made); the loss is small beside both
+        assert 2.8 < counted["pass"] / counted["forward"] < 3.1, counted
+        assert counted["parameters"] == sum(p.numel() for p in model.parameters())
+    four = pass_flops.count("paper", 64)["forward"] / pass_flops.count("paper", 32)["forward"]
+    assert 3.9 < four < 4.01  # the work grows with the pixels (the light's MLP a little less)
+    r = subprocess.run([sys.executable, "-m", "benchmarks.pass_flops", "--rows", "paper,nope"],
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(
+        "--rows: nope: not a benchmarks.learning row"
+    )

@@ -325,7 +325,7 @@ def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path)
     their own and ``$OUT`` gets only what a device call brings back: at most 8 files, 2
     folders down at most, 60 MiB in all: the rows' grids and logs in one archive and each
     row's slimmed network in parts of 15 MiB, unless it would pass that."""
-    gpu_checkout(tmp_path, "learning", FAKE_LEARNING, "gpu-learn-64-800.zarr")
+    gpu_checkout(tmp_path, "learning", FAKE_LEARNING, "gpu-learn-64-1100.zarr")
     (tmp_path / "trainer").mkdir()
     (tmp_path / "trainer" / "__init__.py").touch()
     (tmp_path / "trainer" / "cli.py").write_text(FAKE_SLIM)
@@ -344,9 +344,9 @@ def test_gpu_benchmark_script_trains_both_learning_rows_at_their_rates(tmp_path)
         assert r.returncode == 0, r.stderr
         scales = [x for rule in rules for x in ("--lr-scale", rule)]
         caps = [x for cap in row_caps for x in ("--row-seconds", cap)]
-        said = ["--store", "out/gpu-learn-64-800.zarr", "--device", "cuda", "--preload", "--budget",
-                "1470000", "--batch", "128", *scales, "--rows", "paper,default", *caps,
-                "--seconds", "520"]  # fmt: skip
+        said = ["--store", "out/gpu-learn-64-1100.zarr", "--device", "cuda", "--preload",
+                "--budget", "1470000", "--batch", "128", *scales, "--rows", "paper,default",
+                *caps, "--seconds", "520"]  # fmt: skip
         assert f"args {said}"[:-1] in r.stdout, r.stdout
         back = sorted(p.name for p in out.rglob("*"))
         weights = ["learning-default.pt.0", "learning-default.pt.1"] if call == 0 else []
