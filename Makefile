@@ -111,11 +111,11 @@ gpu-wheels: $(BIN)/.installed
 
 # The stores the GPU benchmarks read, made here by the farm (once): out/bench-400.zarr (train,
 # infer) and out/gpu-learn-64-1100.zarr (learn: 1,100 materials x 5 suns at 64², 32 spp, its
-# renders kept at 4 mantissa bits: 49.5 MB, so that it, .whl/ and the checkout fit one device
+# renders kept at 4 mantissa bits: 50.2 MB, so that it, .whl/ and the checkout fit one device
 # call's 64 MiB; make gpu-carry checks). out/gpu-learn-64.zarr (500 materials, every bit) is
-# the store the CPU's batch-128 learning tables read (learning-64-b128-*), out/gpu-learn-64-700.zarr
-# (700, 6 bits) learning-64-700-b128-default-384k's and out/gpu-learn-64-800.zarr (800, 6 bits)
-# the learning-64-800-b128-* tables'.
+# the store the CPU's batch-128 learning tables read (learning-64-b128-*),
+# out/gpu-learn-64-700.zarr (700, 6 bits) learning-64-700-b128-default-384k's and
+# out/gpu-learn-64-800.zarr (800, 6 bits) the learning-64-800-b128-* tables'.
 LEARN_STORE := out/gpu-learn-64-1100.zarr
 # $(call learn-store,STORE,MATERIALS OF EACH KIND,MORE FARM FLAGS): a 64², 32-spp store of
 # half uniform, half procedural materials, rendered unless it is there

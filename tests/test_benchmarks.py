@@ -677,3 +677,19 @@ def test_pass_flops_counts_the_networks_layers_per_image_and_a_pass_about_thrice
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(
         "--rows: nope: not a benchmarks.learning row"
     )
+
+
+def test_a_flop_count_that_fails_leaves_the_gpu_tables_column_empty_not_the_table(
+    monkeypatch, capsys
+):
+    from benchmarks import learning, pass_flops
+
+    def broken(row, resolution):
+        raise RuntimeError("no counter here")
+
+    monkeypatch.setattr(pass_flops, "count", broken)
+    result = {"row": "paper", "passes_per_second": 5000.0, "psnr": 30.0, "ssim": 0.9,
+              "flip": 0.1, "batch": 128, "images": 1000, "steps": 8}  # fmt: skip
+    t = learning.table(64, 1000, [result], "about", device="cuda")
+    assert t.rows[0][-2:] == [5000.0, None]
+    assert "paper: no TFLOP/s, the FLOP count failed (no counter here)" in capsys.readouterr().out
