@@ -45,6 +45,7 @@ import sys
 import time
 from pathlib import Path
 
+from benchmarks.flops import count
 from benchmarks.results import Table, save
 from benchmarks.row_options import RESERVE, BadRowOption, Schedule, per_row, seconds
 from farm.driver import submit
@@ -435,20 +436,18 @@ SPEED = {
 }  # fmt: skip
 
 
-#: what the GPU table's TFLOP/s column counts (benchmarks.pass_flops)
-TFLOPS_SAID = "matrix and convolution work of forward, loss and backward: benchmarks.pass_flops"
+#: what the GPU table's TFLOP/s column counts (benchmarks.flops)
+TFLOPS_SAID = "matrix and convolution work of forward, loss and backward: benchmarks.flops"
 
 
 def tflops(result: dict, resolution: int) -> float | None:
     """The TFLOP/s a row's training loop sustained: its passes a second times the FLOPs of a
-    pass at ``resolution`` (:mod:`benchmarks.pass_flops`); None for a row without a speed."""
-    from benchmarks.pass_flops import count
-
+    pass at ``resolution`` (:mod:`benchmarks.flops`); None for a row without a speed."""
     speed = result.get("passes_per_second")
     if speed is None:
         return None
     try:
-        flops = count(result["row"], resolution)["pass"]
+        flops = count(ROWS[result["row"]][1], resolution)["pass"]
     except Exception as exc:  # an aid to the table: a count that fails must not cost the table
         print(f"  {result['row']}: no TFLOP/s, the FLOP count failed ({exc})", flush=True)
         return None

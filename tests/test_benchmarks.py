@@ -442,8 +442,8 @@ def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_
     """A row stopped short of its budget by its time limit is scored where it stopped, the
     table says after how many passes, and it is not kept as done (the next call resumes). A
     row that ran all its steps is done though its epochs end in short batches."""
-    from benchmarks import pass_flops
-    from benchmarks.learning import run_row, table
+    from benchmarks import flops
+    from benchmarks.learning import ROWS, run_row, table
 
     work = tmp_path / "work"
     cut = run_row("paper", tiny_store.url, work, 400, time_limit=1e-6, workers=0)
@@ -456,8 +456,8 @@ def test_a_learning_row_stopped_by_its_time_limit_is_named_in_the_table_and_not_
     assert on_gpu.columns[-2:] == ["passes / s", "TFLOP/s"]
     assert on_gpu.rows[0][-2] == round(cut["passes_per_second"], 1) > 0
     # and the work a second that speed is, from the FLOPs of one of the row's passes
-    flops = pass_flops.count("paper", 32)["pass"]
-    assert on_gpu.rows[0][-1] == round(cut["passes_per_second"] * flops / 1e12, 1)
+    per_pass = flops.count(ROWS["paper"][1], 32)["pass"]
+    assert on_gpu.rows[0][-1] == round(cut["passes_per_second"] * per_pass / 1e12, 1)
     # 21 training samples (7 materials x 3 suns) at batch 6: 4 steps train 6 + 6 + 6 + 3 passes
     full = run_row("paper", tiny_store.url, work, 21, workers=0)
     assert (full["steps"], full["images"]) == (4, 21) and "cut" not in full
@@ -657,11 +657,12 @@ def conv_and_linear_flops(model, *inputs) -> int:
 def test_pass_flops_counts_the_networks_layers_per_image_and_a_pass_about_thrice():
     import torch
 
-    from benchmarks import pass_flops
+    from benchmarks import flops
+    from benchmarks.learning import ROWS
 
     for row in ("paper", "default"):
-        counted = pass_flops.count(row, 32)
-        model, _ = pass_flops.row_network(row, 32)
+        counted = flops.count(ROWS[row][1], 32)
+        model, _ = flops.network_and_loss(ROWS[row][1], 32)
         maps = torch.rand(1, model.config.in_channels, 32, 32)
         light = torch.rand(1, 4)
         cues = None if model.scene is None else model.scene(maps, light)
@@ -670,8 +671,11 @@ def test_pass_flops_counts_the_networks_layers_per_image_and_a_pass_about_thrice
         # not made); the loss is small beside both
         assert 2.8 < counted["pass"] / counted["forward"] < 3.1, counted
         assert counted["parameters"] == sum(p.numel() for p in model.parameters())
-    four = pass_flops.count("paper", 64)["forward"] / pass_flops.count("paper", 32)["forward"]
+    paper = ROWS["paper"][1]
+    four = flops.count(paper, 64)["forward"] / flops.count(paper, 32)["forward"]
     assert 3.9 < four < 4.01  # the work grows with the pixels (the light's MLP a little less)
+    with pytest.raises(ValueError, match="needs VGG16 weights"):
+        flops.count({"recipe": "paper"}, 32)  # the paper's own loss, L1 + VGG16
     r = subprocess.run([sys.executable, "-m", "benchmarks.pass_flops", "--rows", "paper,nope"],
                        capture_output=True, text=True)  # fmt: skip
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].endswith(
@@ -682,12 +686,12 @@ def test_pass_flops_counts_the_networks_layers_per_image_and_a_pass_about_thrice
 def test_a_flop_count_that_fails_leaves_the_gpu_tables_column_empty_not_the_table(
     monkeypatch, capsys
 ):
-    from benchmarks import learning, pass_flops
+    from benchmarks import learning
 
-    def broken(row, resolution):
+    def broken(settings, resolution):
         raise RuntimeError("no counter here")
 
-    monkeypatch.setattr(pass_flops, "count", broken)
+    monkeypatch.setattr(learning, "count", broken)
     result = {"row": "paper", "passes_per_second": 5000.0, "psnr": 30.0, "ssim": 0.9,
               "flip": 0.1, "batch": 128, "images": 1000, "steps": 8}  # fmt: skip
     t = learning.table(64, 1000, [result], "about", device="cuda")
