@@ -142,7 +142,8 @@ learn-test-store: $(BIN)/.installed
 # After a `gpu.sh learn` device call, FROM the folder its files came back to: the table and
 # grid where make bench-report reads them, the networks joined in out/gpu-learn and scored
 # here, paired, on the run's held-out materials and on out/learn-test-64.zarr's (ARGS: more
-# options, e.g. ARGS="--also RUN" for a CPU run on the same store)
+# options, e.g. ARGS="--also out/learn1100/64/384000/default": the CPU's 384k-pass run on the
+# same store, table learning-64-1100-b128-default-384k, where this machine still has it)
 gpu-learn-back: $(BIN)/.installed
 	@test -n "$(FROM)" || { echo "make gpu-learn-back FROM=FOLDER: the device call's files" >&2; exit 2; }
 	$(BIN)/python -m benchmarks.gpu_learn_back $(FROM) $(ARGS)
