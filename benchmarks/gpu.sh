@@ -39,24 +39,13 @@
 # brings them back.
 # Each row's (peak) rate is scaled to BATCH by the rules in LR_SCALE (benchmarks.learning
 # --lr-scale, space-separated: RULE for every row, ROW=RULE for one; sqrt, the rate times the
-# square root of BATCH over the row's own batch; linear; none). The default, "sqrt paper=none":
-# on the CPU at 64k passes, batch 32 instead of 8 lost the most at the default's rate and the
-# least scaled linearly (the sb-batch32 rows, docs/benchmarks.md); at batch 128 itself (500
-# steps on the CPU: benchmarks.learning --budget 64000 --batch 128 --lr-scale sqrt|linear --rows
-# shaderball) sqrt learnt more than linear, whose peak of 3.2e-2 trained but less well. The
-# default's batch of 4 gives it a peak of 1.13e-2 at batch 128, which trained as well there as
-# the shaderball row's 8e-3 (--rows sb-ambient-b4). On the 500-material store (make
-# learn-store-500) at batch 128 and 64k passes the default reached 34.2 dB at the root's peak
-# and 0.75 dB less at its own 2e-3, and in bf16 autocast, as the GPU trains it, as much as in
-# fp32 (learning-64-b128-default-bf16). The paper's
-# constant rate keeps its own 1e-3: 28.2 dB, the root's 4.6e-3 0.4 dB less, and at a constant
-# rate the score is where the last steps land, which moved the root's far more (2.1 dB less
-# at 500 steps; 22.4 dB on another machine) than its own (tables learning-64-b128-default-*
-# and learning-64-b128-paper-*, docs/benchmarks.md).
+# square root of BATCH over the row's own batch; linear; none). The default, "sqrt paper=none",
+# scales the default's peak by the root (1.13e-2 at batch 128) and keeps the paper's constant
+# 1e-3; docs/training.md ("Larger batches") gives the CPU rows that chose these rules (tables
+# learning-64-b128-default-* and learning-64-b128-paper-*).
 # ROWS picks other rows of benchmarks.learning, each at batch BATCH (the rows pinned to fp32, as
-# default-w32 and the sb-* ones are, train in fp32 there too): ROWS=default-w32 trains the default
-# at width 32, which trains twice the passes a second on the CPU and learnt 0.7 dB less at 64k
-# passes (in a call of its own, after the paper and default rows).
+# default-w32 and the sb-* ones are, train in fp32 there too): ROWS=default-w32, for one, trains
+# the default at width 32 (table learning-64-64k-width), in a call of its own.
 # Tried here first, on the CPU with a few steps: DEVICE=cpu PASSES=64 BATCH=8 PYTHON=.venv/bin/python
 # LEARN_STORE=benchmarks/.cache/learning-64.zarr OUT=/tmp/learn bash benchmarks/gpu.sh learn
 #
