@@ -673,18 +673,27 @@ def test_blender_is_recycled_above_the_rss_bound(tmp_path):
 
 
 def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
-    out = tmp_path / "set.zarr"
-    r = farm(
-        "submit",
-        "-m",
-        "uniform:4",
-        *TINY,
-        "--workers",
-        "2",
-        "-o",
-        out,
-        faults={"fail_materials": [1]},
-    )
+    """A material that fails every time is retried on the other worker, then recorded.
+    Material 0 is held until the first failure is recorded, so that the other worker is busy
+    then: one that had rendered everything else would be released at the job's tail (nothing
+    left to take), and the retries would run on the worker left."""
+    out, hold = tmp_path / "set.zarr", tmp_path / "hold"
+    hold.touch()
+    faults = {"fail_materials": [1], "hold_materials": {"while": str(hold), "materials": [0]}}
+    proc = farm("submit", "-m", "uniform:4", *TINY, "--workers", "2", "-o", out,
+                faults=faults, wait=False)  # fmt: skip
+    state = out / "farm" / "job.json"
+
+    def failed() -> bool:
+        return state.exists() and "1" in job(out)["failures"]
+
+    try:
+        wait_until(failed, 180, "material 1's first failure was never recorded")
+        hold.unlink()
+        stdout, stderr = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    r = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
     assert r.returncode == 1
     assert "material 1: RenderError: injected fault" in r.stderr
     assert "shards [0] are not committed" in r.stderr
