@@ -29,6 +29,7 @@ SECTIONS = (
         "learning-64-700-b128-default-384k", "learning-64-800-b128-default-384k",
         "learning-64-800-b128-default-768k", "learning-64-800-b128-default-128k",
         "learning-64-1100-b128-default-128k", "learning-64-1100-b128-default-384k",
+        "learning-64-1100-b128-default-768k",
         "learning-64-100-b128-wd-128k",
         "learning-64-b128-paper-none", "learning-64-b128-paper-sqrt", "learning-64-b128-paper-384k",
         "learning-64-b128-paper-1470k",
