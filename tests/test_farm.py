@@ -682,7 +682,7 @@ def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
     faults = {"fail_materials": [1], "hold_materials": {"while": str(hold), "materials": [0]}}
     proc = farm("submit", "-m", "uniform:4", *TINY, "--workers", "2", "-o", out,
                 faults=faults, wait=False)  # fmt: skip
-    state = out / "farm" / "job.json"
+    output, state = Output(proc), out / "farm" / "job.json"  # its pipes read meanwhile
 
     def failed() -> bool:
         return state.exists() and "1" in job(out)["failures"]
@@ -690,10 +690,9 @@ def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
     try:
         wait_until(failed, 180, "material 1's first failure was never recorded")
         hold.unlink()
-        stdout, stderr = proc.communicate(timeout=300)
+        r = subprocess.CompletedProcess(proc.args, *output.wait(300))
     finally:
         proc.kill()
-    r = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
     assert r.returncode == 1
     assert "material 1: RenderError: injected fault" in r.stderr
     assert "shards [0] are not committed" in r.stderr
