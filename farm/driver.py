@@ -437,6 +437,8 @@ class Loop:
             self.state.shards_failed = sorted(self.shards.dead)
         if out.blocklist and wid in self.pool.actors:
             self.remove(wid, "blocklisted")
+        if not out.final and not self.cancelled:  # before its backoff ends: a fresh worker
+            self.grow()  # for a retry that only workers which failed it would take
         self.postfix()
 
     def completed(self, wid: str, m: int, res: dict, arrays) -> None:
@@ -583,12 +585,12 @@ class Loop:
         else:  # this job's workers hold their resources: not in the free ones
             free = sizing.room(ray.available_resources(), cfg.cpus_per_worker, cfg.gpus_per_worker)
             fit = placed + free
-        more = sizing.to_start(fit, placed, starting, queued, idle=len(self.idle()))
+        more = sizing.to_start(fit, placed, starting, queued, self.sched.takers(self.idle()))
         if not more:
             return
         if cfg.workers:
-            self.bar.write(f"{queued} tasks queued: starting {more} workers again "
-                           f"(--workers {cfg.workers})")  # fmt: skip
+            self.bar.write(f"{queued} tasks queued: starting {more} worker{'s' if more > 1 else ''}"
+                           f" again (--workers {cfg.workers})")  # fmt: skip
         else:
             self.bar.write(f"the cluster holds {fit} workers: starting {more} more")
         for _ in range(more):

@@ -4,7 +4,9 @@
 and the actor never calls in here. Keys:
 
 - ``fail_materials``: material indices that raise every time;
-- ``flaky_materials``: material indices that raise on a worker's first try;
+- ``flaky_materials``: material indices that raise on their first try: each worker's first,
+  or with ``flaky_marker`` (a path) the job's first, whichever worker makes it (the file
+  ``<path>.<material>`` records it);
 - ``hang_materials``: material indices that sleep past any timeout;
 - ``bad_workers``: worker ids whose every task raises;
 - ``slow_s``: seconds to sleep before each task;
@@ -68,11 +70,24 @@ class Faults:
             raise RenderError(f"injected fault: worker {worker} is bad")
         if material in f.get("fail_materials", []):
             raise RenderError(f"injected fault: material {material} always fails")
-        if material in f.get("flaky_materials", []) and material not in self.tried:
-            self.tried.add(material)
+        if material in f.get("flaky_materials", []) and self._first_try(material):
             raise RenderError(f"injected fault: material {material} fails once")
         if material in f.get("hang_materials", []):
             time.sleep(3600)
+
+    def _first_try(self, material: int) -> bool:
+        """Whether this is ``material``'s first try: on this worker, or with ``flaky_marker``
+        in the job (the marker file, created exclusively, is shared by every worker)."""
+        marker = self.plan.get("flaky_marker")
+        if marker is None:
+            first = material not in self.tried
+            self.tried.add(material)
+            return first
+        try:
+            open(f"{marker}.{material}", "x").close()
+        except FileExistsError:
+            return False
+        return True
 
     def on_close(self) -> None:
         """Say that the worker is closing, and take ``close_s`` seconds to."""

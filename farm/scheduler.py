@@ -25,7 +25,9 @@ Rules:
   starts late thus never wait behind another worker's task.
 * **Retry.** A failed task goes back to the queue's end after a backoff of
   ``backoff_s * 2**(attempt - 1)``, and is given to a worker that has not failed it, unless
-  every known worker has. After ``max_attempts`` failures it is final.
+  every known worker has. After ``max_attempts`` failures it is final. An idle worker that
+  failed a retry does not count as its taker (:meth:`Scheduler.takers`): where the job has
+  room, a fresh worker is started for it.
 * **Blocklist.** A worker with ``blocklist_after`` failures is to be removed (the driver
   replaces it).
 * **Lost results.** Completed tasks whose results were lost before their shard was written
@@ -107,6 +109,21 @@ class Scheduler:
     def _live(self, worker: str) -> list[Assigned]:
         """What ``worker`` holds, less the recalled marks."""
         return [a for a in self.assigned.get(worker, ()) if not a.recalled]
+
+    def takers(self, idle: Iterable[str]) -> int:
+        """How many queued tasks the ``idle`` workers take, one each, backoffs aside. A
+        retry is none of theirs where each of them failed it: left to a worker that has not,
+        even one still to be started (:func:`farm.sizing.to_start`)."""
+        free, taken = list(idle), 0
+        for task in self.queue:
+            if not free:
+                break
+            tried = self.failed_on.get(task, ())
+            taker = next((w for w in free if w not in tried), None)
+            if taker is not None:
+                free.remove(taker)
+                taken += 1
+        return taken
 
     def dispatch(self, usable: list[str], known: Iterable[str], now: float) -> list[tuple]:
         """``(worker, task)`` pairs to hand out now to the ``usable`` workers (placed and

@@ -15,9 +15,10 @@ It never stops a worker that has work to shrink: a node that leaves takes its wo
 it, and the driver replaces each dead one, which waits for room. Workers still waiting for room
 beyond what the queue can keep busy are given up (:func:`surplus`), and at a job's tail the
 placed workers left with nothing to do are released (:func:`release`), so that an autoscaler
-can take their nodes back while the last tasks run. With ``--workers N`` a job that lost
-workers so (a retry, or results lost with a node, filling the queue again) starts them again,
-up to N (:func:`to_start`).
+can take their nodes back while the last tasks run. A job that lost workers so (a retry, or
+results lost with a node, filling the queue again) starts them again, up to ``--workers N``
+or the room there is (:func:`to_start`); a retry starts one even where the worker that failed
+it idles, so that it runs elsewhere.
 """
 
 from __future__ import annotations
@@ -42,18 +43,21 @@ def initial(fixed: int | None, room: int, tasks: int) -> int:
     return max(1, min(fixed or room, tasks))
 
 
-def to_start(fit: int, placed: int, starting: int, queued: int, idle: int = 0) -> int:
+def to_start(fit: int, placed: int, starting: int, queued: int, taken: int = 0) -> int:
     """Workers to start now toward ``fit`` (what the cluster holds, or ``--workers``) for a job
-    that has ``placed`` workers, ``idle`` of them holding nothing, ``starting`` ones not placed
-    yet and ``queued`` tasks that no worker holds.
+    that has ``placed`` workers, ``starting`` ones not placed yet and ``queued`` tasks that no
+    worker holds, ``taken`` of which its idle workers will take.
 
     None while a worker is still starting: Ray has not found it room yet (a node still
     joining, resources taken by another job), and more would only wait beside it. None beyond
-    what the queue can keep busy, less what the idle workers will take (a retry waiting out
-    its backoff): a job's last tasks do not start Blenders."""
+    what the queue can keep busy, less what the idle workers take (a retry waiting out its
+    backoff): a job's last tasks do not start Blenders. A retry that every idle worker failed
+    is not theirs (:meth:`farm.scheduler.Scheduler.takers`): it starts a fresh worker where
+    there is room, so that it runs elsewhere even at a job's tail, after the other workers were
+    released."""
     if starting:
         return 0
-    return max(0, min(fit - placed, queued - idle))
+    return max(0, min(fit - placed, queued - taken))
 
 
 def surplus(starting: int, queued: int) -> int:

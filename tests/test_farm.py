@@ -337,24 +337,33 @@ def test_a_worker_waiting_for_room_is_given_up_when_the_queue_runs_dry(tmp_path,
     assert sorted(w["status"] for w in job(out)["workers"].values()) == ["stopped", "unplaced"]
 
 
-def test_an_idle_worker_is_released_at_the_tail_and_a_retry_after_it_still_runs(tmp_path):
-    """``--workers 2``, 3 materials, the last slowed 10 s and failing a worker's first try:
-    while it renders, the worker left with nothing is released (its node could go); the retry
-    runs on the worker left (or, if the release came only during the retry, on the other one,
-    whose first try fails too), and the job ends with every sample once."""
-    out = tmp_path / "set.zarr"
-    faults = {"slow_materials": {"2": 10}, "flaky_materials": [2]}
+def test_an_idle_worker_is_released_at_the_tail_and_a_retry_runs_on_a_fresh_one(tmp_path):
+    """``--workers 2``, 3 materials, the last slowed 10 s and failing its first try: while it
+    renders, the worker left with nothing is released (its node could go). The retry does not
+    go back to the worker that failed it: a fresh one is started for it (or, had the release
+    come only later, the other worker takes it), the one that failed is released in turn, and
+    the job ends with every sample once."""
+    out, trace = tmp_path / "set.zarr", tmp_path / "trace"
+    faults = {"slow_materials": {"2": 10}, "flaky_materials": [2],
+              "flaky_marker": str(tmp_path / "tried"), "trace": str(trace)}  # fmt: skip
     r = farm("submit", "-m", "uniform:3", *TINY, "--workers", "2",
              "-o", out, faults=faults)  # fmt: skip
     assert r.returncode == 0, r.stderr[-3000:]
     assert "0 tasks queued, 1 running: releasing 1 idle worker (w" in r.stdout + r.stderr
     st = job(out)
-    tries = st["failures"]["2"]["attempts"]
-    assert st["failures"]["2"]["recovered"] and tries in (1, 2), st["failures"]
-    assert f"retried   {tries} failed attempt(s), every material rendered on a retry" in r.stdout
-    assert "Unhandled error" not in r.stderr  # the failed tries' results were read
+    failure = st["failures"]["2"]
+    assert failure["recovered"] and failure["attempts"] == 1, st["failures"]
+    assert "retried   1 failed attempt(s), every material rendered on a retry" in r.stdout
+    assert "Unhandled error" not in r.stderr  # the failed try's results were read
+    tries = [line.split()[0] for line in trace.read_text().splitlines() if line.endswith(" 2")]
+    assert len(tries) == 2 and tries[0] != tries[1], trace.read_text()  # retried elsewhere
+    assert tries[0] == failure["errors"][0]["worker"]
     assert_exactly_once(out, 3)
-    assert sorted(w["status"] for w in st["workers"].values()) == ["released", "stopped"]
+    statuses = {w: s["status"] for w, s in st["workers"].items()}
+    assert statuses[tries[0]] == "released" and statuses[tries[1]] == "stopped", statuses
+    if "w2" in statuses:  # the fresh one: started for the retry, after the tail release
+        assert "1 tasks queued: starting 1 worker again (--workers 2)" in r.stdout + r.stderr
+        assert sorted(statuses.values()) == ["released", "released", "stopped"], statuses
 
 
 READ_ERRORS = """
@@ -1075,7 +1084,7 @@ def test_results_lost_with_a_node_after_a_release_are_rendered_again(tmp_path, m
     lost = int(said.group(1))  # what the released worker rendered; the other's are kept
     assert 1 <= lost < 8, err[-2000:]
     if lost > 1:  # more than the worker left, idle then, takes at once
-        assert f"{lost} tasks queued: starting 1 workers again (--workers 2)" in stdout, stdout
+        assert f"{lost} tasks queued: starting 1 worker again (--workers 2)" in stdout, stdout
     assert_exactly_once(out, 8)
     workers = job(out)["workers"].values()
     assert "released" in [w["status"] for w in workers]

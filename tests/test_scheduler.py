@@ -62,6 +62,41 @@ def test_a_retry_waits_for_a_starting_worker_that_has_not_failed_it():
     assert s.dispatch(["a", "b"], ["a", "b"], 100.0) == [("b", 0)]
 
 
+def test_idle_workers_take_no_retry_they_all_failed():
+    s = sched(3)
+    s.dispatch(["a", "b"], ["a", "b"], 0.0)  # a: 0, 2; b: 1
+    s.completed("b", 1, 1.0)
+    s.failed("a", 0, "x", 2.0)  # back at the queue's end, behind nothing: [0]
+    assert list(s.queue) == [0]
+    assert s.takers(["a"]) == 0  # a failed it (a still runs 2, but say it were idle)
+    assert s.takers(["b"]) == 1
+    assert s.takers(["a", "b"]) == 1  # one task: one taker
+    s.queue.appendleft(7)  # a fresh task: a takes that, the retry is b's
+    assert s.takers(["a"]) == 1 and s.takers(["a", "b"]) == 2
+    assert s.takers([]) == 0
+
+
+def test_a_retry_at_a_jobs_tail_starts_a_fresh_worker_and_waits_for_it():
+    """The other worker was released at the tail; the one left failed the last task: it is
+    not the retry's taker, so a fresh worker is started up to ``--workers 2`` and the retry
+    waits for it (a backoff that ends before it comes does not hand it back)."""
+    from farm.sizing import to_start
+
+    s = sched(1)
+    s.dispatch(["a"], ["a"], 0.0)
+    s.failed("a", 0, "x", 1.0)
+    more = to_start(fit=2, placed=1, starting=0, queued=len(s.queue), taken=s.takers(["a"]))
+    assert more == 1
+    assert s.dispatch(["a"], ["a", "c"], 50.0) == []  # c starting: a does not take it back
+    assert s.dispatch(["a", "c"], ["a", "c"], 51.0) == [("c", 0)]
+    # with no room for another (--workers 1), the worker left takes it
+    s = sched(1)
+    s.dispatch(["a"], ["a"], 0.0)
+    s.failed("a", 0, "x", 1.0)
+    assert to_start(fit=1, placed=1, starting=0, queued=1, taken=s.takers(["a"])) == 0
+    assert s.dispatch(["a"], ["a"], 50.0) == [("a", 0)]
+
+
 def test_blocklist_after_a_workers_third_failure():
     s = sched(3, max_attempts=5)
     s.dispatch(["a"], ["a"], 0.0)
@@ -230,8 +265,8 @@ def test_a_job_grows_onto_what_the_cluster_gains_while_tasks_are_queued():
     assert to_start(fit=8, placed=4, starting=0, queued=2) == 2  # the queue keeps 2 busy
     assert to_start(fit=8, placed=4, starting=0, queued=0) == 0  # the job's last tasks run
     assert to_start(fit=2, placed=4, starting=0, queued=100) == 0  # never shrinks
-    assert to_start(fit=8, placed=4, starting=0, queued=3, idle=1) == 2  # one is the idle one's
-    assert to_start(fit=8, placed=4, starting=0, queued=1, idle=2) == 0  # a retry's backoff
+    assert to_start(fit=8, placed=4, starting=0, queued=3, taken=1) == 2  # one is the idle one's
+    assert to_start(fit=8, placed=4, starting=0, queued=1, taken=1) == 0  # a retry's backoff
 
 
 def test_workers_waiting_for_room_beyond_the_queue_are_given_up():
