@@ -685,7 +685,7 @@ def test_failing_material_is_retried_elsewhere_then_recorded(tmp_path):
     """A material that fails every time is retried on the other worker, then recorded.
     Material 0 is held until the first failure is recorded, so that the other worker is busy
     then: one that had rendered everything else would be released at the job's tail (nothing
-    left to take), and the retries would run on the worker left."""
+    left to take), and the retry would run on a fresh worker started for it instead."""
     out, hold = tmp_path / "set.zarr", tmp_path / "hold"
     hold.touch()
     faults = {"fail_materials": [1], "hold_materials": {"while": str(hold), "materials": [0]}}
