@@ -113,7 +113,10 @@ class JobConfig:
         True, "Start the embedded Ray's dashboard (off saves CPU on small machines)."
     )
     max_attempts: int = _opt(
-        3, "Tries per material before it is recorded as failed.", range=(1, None)
+        3,
+        "Tries per material (each retry on another worker where one can run it) before it is "
+        "recorded as failed.",
+        range=(1, None),
     )
     blocklist_after: int = 3
     task_timeout_s: float = _opt(
