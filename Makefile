@@ -33,12 +33,13 @@ demo: $(BIN)/.installed
 		--samples 32 --shard-size 10 --out out/demo.zarr
 	$(BIN)/shards info out/demo.zarr
 
-# Then the smallest training run on that store (1 epoch of the default recipe, CPU or all GPUs)
-# and its metrics.
+# Then a short training run on that store (40 epochs of the default recipe, 360 steps: about 2
+# minutes on 2 CPU cores, or all GPUs), long enough for the ball's shape to show, and its
+# metrics and picture grid (out/runs/demo/eval.png).
 demo-train: $(BIN)/.installed
 	test -f out/demo.zarr/zarr.json || $(MAKE) demo
 	rm -rf out/runs/demo
-	$(BIN)/trainer launch --store out/demo.zarr --epochs 1 --out out/runs/demo
+	$(BIN)/trainer launch --store out/demo.zarr --epochs 40 --out out/runs/demo
 	$(BIN)/trainer eval --checkpoint out/runs/demo
 
 # Two pytest workers: the suite is CPU-bound on 2 cores, and a third worker made it slower
