@@ -37,7 +37,7 @@ from farm.cluster import address_in_force, check_cluster, connect, ray_environme
 from farm.lease import Lease, LeaseHeld, acquire
 from farm.plan import JobConfig, layout_for, material_specs, task_for
 from farm.pool import WorkerPool, read_errors
-from farm.scheduler import Scheduler
+from farm.scheduler import Scheduler, awaited
 from farm.state import JobState, now
 from farm.validate import pending, read_all
 from render_jobs.errors import MaterialError
@@ -297,8 +297,8 @@ class Loop:
         if self.cancelled:
             return
         self.ask_screen_uv()  # first in its worker's queue
-        usable = self.pool.usable()
-        for wid, m in self.sched.recall(usable, self.pool.actors, now()):
+        usable, known = self.pool.usable(), self.known()
+        for wid, m in self.sched.recall(usable, known, now()):
             ref = next(
                 r for r, f in self.refs.items()
                 if f.worker == wid and f.material == m and r not in self.recalled
@@ -306,7 +306,7 @@ class Loop:
             self.recalled.add(ref)
             self.pool.revoke(wid, self.refs[ref].ticket)
             self.state.workers[wid].recalled += 1
-        for wid, m in self.sched.dispatch(usable, self.pool.actors, now()):
+        for wid, m in self.sched.dispatch(usable, known, now()):
             task = task_for(self.cfg, m, self.job.specs[m]).to_dict()
             self.tickets += 1
             report, arrays = self.pool.submit(wid, task, self.cfg.task_timeout_s, self.tickets)
@@ -314,6 +314,14 @@ class Loop:
             w = self.state.workers[wid]
             if w.status == "idle":
                 w.status, w.current = "busy", m
+
+    def known(self) -> list[str]:
+        """The workers a retry may wait for (:func:`farm.scheduler.awaited`): a starting
+        worker's ``last_seen`` is when it was started, until it answers."""
+        starting = set(self.pool.starting.values())
+        placed = [w for w in self.pool.actors if w not in starting]
+        since = {w: self.state.workers[w].last_seen for w in starting if w in self.pool.actors}
+        return awaited(placed, since, now())
 
     def wait(self) -> list:
         import ray

@@ -27,7 +27,9 @@ Rules:
   ``backoff_s * 2**(attempt - 1)``, and is given to a worker that has not failed it, unless
   every known worker has. After ``max_attempts`` failures it is final. An idle worker that
   failed a retry does not count as its taker (:meth:`Scheduler.takers`): where the job has
-  room, a fresh worker is started for it.
+  room, a fresh worker is started for it. A worker still starting is known, so waited for,
+  for ``RETRY_WAIT_S`` only (:func:`awaited`): a retry does not idle longer than that behind
+  one that Ray cannot place.
 * **Blocklist.** A worker with ``blocklist_after`` failures is to be removed (the driver
   replaces it).
 * **Lost results.** Completed tasks whose results were lost before their shard was written
@@ -42,8 +44,20 @@ Rules:
 from __future__ import annotations
 
 import collections
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+
+# How long a retry waits for a starting worker that has not failed it, rather than run on one
+# that has: enough for a worker's Blender to load on a node that has room, short of the
+# minutes another job's hold on the room, or an autoscaler's node start, may take.
+RETRY_WAIT_S = 120.0
+
+
+def awaited(placed: Iterable[str], starting: Mapping[str, float], now: float) -> list[str]:
+    """The workers known to :meth:`Scheduler.dispatch` and :meth:`Scheduler.recall`: every
+    ``placed`` one, and those ``starting`` (worker to when it was started) for under
+    ``RETRY_WAIT_S``."""
+    return [*placed, *(w for w, since in starting.items() if now - since < RETRY_WAIT_S)]
 
 
 @dataclass
