@@ -321,7 +321,7 @@ class Loop:
         starting = set(self.pool.starting.values())
         placed = [w for w in self.pool.actors if w not in starting]
         since = {w: self.state.workers[w].last_seen for w in starting if w in self.pool.actors}
-        return awaited(placed, since, now())
+        return awaited(placed, since, now(), self.cfg.retry_wait_s)
 
     def wait(self) -> list:
         import ray

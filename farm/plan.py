@@ -124,6 +124,14 @@ class JobConfig:
         flag="task_timeout", range=(1, None),
     )  # fmt: skip
     backoff_s: float = 1.0
+    retry_wait_s: float = _opt(
+        120.0,
+        "Seconds a retry waits for a starting worker that has not failed it (one started "
+        "for it, or still waiting for room) before it runs on one that has; raise it for an "
+        "autoscaler whose nodes take longer to start.",
+        flag="retry_wait",
+        range=(0, None),
+    )
     recycle_after: int = _opt(
         500, "Restart a worker's Blender after this many renders.", range=(1, None)
     )

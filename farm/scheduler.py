@@ -28,8 +28,8 @@ Rules:
   every known worker has. After ``max_attempts`` failures it is final. An idle worker that
   failed a retry does not count as its taker (:meth:`Scheduler.takers`): where the job has
   room, a fresh worker is started for it. A worker still starting is known, so waited for,
-  for ``RETRY_WAIT_S`` only (:func:`awaited`): a retry does not idle longer than that behind
-  one that Ray cannot place.
+  for a while only (:func:`awaited`, ``farm submit --retry-wait``): a retry does not idle
+  longer than that behind one that Ray cannot place.
 * **Blocklist.** A worker with ``blocklist_after`` failures is to be removed (the driver
   replaces it).
 * **Lost results.** Completed tasks whose results were lost before their shard was written
@@ -47,17 +47,16 @@ import collections
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
-# How long a retry waits for a starting worker that has not failed it, rather than run on one
-# that has: enough for a worker's Blender to load on a node that has room, short of the
-# minutes another job's hold on the room, or an autoscaler's node start, may take.
-RETRY_WAIT_S = 120.0
 
-
-def awaited(placed: Iterable[str], starting: Mapping[str, float], now: float) -> list[str]:
+def awaited(
+    placed: Iterable[str], starting: Mapping[str, float], now: float, wait_s: float
+) -> list[str]:
     """The workers known to :meth:`Scheduler.dispatch` and :meth:`Scheduler.recall`: every
     ``placed`` one, and those ``starting`` (worker to when it was started) for under
-    ``RETRY_WAIT_S``."""
-    return [*placed, *(w for w, since in starting.items() if now - since < RETRY_WAIT_S)]
+    ``wait_s``. A retry waits for a known worker that has not failed it: for one that Ray
+    cannot place (no room, another job holding it, an autoscaler's node still starting), no
+    longer than ``wait_s``; then a worker that failed it may take it."""
+    return [*placed, *(w for w, since in starting.items() if now - since < wait_s)]
 
 
 @dataclass

@@ -337,6 +337,35 @@ def test_a_worker_waiting_for_room_is_given_up_when_the_queue_runs_dry(tmp_path,
     assert sorted(w["status"] for w in job(out)["workers"].values()) == ["stopped", "unplaced"]
 
 
+def test_a_retry_waits_for_a_worker_ray_cannot_place_no_longer_than_retry_wait(
+    tmp_path, monkeypatch
+):
+    """``--workers 2`` on a one-CPU cluster: the second worker never finds room. The first
+    fails material 0's first try; the retry waits ``--retry-wait 3`` seconds for the worker
+    that has not failed it, then runs on the one that has, and the job ends whole (it would
+    wait for as long as the second worker waits for room: here, for ever)."""
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    trace = tmp_path / "trace"
+    faults = {"flaky_materials": [0], "flaky_marker": str(tmp_path / "tried"),
+              "trace": str(trace)}  # fmt: skip
+    cluster = local_cluster(1, {FAULTS_ENV: json.dumps(faults)})
+    out = tmp_path / "set.zarr"
+    try:
+        cluster.wait_for_nodes()
+        r = farm("submit", "-m", "uniform:2", *TINY, "--workers", "2", "--retry-wait", "3",
+                 "--address", cluster.address, "-o", out, timeout=240)  # fmt: skip
+    finally:
+        cluster.shutdown()
+    assert r.returncode == 0, r.stderr[-3000:]
+    st = job(out)
+    failure = st["failures"]["0"]
+    assert failure["recovered"] and failure["attempts"] == 1, st["failures"]
+    tries = [line.split()[0] for line in trace.read_text().splitlines() if line.endswith(" 0")]
+    assert len(tries) == 2 and tries[0] == tries[1] == failure["errors"][0]["worker"]
+    assert_exactly_once(out, 2)
+    assert sorted(w["status"] for w in st["workers"].values()) == ["stopped", "unplaced"]
+
+
 def test_an_idle_worker_is_released_at_the_tail_and_a_retry_runs_on_a_fresh_one(tmp_path):
     """``--workers 2``, 3 materials, the last slowed 10 s and failing its first try: while it
     renders, the worker left with nothing is released (its node could go). The retry does not

@@ -99,18 +99,18 @@ def test_a_retry_at_a_jobs_tail_starts_a_fresh_worker_and_waits_for_it():
 
 def test_a_retry_waits_for_a_starting_worker_for_a_bounded_time_only():
     """A fresh worker that Ray cannot place (another job took the room) is known, so waited
-    for, for ``RETRY_WAIT_S``; then the worker that failed the retry takes it."""
-    from farm.scheduler import RETRY_WAIT_S, awaited
+    for, for ``--retry-wait`` seconds; then the worker that failed the retry takes it."""
+    from farm.scheduler import awaited
 
-    assert awaited(["a"], {"c": 100.0}, 100.0 + RETRY_WAIT_S - 1) == ["a", "c"]
-    assert awaited(["a"], {"c": 100.0}, 100.0 + RETRY_WAIT_S) == ["a"]
-    assert awaited([], {}, 0.0) == []
+    assert awaited(["a"], {"c": 100.0}, 219.0, 120.0) == ["a", "c"]
+    assert awaited(["a"], {"c": 100.0}, 220.0, 120.0) == ["a"]
+    assert awaited(["a"], {"c": 100.0}, 100.0, 0.0) == ["a"]  # --retry-wait 0: never
+    assert awaited([], {}, 0.0, 120.0) == []
     s = sched(1)
     s.dispatch(["a"], ["a"], 0.0)
     s.failed("a", 0, "x", 1.0)  # c is started for it at t = 1 and never placed
-    assert s.dispatch(["a"], awaited(["a"], {"c": 1.0}, 60.0), 60.0) == []
-    t = 1.0 + RETRY_WAIT_S
-    assert s.dispatch(["a"], awaited(["a"], {"c": 1.0}, t), t) == [("a", 0)]
+    assert s.dispatch(["a"], awaited(["a"], {"c": 1.0}, 60.0, 120.0), 60.0) == []
+    assert s.dispatch(["a"], awaited(["a"], {"c": 1.0}, 121.0, 120.0), 121.0) == [("a", 0)]
 
 
 def test_blocklist_after_a_workers_third_failure():
