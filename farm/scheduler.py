@@ -140,8 +140,9 @@ class Scheduler:
 
     def dispatch(self, usable: list[str], known: Iterable[str], now: float) -> list[tuple]:
         """``(worker, task)`` pairs to hand out now to the ``usable`` workers (placed and
-        alive), in order. ``known``: every worker that exists, starting ones too (a retry may
-        wait for one that has not failed it)."""
+        alive), in order. ``known``: every worker that exists, starting ones too while they
+        are awaited (:func:`awaited`: a retry may wait for one that has not failed it, and a
+        worker takes a second task only while the queue outnumbers them all)."""
         known = set(known)
         # a second task only while the queue outnumbers every worker, starting ones too: a
         # worker still starting takes its own share when it comes up
